@@ -1,0 +1,37 @@
+"""Shared fixtures: the location of ../shared/data and deterministic torch settings.
+
+Tests that need the real data in ``../shared/data`` (present beside the checkout in CI, absent in a
+user's clone) take the ``shared_data`` fixture.  Without the folder they are skipped with a reason
+in a user's clone, and they *fail* when ``CI`` is set, so a CI run never counts a skip as a pass.
+``TSSLAM_SHARED_DATA`` may point at the folder explicitly.
+"""
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def shared_data_dir() -> Path:
+    return Path(os.environ.get("TSSLAM_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    path = shared_data_dir()
+    if not (path / "tum_fr3_teddy_120").is_dir():
+        message = f"real test data not found at {path} (set TSSLAM_SHARED_DATA)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _torch_determinism():
+    torch.manual_seed(0)
+    torch.set_num_threads(2)
+    yield

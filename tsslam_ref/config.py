@@ -1,0 +1,497 @@
+"""One configuration system for the whole package: nested dataclasses, presets, overrides.
+
+Layer 0 (base): dataclasses only, no torch.
+
+* One dataclass per concept (``DataConfig``, ``FieldConfig``, ``RenderConfig``, ``LossConfig``,
+  ``TrackingConfig``, ``MappingConfig``, ``SplineConfig``, ``DynamicsConfig``, ``LocalBAConfig``,
+  ``MeshConfig``) gathered in :class:`Config`.
+* Every field says its unit and its source: "Co-SLAM" means the official YAML/code at commit
+  3bb904e as recorded in shared/spec/coslam.md; "paper" means TS-SLAM (shared/paper/ts-slam.tex);
+  "ours" means a choice of this project (see docs/deviations.md).
+* Presets are plain functions registered in :data:`PRESETS`: ``tum``, ``scannet``, ``synthetic``,
+  ``replica`` (the original numbers), ``tum-cpu`` and ``synthetic-cpu`` (same structure, fewer rays
+  and samples, for 2 CPU cores), and ``tiny`` (tests and notebooks).
+* Overrides are strings ``section.key=value`` (``--set tracking.iters=20`` on the command line),
+  parsed as JSON where possible, else kept as strings.
+* :func:`load` accepts a preset name or a JSON file written by :func:`save` (every run saves its
+  resolved config as ``config.json``).
+"""
+
+import copy
+import dataclasses
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from dataclasses import field as _field
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+
+@dataclass
+class DataConfig:
+    """Which frames to read and how to pre-process them."""
+
+    dataset: str = "auto"
+    """Layout of ``path``: auto | tum | scannet | neural_rgbd | replica | folder (ours)."""
+    path: str = ""
+    """Dataset folder; empty means the bundled default sequence (ours)."""
+    image_scale: float = 1.0
+    """Resize factor applied to colour and depth, intrinsics scaled exactly (ours)."""
+    crop_edge: int = 0
+    """Pixels cropped from every side before resizing (Co-SLAM ``crop_edge``: ScanNet 10, TUM 8)."""
+    depth_scale: Optional[float] = None
+    """PNG value per metre; None uses the dataset's standard (TUM 5000, ScanNet 1000, ...)."""
+    depth_trunc: float = 100.0
+    """Depth beyond this (m) is invalid for colour/depth losses (Co-SLAM ``cam.depth_trunc``: TUM 5)."""
+    fps: float = 30.0
+    """Frame rate assumed where a dataset has no timestamps (paper Sec. IV-A: 30 FPS)."""
+    frame_start: int = 0
+    """First frame index used (ours)."""
+    frame_stop: Optional[int] = None
+    """One past the last frame index used; None = all (ours)."""
+    frame_step: int = 1
+    """Use every n-th frame (ours)."""
+
+
+@dataclass
+class FieldConfig:
+    """Co-SLAM joint encoding: OneBlob + multi-resolution hash grid + two tiny MLPs (Sec. III-A)."""
+
+    bound: Optional[List[List[float]]] = None
+    """Scene box [[xmin,xmax],[ymin,ymax],[zmin,zmax]] in metres; None = estimated from the first
+    frames' depth (ours; Co-SLAM needs it in every scene YAML)."""
+    bound_margin: float = 0.5
+    """Margin (m) added on every side when the bound is estimated from depth (ours)."""
+    n_levels: int = 16
+    """Hash-grid levels (Co-SLAM, fixed in code)."""
+    n_features_per_level: int = 2
+    """Features per level (Co-SLAM, fixed in code)."""
+    base_resolution: int = 16
+    """Coarsest grid resolution (Co-SLAM, fixed in code)."""
+    log2_hashmap_size: int = 16
+    """log2 of the per-level table size T (Co-SLAM ``grid.hash_size``)."""
+    voxel_sdf: float = 0.02
+    """Finest cell size in metres; finest resolution = max box side / voxel_sdf (Co-SLAM)."""
+    oneblob_bins: int = 16
+    """OneBlob bins per axis (Co-SLAM ``pos.n_bins``)."""
+    geo_feat_dim: int = 15
+    """Geometric feature passed from the SDF head to the colour head (Co-SLAM)."""
+    hidden_dim: int = 32
+    """Hidden width of the geometry MLP (Co-SLAM)."""
+    hidden_dim_color: int = 32
+    """Hidden width of the colour MLP (Co-SLAM)."""
+    fast_gather: bool = True
+    """Use the custom gather/scatter_add autograd function for table reads (ours, see
+    shared/spec/cpu-budget.md); False uses the plain reference path."""
+
+
+@dataclass
+class RenderConfig:
+    """Ray sampling and SDF volume rendering (Sec. III-A, Eq. 3; Co-SLAM ``render_rays``)."""
+
+    n_samples: int = 32
+    """Uniform samples in [near, far] per ray (Co-SLAM ``n_samples_d``)."""
+    n_range_d: int = 11
+    """Depth-guided samples in [D - range_d, D + range_d] (Co-SLAM)."""
+    range_d: float = 0.1
+    """Half-width (m) of the depth-guided interval (Co-SLAM)."""
+    near: float = 0.0
+    """Near plane (m) (Co-SLAM)."""
+    far: float = 5.0
+    """Far plane (m) (Co-SLAM ``cam.far``)."""
+    truncation: float = 0.1
+    """tr: SDF truncation (m) (Co-SLAM ``training.trunc``: 0.10, TUM 0.05)."""
+    perturb: bool = True
+    """Stratified jitter of the sorted samples (Co-SLAM ``perturb: 1``)."""
+    chunk: int = 4096
+    """Rays per chunk for full-image rendering (ours)."""
+
+
+@dataclass
+class LossConfig:
+    """Weights of the five reconstruction losses (Sec. III-A, Eq. 4; Co-SLAM section 3.4)."""
+
+    rgb_weight: float = 5.0
+    depth_weight: float = 0.1
+    sdf_weight: float = 1000.0
+    fs_weight: float = 10.0
+    smooth_weight: float = 1e-5
+    """Feature total-variation weight, global BA only (Co-SLAM)."""
+    smooth_pts: int = 32
+    """Lattice points per axis for the smoothness term (Co-SLAM)."""
+    smooth_vox: float = 0.1
+    """Lattice spacing (m) (Co-SLAM)."""
+    smooth_margin: float = 0.05
+    """Margin (m) from the box when placing the lattice (Co-SLAM)."""
+    rgb_missing: float = 0.05
+    """Colour-loss factor for rays without valid depth (Co-SLAM; effective weight is its square)."""
+
+
+@dataclass
+class TrackingConfig:
+    """Per-frame pose optimisation with the map frozen (Sec. III-D, Tracking Thread)."""
+
+    iters: int = 10
+    """Adam iterations per frame (Co-SLAM ``tracking.iter``)."""
+    n_rays: int = 1024
+    """Pixels sampled per frame, reused for all iterations (Co-SLAM ``tracking.sample``)."""
+    lr_rot: float = 1e-3
+    """Learning rate of the rotation increment (Co-SLAM: 1e-3, TUM 1e-2)."""
+    lr_trans: float = 1e-3
+    """Learning rate of the translation (Co-SLAM: 1e-3, TUM 1e-2)."""
+    ignore_edge: int = 20
+    """Border (px, at the original resolution) excluded from sampling (Co-SLAM ``ignore_edge_W/H``)."""
+    best: bool = True
+    """Keep the lowest-loss pose (Co-SLAM ``tracking.best``)."""
+    const_speed: bool = True
+    """Constant-velocity initialisation (Co-SLAM ``const_speed``)."""
+
+
+@dataclass
+class MappingConfig:
+    """First-frame mapping, keyframes and global BA (Co-SLAM section 5; Sec. III-D Global BA)."""
+
+    first_iters: int = 200
+    """Map iterations on frame 0 with its pose fixed (Co-SLAM: 200, ScanNet 500, TUM 1000)."""
+    first_n_rays: int = 2048
+    """Rays per first-frame iteration (Co-SLAM ``mapping.sample``)."""
+    iters: int = 10
+    """Global BA iterations (Co-SLAM ``mapping.iters``: 10, TUM 20)."""
+    n_rays: int = 2048
+    """Keyframe rays per BA iteration (Co-SLAM ``mapping.sample``)."""
+    min_pixels_cur: int = 100
+    """Minimum current-frame rays per BA iteration (Co-SLAM)."""
+    keyframe_every: int = 5
+    """Every n-th frame becomes a keyframe (Co-SLAM; paper Sec. III-D)."""
+    map_every: int = 5
+    """Global BA every n-th frame for the discrete-pose baseline (Co-SLAM)."""
+    kf_pixel_fraction: float = 0.05
+    """Share of each keyframe's pixels stored (Co-SLAM ``n_pixels``)."""
+    lr_embed: float = 0.01
+    """Hash-grid learning rate (Co-SLAM; Synthetic 0.001)."""
+    lr_decoder: float = 0.01
+    """MLP learning rate (Co-SLAM)."""
+    lr_rot: float = 1e-3
+    """BA rotation learning rate (Co-SLAM)."""
+    lr_trans: float = 1e-3
+    """BA translation learning rate (Co-SLAM)."""
+    optim_cur: bool = True
+    """Optimise the current frame's pose in BA (Co-SLAM: False for ScanNet)."""
+    pose_accum_step: int = 5
+    """Pose optimiser steps every n BA iterations with accumulated gradients (Co-SLAM)."""
+
+
+@dataclass
+class SplineConfig:
+    """Uniform cubic B-spline trajectory (Sec. III-B)."""
+
+    dt: float = 0.3
+    """Knot spacing Delta t in seconds (paper: 0.30 ScanNet/synthetic, 0.25 TUM)."""
+    convention: str = "paper"
+    """Index convention: 'paper' (segment [t_i, t_i+1) uses points i-2..i+1) or 'basalt' (i..i+3)."""
+
+
+@dataclass
+class DynamicsConfig:
+    """Dynamics regulariser L_DR (Sec. III-C, Eq. 10)."""
+
+    lambda_acc: float = 0.1
+    """lambda_1, weight of the linear-acceleration barrier (paper)."""
+    lambda_ang: float = 0.1
+    """lambda_2, weight of the angular-acceleration barrier (paper)."""
+    a_max: float = 5.0
+    """||a||_max in m/s^2 (paper)."""
+    omegadot_max: float = 5.0
+    """||omega_dot||_max in rad/s^2 (paper)."""
+    n_samples: int = 32
+    """K: times sampled uniformly in the window (ours; the paper does not state K)."""
+    barrier_limit: float = 0.95
+    """Ratio ||a||/a_max beyond which the log barrier is continued linearly (ours, see dynamics.py)."""
+
+
+@dataclass
+class LocalBAConfig:
+    """Sliding-window local BA over spline control points (Sec. III-D, Fig. 5)."""
+
+    enabled: bool = True
+    """False gives the 'w/o LBA' ablation (paper Table V)."""
+    window: int = 6
+    """M: control points in the sliding window (ours; the paper does not state M)."""
+    fit_iters: int = 50
+    """Curve-approximation iterations for a new control point (ours)."""
+    refine_iters: int = 10
+    """Control-point refinement iterations with the map frozen (ours)."""
+    joint_iters: int = 10
+    """Joint map + control-point iterations on the window's keyframes (ours)."""
+    n_rays: int = 1024
+    """Rays per refinement/joint iteration (ours)."""
+    lr_rot: float = 1e-3
+    """Control-rotation learning rate (ours)."""
+    lr_trans: float = 1e-3
+    """Control-translation learning rate (ours)."""
+    use_spline: bool = True
+    """False gives the 'w/o B-S.' ablation: local BA on discrete per-frame poses (paper Table V)."""
+    use_dynamics: bool = True
+    """False gives the 'w/o DR' ablation (paper Table V)."""
+
+
+@dataclass
+class MeshConfig:
+    """Marching-cubes meshes (Co-SLAM section 6.1)."""
+
+    voxel_eval: float = 0.05
+    """Voxel size (m) of intermediate meshes (Co-SLAM)."""
+    voxel_final: float = 0.03
+    """Voxel size (m) of the final mesh (Co-SLAM: 0.02 Replica/Synthetic, 0.03 ScanNet/TUM)."""
+    sdf_cutoff: float = 3.0
+    """Skip cells whose corners all have |normalised SDF| >= this (Co-SLAM NumpyMarchingCubes)."""
+
+
+@dataclass
+class Config:
+    """Everything a run needs.  Saved as ``config.json`` beside every run's outputs."""
+
+    name: str = "default"
+    """Preset name this config started from."""
+    method: str = "tsslam"
+    """tsslam (B-spline trajectory) or coslam (one pose per frame, the baseline)."""
+    seed: int = 0
+    """Seed for every random draw (torch, numpy)."""
+    device: str = "auto"
+    """cpu | cuda | auto."""
+    dtype: str = "float32"
+    """Map and rendering precision."""
+    data: DataConfig = _field(default_factory=DataConfig)
+    field: FieldConfig = _field(default_factory=FieldConfig)
+    render: RenderConfig = _field(default_factory=RenderConfig)
+    loss: LossConfig = _field(default_factory=LossConfig)
+    tracking: TrackingConfig = _field(default_factory=TrackingConfig)
+    mapping: MappingConfig = _field(default_factory=MappingConfig)
+    spline: SplineConfig = _field(default_factory=SplineConfig)
+    dynamics: DynamicsConfig = _field(default_factory=DynamicsConfig)
+    local_ba: LocalBAConfig = _field(default_factory=LocalBAConfig)
+    mesh: MeshConfig = _field(default_factory=MeshConfig)
+
+
+# --------------------------------------------------------------------------------------------
+# Presets (plain functions).  The first four hold the original numbers.
+
+
+def replica() -> Config:
+    """Co-SLAM's Replica settings (spec Appendix A)."""
+    cfg = Config(name="replica")
+    cfg.data = DataConfig(dataset="replica", depth_scale=6553.5, depth_trunc=100.0)
+    cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.02)
+    cfg.render = RenderConfig(n_samples=32, n_range_d=11, range_d=0.1, far=5.0, truncation=0.1)
+    cfg.loss = LossConfig(smooth_weight=1e-6, smooth_pts=32, smooth_vox=0.1, smooth_margin=0.05, rgb_missing=0.05)
+    cfg.mapping = MappingConfig(first_iters=200, iters=10)
+    cfg.spline = SplineConfig(dt=0.3)
+    cfg.mesh = MeshConfig(voxel_final=0.02)
+    return cfg
+
+
+def synthetic() -> Config:
+    """Co-SLAM's NeuralRGBD synthetic settings (spec Appendix A); also our synthetic scenes."""
+    cfg = Config(name="synthetic")
+    cfg.data = DataConfig(dataset="auto", depth_trunc=100.0)
+    cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.01)
+    cfg.render = RenderConfig(n_samples=32, n_range_d=11, range_d=0.1, far=4.0, truncation=0.1)
+    cfg.loss = LossConfig(smooth_weight=1e-5, smooth_pts=32, smooth_vox=0.1, smooth_margin=0.05, rgb_missing=0.05)
+    cfg.mapping = MappingConfig(first_iters=200, iters=10, lr_embed=0.001)
+    cfg.spline = SplineConfig(dt=0.3)
+    cfg.mesh = MeshConfig(voxel_final=0.02)
+    return cfg
+
+
+def scannet() -> Config:
+    """Co-SLAM's ScanNet settings (spec Appendix A)."""
+    cfg = Config(name="scannet")
+    cfg.data = DataConfig(dataset="scannet", crop_edge=10, depth_scale=1000.0, depth_trunc=100.0)
+    cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.04)
+    cfg.render = RenderConfig(n_samples=96, n_range_d=21, range_d=0.25, far=8.0, truncation=0.1)
+    cfg.loss = LossConfig(smooth_weight=1e-3, smooth_pts=64, smooth_vox=0.1, smooth_margin=0.05, rgb_missing=0.0)
+    cfg.mapping = MappingConfig(first_iters=500, iters=10, optim_cur=False, min_pixels_cur=20)
+    cfg.spline = SplineConfig(dt=0.3)
+    return cfg
+
+
+def tum() -> Config:
+    """Co-SLAM's TUM RGB-D settings (spec Appendix A); TS-SLAM uses dt = 0.25 s on TUM."""
+    cfg = Config(name="tum")
+    cfg.data = DataConfig(dataset="tum", crop_edge=8, depth_scale=5000.0, depth_trunc=5.0)
+    cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.02)
+    cfg.render = RenderConfig(n_samples=64, n_range_d=21, range_d=0.25, far=5.0, truncation=0.05)
+    cfg.loss = LossConfig(
+        rgb_weight=1.0, depth_weight=0.1, sdf_weight=5000.0, fs_weight=10.0,
+        smooth_weight=1e-8, smooth_pts=64, smooth_vox=0.04, smooth_margin=0.0, rgb_missing=1.0,
+    )
+    cfg.tracking = TrackingConfig(iters=10, lr_rot=1e-2, lr_trans=1e-2, best=False)
+    cfg.mapping = MappingConfig(first_iters=1000, iters=20)
+    cfg.spline = SplineConfig(dt=0.25)
+    return cfg
+
+
+def tum_cpu() -> Config:
+    """TUM settings for 2 CPU cores: quarter-resolution images, fewer rays and samples (ours).
+
+    Same losses, weights, truncation and schedule structure as :func:`tum`.
+    """
+    cfg = tum()
+    cfg.name = "tum-cpu"
+    cfg.data.image_scale = 0.25
+    cfg.field.log2_hashmap_size = 16
+    cfg.field.voxel_sdf = 0.04
+    cfg.render.n_samples = 32
+    cfg.render.n_range_d = 11
+    cfg.tracking.n_rays = 512
+    cfg.tracking.iters = 20
+    cfg.tracking.best = True
+    cfg.tracking.ignore_edge = 20
+    cfg.mapping.first_iters = 200
+    cfg.mapping.first_n_rays = 1024
+    cfg.mapping.n_rays = 1024
+    cfg.mapping.iters = 20
+    cfg.loss.smooth_pts = 32
+    cfg.local_ba.n_rays = 512
+    cfg.mesh.voxel_final = 0.04
+    return cfg
+
+
+def synthetic_cpu() -> Config:
+    """Synthetic-scene settings for 2 CPU cores (ours), same structure as :func:`synthetic`."""
+    cfg = synthetic()
+    cfg.name = "synthetic-cpu"
+    cfg.field.log2_hashmap_size = 16
+    cfg.field.voxel_sdf = 0.04
+    cfg.render.n_samples = 32
+    cfg.render.n_range_d = 11
+    cfg.tracking.n_rays = 512
+    cfg.tracking.iters = 20
+    cfg.mapping.first_iters = 200
+    cfg.mapping.first_n_rays = 1024
+    cfg.mapping.n_rays = 1024
+    cfg.mapping.iters = 20
+    cfg.mapping.lr_embed = 0.01
+    cfg.local_ba.n_rays = 512
+    cfg.mesh.voxel_final = 0.04
+    return cfg
+
+
+def tiny() -> Config:
+    """Smallest sensible settings for unit tests and notebooks (seconds on 2 cores; ours)."""
+    cfg = synthetic_cpu()
+    cfg.name = "tiny"
+    cfg.field.log2_hashmap_size = 14
+    cfg.field.voxel_sdf = 0.08
+    cfg.render.n_samples = 24
+    cfg.render.n_range_d = 8
+    cfg.tracking.n_rays = 128
+    cfg.tracking.iters = 5
+    cfg.mapping.first_iters = 30
+    cfg.mapping.first_n_rays = 256
+    cfg.mapping.n_rays = 256
+    cfg.mapping.iters = 10
+    cfg.local_ba.n_rays = 128
+    cfg.local_ba.refine_iters = 5
+    cfg.local_ba.joint_iters = 5
+    cfg.loss.smooth_pts = 16
+    cfg.mesh.voxel_final = 0.08
+    return cfg
+
+
+PRESETS: Dict[str, Callable[[], Config]] = {
+    "tum": tum,
+    "scannet": scannet,
+    "synthetic": synthetic,
+    "replica": replica,
+    "tum-cpu": tum_cpu,
+    "synthetic-cpu": synthetic_cpu,
+    "tiny": tiny,
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Conversion, overrides, files
+
+
+def to_dict(cfg: Config) -> Dict[str, Any]:
+    """Plain nested dict (JSON-serialisable) of a config."""
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(values: Dict[str, Any], source: str = "<dict>") -> Config:
+    """Build a Config from a nested dict; unknown sections or keys raise ValueError naming them."""
+    cfg = Config()
+    for key, value in values.items():
+        if not hasattr(cfg, key):
+            raise ValueError(f"{source}: unknown config section or key '{key}'")
+        current = getattr(cfg, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ValueError(f"{source}: section '{key}' must be an object, got {type(value).__name__}")
+            for sub_key, sub_value in value.items():
+                if not hasattr(current, sub_key):
+                    raise ValueError(f"{source}: unknown key '{key}.{sub_key}'")
+                setattr(current, sub_key, sub_value)
+        else:
+            setattr(cfg, key, value)
+    return cfg
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        if text in ("True", "False"):
+            return text == "True"
+        if text == "None":
+            return None
+        return text
+
+
+def apply_overrides(cfg: Config, overrides: Sequence[str]) -> Config:
+    """Return a copy of ``cfg`` with ``section.key=value`` overrides applied.
+
+    Values are parsed as JSON (``3``, ``0.5``, ``true``, ``[[0,1],[0,1],[0,1]]``), else taken as
+    strings.  Raises ValueError naming the override for an unknown key or a malformed string.
+    """
+    cfg = copy.deepcopy(cfg)
+    for item in overrides:
+        if "=" not in item:
+            raise ValueError(f"override '{item}' is not of the form section.key=value")
+        path, text = item.split("=", 1)
+        parts = path.strip().split(".")
+        target = cfg
+        for part in parts[:-1]:
+            if not hasattr(target, part):
+                raise ValueError(f"override '{item}': unknown section '{part}'")
+            target = getattr(target, part)
+        if not hasattr(target, parts[-1]) or dataclasses.is_dataclass(getattr(target, parts[-1])):
+            raise ValueError(f"override '{item}': unknown key '{path}'")
+        setattr(target, parts[-1], _parse_value(text.strip()))
+    return cfg
+
+
+def load(name_or_file: str) -> Config:
+    """A preset by name (see :data:`PRESETS`) or a JSON config file written by :func:`save`."""
+    if name_or_file in PRESETS:
+        return PRESETS[name_or_file]()
+    if os.path.isfile(name_or_file):
+        with open(name_or_file) as handle:
+            try:
+                values = json.load(handle)
+            except json.JSONDecodeError as error:
+                raise ValueError(f"{name_or_file}: not valid JSON ({error})") from error
+        return from_dict(values, source=name_or_file)
+    raise ValueError(
+        f"config '{name_or_file}' is neither a preset ({', '.join(PRESETS)}) nor an existing JSON file"
+    )
+
+
+def save(cfg: Config, path: str) -> None:
+    """Write the config as JSON atomically (temporary file, then rename)."""
+    directory = os.path.dirname(os.path.abspath(path))
+    handle, temporary = tempfile.mkstemp(dir=directory, suffix=".tmp")
+    with os.fdopen(handle, "w") as stream:
+        json.dump(to_dict(cfg), stream, indent=2)
+    os.replace(temporary, path)
