@@ -35,8 +35,9 @@ class DataConfig:
     """Layout of ``path``: auto | tum | scannet | neural_rgbd | replica | folder (ours)."""
     path: str = ""
     """Dataset folder; empty means the bundled default sequence (ours)."""
-    image_scale: float = 1.0
-    """Resize factor applied to colour and depth, intrinsics scaled exactly (ours)."""
+    resize_width: Optional[int] = None
+    """Resize colour and depth to this width in pixels (aspect kept, intrinsics scaled exactly);
+    None keeps the native size (ours)."""
     crop_edge: int = 0
     """Pixels cropped from every side before resizing (Co-SLAM ``crop_edge``: ScanNet 10, TUM 8)."""
     depth_scale: Optional[float] = None
@@ -140,7 +141,7 @@ class TrackingConfig:
     lr_trans: float = 1e-3
     """Learning rate of the translation (Co-SLAM: 1e-3, TUM 1e-2)."""
     ignore_edge: int = 20
-    """Border (px, at the original resolution) excluded from sampling (Co-SLAM ``ignore_edge_W/H``)."""
+    """Border (px of the processed image) excluded from sampling (Co-SLAM ``ignore_edge_W/H``)."""
     best: bool = True
     """Keep the lowest-loss pose (Co-SLAM ``tracking.best``)."""
     const_speed: bool = True
@@ -338,7 +339,7 @@ def tum_cpu() -> Config:
     """
     cfg = tum()
     cfg.name = "tum-cpu"
-    cfg.data.image_scale = 0.25
+    cfg.data.resize_width = 160
     cfg.field.log2_hashmap_size = 16
     cfg.field.voxel_sdf = 0.04
     cfg.render.n_samples = 32
@@ -346,7 +347,7 @@ def tum_cpu() -> Config:
     cfg.tracking.n_rays = 512
     cfg.tracking.iters = 20
     cfg.tracking.best = True
-    cfg.tracking.ignore_edge = 20
+    cfg.tracking.ignore_edge = 5
     cfg.mapping.first_iters = 200
     cfg.mapping.first_n_rays = 1024
     cfg.mapping.n_rays = 1024
@@ -361,6 +362,8 @@ def synthetic_cpu() -> Config:
     """Synthetic-scene settings for 2 CPU cores (ours), same structure as :func:`synthetic`."""
     cfg = synthetic()
     cfg.name = "synthetic-cpu"
+    cfg.data.resize_width = 160
+    cfg.tracking.ignore_edge = 5
     cfg.field.log2_hashmap_size = 16
     cfg.field.voxel_sdf = 0.04
     cfg.render.n_samples = 32
