@@ -1,0 +1,507 @@
+"""Tests for tsslam_ref.eval (TS-SLAM §IV-A metrics).
+
+Oracles: planted truth (known SE(3)/Sim(3), known noise, known jumps), evo (APE/RPE, an independent
+implementation), scipy's Rotation.align_vectors, analytic distances between parallel planes and
+concentric spheres (with the Poisson nearest-neighbour correction), analytic depth of planes.
+"""
+
+import json
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy import integrate
+from scipy.spatial.transform import Rotation
+
+from tsslam_ref import eval as ev
+from tsslam_ref.geometry import pose_to_tum, tum_to_pose
+
+FR2_DESK = "trajectories/tum_rgbd_fr2_desk_groundtruth.txt"
+
+
+# ------------------------------------------------------------------------------------------
+# helpers (test-side, independent of the module under test)
+
+
+def load_tum(path):
+    """Read a TUM file with numpy.loadtxt (independent of the package reader)."""
+    table = np.loadtxt(path, comments="#")
+    return table[:, 0], tum_to_pose(table[:, 1:])
+
+
+def random_rigid(rng, translation_scale=2.0):
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+    pose[:3, 3] = rng.normal(size=3) * translation_scale
+    return pose
+
+
+def perturb(poses, rng, sigma_m, sigma_rad):
+    """Add isotropic position noise (m) and random small rotations (rad) to (N, 4, 4) poses."""
+    noisy = poses.copy()
+    noisy[:, :3, 3] += rng.normal(scale=sigma_m, size=(len(poses), 3))
+    delta = Rotation.from_rotvec(rng.normal(scale=sigma_rad, size=(len(poses), 3))).as_matrix()
+    noisy[:, :3, :3] = poses[:, :3, :3] @ delta
+    return noisy
+
+
+@pytest.fixture(scope="module")
+def fr2_desk(shared_data):
+    times, poses = load_tum(shared_data / FR2_DESK)
+    return times, poses
+
+
+# ------------------------------------------------------------------------------------------
+# Horn / Umeyama alignment
+
+
+@pytest.mark.parametrize("with_scale", [False, True])
+def test_horn_alignment_recovers_planted_similarity(with_scale):
+    rng = np.random.default_rng(1)
+    model = rng.normal(size=(50, 3))
+    true_R = Rotation.random(random_state=rng).as_matrix()
+    true_t = rng.normal(size=3)
+    true_s = 1.7 if with_scale else 1.0
+    data = true_s * model @ true_R.T + true_t
+    R, t, s = ev.horn_alignment(model, data, with_scale=with_scale)
+    np.testing.assert_allclose(R, true_R, atol=1e-12)
+    np.testing.assert_allclose(t, true_t, atol=1e-12)
+    assert s == pytest.approx(true_s, abs=1e-12)
+
+
+def test_horn_alignment_rotation_matches_scipy_align_vectors():
+    rng = np.random.default_rng(2)
+    model = rng.normal(size=(200, 3)) * [3.0, 1.0, 0.3]
+    data = model @ Rotation.random(random_state=rng).as_matrix().T + rng.normal(scale=0.2, size=(200, 3))
+    R, t, _ = ev.horn_alignment(model, data)
+    # scipy: rotation C minimising sum |a_i - C b_i|^2 on the centred sets (a = data, b = model)
+    scipy_R = Rotation.align_vectors(data - data.mean(0), model - model.mean(0))[0].as_matrix()
+    np.testing.assert_allclose(R, scipy_R, atol=1e-10)
+    np.testing.assert_allclose(t, data.mean(0) - R @ model.mean(0), atol=1e-12)
+
+
+def test_horn_alignment_is_a_least_squares_minimum():
+    rng = np.random.default_rng(3)
+    model = rng.normal(size=(100, 3))
+    data = 0.8 * model @ Rotation.random(random_state=rng).as_matrix().T + rng.normal(scale=0.3, size=(100, 3))
+    R, t, s = ev.horn_alignment(model, data, with_scale=True)
+
+    def cost(R_, t_, s_):
+        return np.sum((s_ * model @ R_.T + t_ - data) ** 2)
+
+    best = cost(R, t, s)
+    for _ in range(20):
+        dR = Rotation.from_rotvec(rng.normal(scale=1e-3, size=3)).as_matrix()
+        assert cost(dR @ R, t, s) > best
+        assert cost(R, t + rng.normal(scale=1e-3, size=3), s) > best
+        assert cost(R, t, s * (1 + rng.normal(scale=1e-3))) > best
+
+
+def test_horn_alignment_rejects_collinear_points():
+    line = np.outer(np.linspace(0, 1, 10), [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="collinear"):
+        ev.horn_alignment(line, line + 1.0)
+    with pytest.raises(ValueError, match="at least 3"):
+        ev.horn_alignment(np.zeros((2, 3)), np.zeros((2, 3)))
+
+
+# ------------------------------------------------------------------------------------------
+# ATE / RPE planted truth on a real trajectory
+
+
+def test_ate_planted_se3_and_sim3_align_back_to_zero(fr2_desk):
+    _, gt = fr2_desk
+    gt = gt[::10]
+    rng = np.random.default_rng(4)
+    world_change = random_rigid(rng)
+    est = world_change @ gt  # same trajectory, expressed in another world frame
+    result = ev.ate(gt, est)
+    assert result["ate_rmse_m"] < 1e-9 and result["ate_max_m"] < 1e-9
+    np.testing.assert_allclose(result["alignment"], np.linalg.inv(world_change), atol=1e-9)
+
+    scaled = est.copy()
+    scaled[:, :3, 3] *= 0.37  # Sim(3): the estimate has the wrong scale
+    assert ev.ate(gt, scaled)["ate_rmse_m"] > 0.05  # SE(3) alignment cannot absorb it
+    result = ev.ate(gt, scaled, with_scale=True)
+    assert result["ate_rmse_m"] < 1e-9
+    assert result["scale"] == pytest.approx(1 / 0.37, rel=1e-9)
+
+
+def test_ate_of_isotropic_noise_is_sqrt3_sigma(fr2_desk):
+    """E|e|^2 = 3 sigma^2 (1 - 2/N) after fitting 6 dof; RMSE has ~0.6% std for N = 4000."""
+    _, gt = fr2_desk
+    gt = gt[::5]
+    rng = np.random.default_rng(5)
+    sigma = 0.02
+    est = random_rigid(rng) @ perturb(gt, rng, sigma, 0.0)
+    result = ev.ate(gt, est)
+    expected = np.sqrt(3 * sigma**2 * (1 - 2 / len(gt)))
+    assert result["ate_rmse_m"] == pytest.approx(expected, rel=0.03)
+    assert result["ate_mean_m"] < result["ate_rmse_m"] < result["ate_max_m"]
+    # the mean of a chi(3) variable: sigma * 2 sqrt(2/pi)
+    assert result["ate_mean_m"] == pytest.approx(sigma * 2 * np.sqrt(2 / np.pi), rel=0.03)
+
+
+def test_rpe_is_invariant_to_a_global_rigid_transform(fr2_desk):
+    _, gt = fr2_desk
+    gt = gt[:3000:3]
+    rng = np.random.default_rng(6)
+    est = perturb(gt, rng, 0.01, 0.01)
+    base = ev.rpe(gt, est)
+    moved = ev.rpe(gt, random_rigid(rng) @ est)
+    assert base["rpe_trans_rmse_m"] > 1e-3
+    np.testing.assert_allclose(moved["trans_errors_m"], base["trans_errors_m"], atol=1e-10)
+    np.testing.assert_allclose(moved["rot_errors_deg"], base["rot_errors_deg"], atol=1e-8)
+
+
+def test_rpe_sees_a_single_translation_jump_and_a_single_rotation_jump(fr2_desk):
+    _, gt = fr2_desk
+    gt = gt[:2000:4]
+    n, k = len(gt), 200
+    jump = np.eye(4)
+    jump[:3, 3] = [0.03, -0.04, 0.0]  # 5 cm in the world frame from frame k on
+    est = gt.copy()
+    est[k:] = jump @ gt[k:]
+    result = ev.rpe(gt, est)
+    expected = np.zeros(n - 1)
+    expected[k - 1] = 0.05
+    np.testing.assert_allclose(result["trans_errors_m"], expected, atol=1e-12)
+    np.testing.assert_allclose(result["rot_errors_deg"], 0.0, atol=1e-6)
+    assert result["rpe_trans_rmse_m"] == pytest.approx(0.05 / np.sqrt(n - 1), rel=1e-9)
+
+    twist = np.eye(4)
+    twist[:3, :3] = Rotation.from_rotvec(np.radians(3.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    est = gt.copy()
+    est[k:] = twist @ gt[k:]
+    result = ev.rpe(gt, est)
+    expected_deg = np.zeros(n - 1)
+    expected_deg[k - 1] = 3.0
+    np.testing.assert_allclose(result["rot_errors_deg"], expected_deg, atol=1e-9)
+    assert np.count_nonzero(result["trans_errors_m"] > 1e-9) == 1
+
+
+def test_rotation_angle_is_accurate_near_zero_and_pi():
+    angles = np.array([1e-9, 1e-5, 0.3, np.pi - 1e-7, np.pi])
+    axes = np.random.default_rng(7).normal(size=(5, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    matrices = Rotation.from_rotvec(axes * angles[:, None]).as_matrix()
+    np.testing.assert_allclose(ev.rotation_angle_deg(matrices), np.degrees(angles), rtol=1e-6, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# Cross-check against evo
+
+
+def _evo_numbers(ref_times, ref_poses, est_times, est_poses, with_scale, delta):
+    from evo.core import metrics, sync
+    from evo.core.trajectory import PoseTrajectory3D
+
+    ref = PoseTrajectory3D(poses_se3=list(ref_poses), timestamps=ref_times)
+    est = PoseTrajectory3D(poses_se3=list(est_poses), timestamps=est_times)
+    ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
+    est.align(ref, correct_scale=with_scale)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    numbers = {"n_matched": ref.num_poses, "ate_rmse_m": ape.get_statistic(metrics.StatisticsType.rmse)}
+    for relation, key in (
+        (metrics.PoseRelation.translation_part, "rpe_trans_rmse_m"),
+        (metrics.PoseRelation.rotation_angle_deg, "rpe_rot_rmse_deg"),
+    ):
+        rpe = metrics.RPE(relation, delta=delta, delta_unit=metrics.Unit.frames, all_pairs=True)
+        rpe.process_data((ref, est))
+        numbers[key] = rpe.get_statistic(metrics.StatisticsType.rmse)
+    return numbers
+
+
+@pytest.mark.parametrize("with_scale,delta", [(False, 1), (True, 1), (False, 3)])
+def test_matches_evo_on_a_real_trajectory(fr2_desk, with_scale, delta):
+    gt_times, gt_poses = fr2_desk
+    gt_times, gt_poses = gt_times[:6000], gt_poses[:6000]  # ~28 s of fr2/desk
+    rng = np.random.default_rng(8)
+    pick = np.arange(0, len(gt_times), 10)
+    est_poses = random_rigid(rng) @ perturb(gt_poses[pick], rng, 0.01, np.radians(0.5))
+    if with_scale:
+        est_poses[:, :3, 3] *= 1.3
+    est_times = gt_times[pick] + rng.uniform(-0.004, 0.004, size=pick.size)
+    ours = ev.evaluate_trajectory(gt_times, gt_poses, est_times, est_poses, max_diff=0.01,
+                                  with_scale=with_scale, delta=delta)
+    theirs = _evo_numbers(gt_times, gt_poses, est_times, est_poses, with_scale, delta)
+    assert ours["n_matched"] == theirs["n_matched"] == pick.size
+    for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg"):
+        assert ours[key] == pytest.approx(theirs[key], abs=1e-6), key
+    assert ours["ate_rmse_m"] > 0.005 and ours["rpe_rot_rmse_deg"] > 0.1  # non-trivial numbers
+
+
+# ------------------------------------------------------------------------------------------
+# Association and bookkeeping
+
+
+def test_associate_is_one_to_one_nearest_first():
+    # by hand: candidates (a1,b0)=1ms, (a0,b0)=3ms, (a1,b1)=8ms; (a0,b1)=12ms is too far
+    idx_a, idx_b = ev.associate([0.0, 0.004], [0.003, 0.012], max_diff=0.01)
+    assert idx_a.tolist() == [1] and idx_b.tolist() == [0]
+    # the tolerance is inclusive and strict beyond it: 9 ms pairs, 11 ms does not
+    idx_a, idx_b = ev.associate([0.0, 1.0, 2.0], [0.009, 1.011, 1.9905], max_diff=0.01)
+    assert idx_a.tolist() == [0, 2] and idx_b.tolist() == [0, 2]
+
+
+def test_associate_handles_unsorted_input_like_sorted_input():
+    rng = np.random.default_rng(9)
+    times_a = np.sort(rng.uniform(0, 10, 300)) + 1.3e9
+    times_b = times_a[::2] + rng.uniform(-0.005, 0.005, 150)
+    sorted_pairs = set(zip(*ev.associate(times_a, times_b, 0.01)))
+    perm_a, perm_b = rng.permutation(300), rng.permutation(150)
+    idx_a, idx_b = ev.associate(times_a[perm_a], times_b[perm_b], 0.01)
+    assert set(zip(perm_a[idx_a], perm_b[idx_b])) == sorted_pairs
+    assert np.all(np.diff(times_a[perm_a][idx_a]) >= 0)  # returned in time order
+    assert len(sorted_pairs) == 150
+
+
+def test_associate_errors_are_actionable():
+    with pytest.raises(ValueError, match="no timestamps within max_diff"):
+        ev.associate([1.0, 2.0], [1000.0, 2000.0], 0.02)
+    with pytest.raises(ValueError, match=r"times_b\[1\]"):
+        ev.associate([1.0, 2.0], [1.0, np.nan])
+
+
+def test_evaluate_trajectory_drops_nonfinite_gt_rows(fr2_desk):
+    gt_times, gt_poses = fr2_desk
+    gt_times, gt_poses = gt_times[:3000:3].copy(), gt_poses[:3000:3].copy()
+    rng = np.random.default_rng(10)
+    est = perturb(gt_poses, rng, 0.01, 0.005)
+    invalid = np.zeros(len(gt_times), bool)
+    invalid[[5, 6, 500, 900]] = True
+    gt_with_nan = gt_poses.copy()
+    gt_with_nan[invalid] = np.nan
+    result = ev.evaluate_trajectory(gt_times, gt_with_nan, gt_times, est, max_diff=1e-6)
+    reference = ev.ate(gt_poses[~invalid], est[~invalid])
+    assert result["n_gt_nonfinite_dropped"] == 4 and result["n_matched"] == (~invalid).sum()
+    assert result["ate_rmse_m"] == pytest.approx(reference["ate_rmse_m"], abs=1e-12)
+    with pytest.raises(ValueError, match=r"est_poses\[3\]"):
+        est_bad = est.copy()
+        est_bad[3, 0, 3] = np.inf
+        ev.evaluate_trajectory(gt_times, gt_poses, gt_times, est_bad)
+
+
+def test_metrics_do_not_mutate_inputs_and_accept_torch(fr2_desk):
+    _, gt = fr2_desk
+    gt = gt[:1000:5]
+    est = perturb(gt, np.random.default_rng(11), 0.01, 0.01)
+    gt_copy, est_copy = gt.copy(), est.copy()
+    numpy_result = ev.rpe(gt, est, est_scale=2.0)
+    ev.ate(gt, est, with_scale=True)
+    np.testing.assert_array_equal(gt, gt_copy)
+    np.testing.assert_array_equal(est, est_copy)
+    torch_result = ev.rpe(torch.from_numpy(gt).float(), torch.from_numpy(est).float(), est_scale=2.0)
+    assert torch_result["rpe_trans_rmse_m"] == pytest.approx(numpy_result["rpe_trans_rmse_m"], rel=1e-4)
+
+
+# ------------------------------------------------------------------------------------------
+# Reconstruction metrics
+
+
+def plane_patch(half_size, z):
+    vertices = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) * [half_size, half_size, 1]
+    vertices[:, 2] = z
+    return trimesh.Trimesh(vertices, [[0, 1, 2], [0, 2, 3]], process=False)
+
+
+def expected_nn_distance(offset, density):
+    """E sqrt(offset^2 + r^2), r = distance to the nearest point of a 2-D Poisson process."""
+    pdf = lambda r: 2 * np.pi * density * r * np.exp(-np.pi * density * r**2)  # noqa: E731
+    return integrate.quad(lambda r: np.sqrt(offset**2 + r**2) * pdf(r), 0, np.inf, limit=200)[0]
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.02])
+def test_mesh_metrics_parallel_planes(offset):
+    n_points = 100_000
+    gt = plane_patch(1.0, 0.0)
+    rec = plane_patch(1.0, offset)
+    result = ev.mesh_metrics(rec, gt, n_points=n_points, threshold=0.05, seed=0)
+    expected = expected_nn_distance(offset, n_points / 4.0)
+    assert result["accuracy_m"] == pytest.approx(expected, rel=0.02)
+    assert result["completion_m"] == pytest.approx(expected, rel=0.02)
+    assert result["completion_ratio"] == 1.0
+
+
+def test_mesh_metrics_concentric_spheres_and_ratio_threshold():
+    gt = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    n_points = 30_000
+    for radius, ratio in ((1.02, 1.0), (1.08, 0.0)):
+        rec = trimesh.creation.icosphere(subdivisions=4, radius=radius)
+        result = ev.mesh_metrics(rec, gt, n_points=n_points)
+        # icospheres are scaled copies, so facet flattening changes the gap by < 0.1%
+        expected = expected_nn_distance(radius - 1.0, n_points / (4 * np.pi))
+        assert result["accuracy_m"] == pytest.approx(expected, rel=0.02)
+        assert result["completion_m"] == pytest.approx(expected, rel=0.02)
+        assert result["completion_ratio"] == ratio
+    assert ev.mesh_metrics(rec, gt, n_points=n_points) == result  # deterministic for a seed
+    assert ev.mesh_metrics(rec, gt, n_points=n_points, seed=1) != result
+
+
+def test_depth_l1():
+    rng = np.random.default_rng(12)
+    reference = rng.uniform(0.5, 4.0, size=(2, 12, 16))
+    reference[:, :3] = 0.0  # missing depth
+    rendered = reference + 0.1
+    rendered[reference == 0] = np.nan  # ignored where the reference is missing
+    assert ev.depth_l1(rendered, reference) == pytest.approx(0.1, abs=1e-12)
+    assert ev.depth_l1(torch.from_numpy(rendered), torch.from_numpy(reference)) == pytest.approx(0.1, abs=1e-12)
+    valid = np.zeros_like(reference, bool)
+    valid[0, 5:] = True
+    rendered[0, 5:] += 0.2
+    assert ev.depth_l1(rendered, reference, valid=valid) == pytest.approx(0.3, abs=1e-12)
+    with pytest.raises(ValueError, match="no pixel"):
+        ev.depth_l1(rendered, np.zeros_like(reference))
+
+
+# ------------------------------------------------------------------------------------------
+# Rasteriser and culling on an analytic scene
+
+
+FX, FY, CX, CY, W, H = 40.0, 40.0, 31.5, 23.5, 64, 48
+INTRINSICS = (FX, FY, CX, CY, W, H)
+
+
+def grid_plane(x_range, y_range, z, step):
+    xs = np.arange(x_range[0], x_range[1] + 1e-9, step)
+    ys = np.arange(y_range[0], y_range[1] + 1e-9, step)
+    gx, gy = np.meshgrid(xs, ys, indexing="xy")
+    vertices = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], 1)
+    nx = xs.size
+    faces = []
+    for j in range(ys.size - 1):
+        for i in range(nx - 1):
+            a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i + 1, (j + 1) * nx + i
+            faces += [[a, b, c], [a, c, d]]
+    return vertices, np.array(faces)
+
+
+def test_zbuffer_depth_of_a_tilted_plane_is_perspective_correct():
+    # plane z = 2 + 0.5 x; the ray through pixel (u, v) is z (a, b, 1) with a = (u - cx)/fx, so
+    # z = 2 / (1 - 0.5 a).  Two big triangles (one quad) cover the whole image.
+    corners = np.array([[-3, -3], [3, -3], [3, 3], [-3, 3]], float)  # z in [0.5, 3.5]
+    vertices = np.column_stack([corners, 2 + 0.5 * corners[:, 0]])
+    quad = np.array([[0, 1, 2], [0, 2, 3]])
+    pose = random_rigid(np.random.default_rng(13))
+    world_vertices = vertices @ pose[:3, :3].T + pose[:3, 3]  # camera placed anywhere in the world
+    depth = ev.render_depth_zbuffer(world_vertices, quad, pose, INTRINSICS)
+    a = (np.arange(W) - CX) / FX
+    expected = np.broadcast_to(2 / (1 - 0.5 * a), (H, W))
+    np.testing.assert_allclose(depth, expected, rtol=1e-10)
+
+
+def _scene():
+    """A small front quad at z = 2 occluding the middle of a large back plane at z = 4 (camera
+    at the origin looking along +z), plus one triangle behind the camera and one off to the side."""
+    front_v, front_f = grid_plane((-0.3, 0.3), (-0.2, 0.2), 2.0, 0.2)
+    back_v, back_f = grid_plane((-4.0, 4.0), (-3.0, 3.0), 4.0, 0.1)
+    behind_v = np.array([[-0.5, 0, -1.0], [0.5, 0, -1.0], [0, 0.5, -1.0]])
+    side_v = np.array([[10, 0, 2.0], [11, 0, 2.0], [10, 1, 2.0]])
+    parts = [(front_v, front_f), (back_v, back_f), (behind_v, np.array([[0, 1, 2]])), (side_v, np.array([[0, 1, 2]]))]
+    vertices, faces, labels, offset = [], [], [], 0
+    for label, (v, f) in enumerate(parts):
+        vertices.append(v)
+        faces.append(f + offset)
+        labels += [label] * len(f)
+        offset += len(v)
+    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=False), np.array(labels)
+
+
+def _kept(original, culled):
+    """Boolean per original face: is the same triangle (by vertex coordinates) in the culled mesh?"""
+    key = lambda m: {tuple(np.round(m.vertices[f], 9).ravel()) for f in m.faces}  # noqa: E731
+    kept = key(culled)
+    return np.array([tuple(np.round(original.vertices[f], 9).ravel()) in kept for f in original.faces])
+
+
+def test_cull_mesh_frustum_and_occlusion():
+    mesh, labels = _scene()
+    before = (mesh.vertices.copy(), mesh.faces.copy())
+    poses = np.eye(4)[None]
+    face_vertices = mesh.vertices[mesh.faces]  # (F, 3, 3)
+    x, y = face_vertices[..., 0], face_vertices[..., 1]
+    # analytic frustum at z = 4: 0 <= 10 x + 31.5 <= 63 and 0 <= 10 y + 23.5 <= 47
+    in_view = ((np.abs(x) <= 3.15) & (np.abs(y) <= 2.35)).any(1)
+    back = labels == 1
+
+    frustum = _kept(mesh, ev.cull_mesh(mesh, poses, INTRINSICS, frustum_only=True))
+    assert frustum[labels == 0].all()
+    assert not frustum[labels == 2].any() and not frustum[labels == 3].any()
+    np.testing.assert_array_equal(frustum[back], in_view[back])
+
+    occluded = _kept(mesh, ev.cull_mesh(mesh, poses, INTRINSICS))
+    # back vertices whose ray hits the front quad (|x| < 0.6, |y| < 0.4 at z = 4) are hidden
+    hidden = ((np.abs(x) <= 0.5) & (np.abs(y) <= 0.3)).all(1)
+    clearly_seen = (((np.abs(x) >= 0.7) | (np.abs(y) >= 0.5)) & (np.abs(x) <= 3.15) & (np.abs(y) <= 2.35)).any(1)
+    assert occluded[labels == 0].all()
+    assert not occluded[back & hidden].any() and (back & hidden).sum() > 20
+    assert occluded[back & clearly_seen].all()
+    assert not occluded[labels >= 2].any()
+
+    # the same answer from a depth map given as a sensor would (analytic render of the scene)
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    a, b = (u - CX) / FX, (v - CY) / FY
+    depth = np.where((np.abs(2 * a) <= 0.3) & (np.abs(2 * b) <= 0.2), 2.0, 4.0)
+    with_depth = _kept(mesh, ev.cull_mesh(mesh, poses, INTRINSICS, depths=depth[None]))
+    np.testing.assert_array_equal(with_depth[back & (hidden | clearly_seen)], occluded[back & (hidden | clearly_seen)])
+
+    # a camera turned around (looking along -z) sees only the triangle behind the first camera
+    turned = np.eye(4)
+    turned[:3, :3] = np.diag([-1.0, 1.0, -1.0])
+    assert len(ev.cull_mesh(mesh, turned[None], INTRINSICS, frustum_only=True).faces) == 1  # the 'behind' one
+    np.testing.assert_array_equal(mesh.vertices, before[0])
+    np.testing.assert_array_equal(mesh.faces, before[1])
+
+
+# ------------------------------------------------------------------------------------------
+# Command line
+
+
+def _write_tum(path, times, poses):
+    rows = np.column_stack([times, pose_to_tum(poses)])
+    np.savetxt(path, rows, fmt="%.9f", header="timestamp tx ty tz qx qy qz qw")
+
+
+def test_cli_trajectory_json_and_bad_file(tmp_path, fr2_desk, capsys):
+    gt_times, gt_poses = fr2_desk[0][:2000], fr2_desk[1][:2000]
+    est_poses = perturb(gt_poses[::7], np.random.default_rng(14), 0.01, 0.01)
+    _write_tum(tmp_path / "gt.txt", gt_times, gt_poses)
+    _write_tum(tmp_path / "est.txt", gt_times[::7], est_poses)
+    assert ev.main(["trajectory", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)  # exactly one JSON object and nothing else
+    direct = ev.evaluate_trajectory(gt_times, gt_poses, gt_times[::7], est_poses)
+    for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched"):
+        assert printed[key] == pytest.approx(direct[key], rel=1e-6, abs=1e-9)
+
+    bad = tmp_path / "bad.txt"
+    bad.write_text("# header\n1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 1\n")
+    assert ev.main(["trajectory", str(tmp_path / "gt.txt"), str(bad)]) == 2
+    assert f"{bad}:3" in capsys.readouterr().err
+    assert ev.main(["trajectory", str(tmp_path / "missing.txt"), str(bad)]) == 2
+
+
+def test_cli_mesh(tmp_path, capsys):
+    trimesh.creation.icosphere(subdivisions=3, radius=1.0).export(tmp_path / "gt.ply")
+    trimesh.creation.icosphere(subdivisions=3, radius=1.02).export(tmp_path / "rec.ply")
+    assert ev.main(["mesh", str(tmp_path / "rec.ply"), str(tmp_path / "gt.ply"), "--points", "5000", "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    direct = ev.mesh_metrics(trimesh.load(tmp_path / "rec.ply"), trimesh.load(tmp_path / "gt.ply"), n_points=5000)
+    assert printed == pytest.approx(direct, rel=1e-12)
+    assert 0.02 <= printed["accuracy_m"] < 0.05 and printed["n_points"] == 5000
+    (tmp_path / "junk.ply").write_text("not a mesh")
+    assert ev.main(["mesh", str(tmp_path / "junk.ply"), str(tmp_path / "gt.ply")]) == 2
+    assert "junk.ply" in capsys.readouterr().err
+
+
+def test_cull_mesh_keeps_the_cap_a_camera_sees_on_a_sphere():
+    """From distance 3 on the axis, a unit sphere is visible exactly where z > 1/3 (tangent cone)."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    camera = np.eye(4)
+    camera[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looks along world -z
+    camera[:3, 3] = [0.0, 0.0, 3.0]
+    culled = ev.cull_mesh(sphere, camera[None], (120.0, 120.0, 79.5, 59.5, 160, 120))
+    vertex_z = sphere.vertices[sphere.faces][..., 2]  # (F, 3)
+    kept = _kept(sphere, culled)
+    assert kept[(vertex_z > 0.45).all(1)].all()  # well inside the cap: kept
+    assert not kept[(vertex_z < 0.25).all(1)].any()  # beyond the limb or on the back: removed
