@@ -1,0 +1,543 @@
+"""Tests for tsslam_ref.data: intrinsics updates, the five layouts, bad input, real TUM data, the CLI.
+
+Oracles: blob centroids through PIL resizing (intrinsics), brute-force association loops and
+scipy's Slerp over the raw groundtruth.txt lines (real data), hand-computed matrices.
+"""
+
+import json
+import os
+import tracemalloc
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from PIL import Image
+from scipy.spatial.transform import Rotation, Slerp
+
+from tsslam_ref import data
+from tsslam_ref.config import DataConfig
+from tsslam_ref.datasets.images import resize_rgb
+
+FR3 = dict(fx=535.4, fy=539.2, cx=320.1, cy=247.6)
+
+
+# ------------------------------------------------------------------------------------------------
+# helpers writing tiny datasets
+
+
+def _rgb(width, height, value):
+    image = np.zeros((height, width, 3), np.uint8)
+    image[..., 0] = value
+    image[..., 1] = np.arange(width, dtype=np.uint8)[None, :]
+    return image
+
+
+def _depth(width, height, metres, scale):
+    return np.full((height, width), round(metres * scale), np.uint16)
+
+
+def _random_poses(n, seed=0):
+    rng = np.random.default_rng(seed)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3] = Rotation.from_rotvec(rng.normal(scale=0.5, size=(n, 3))).as_matrix()
+    poses[:, :3, 3] = rng.normal(size=(n, 3))
+    return poses
+
+
+def _tum_line(stamp, pose):
+    q = Rotation.from_matrix(pose[:3, :3]).as_quat()  # scipy: x, y, z, w
+    return f"{stamp:.4f} " + " ".join(f"{v:.9f}" for v in (*pose[:3, 3], *q))
+
+
+def make_tum(folder, rgb_stamps, depth_stamps, gt_stamps, gt_poses, size=(8, 6), calibration=True):
+    """TUM layout with 8x6 images; depth of frame i is 1 + 0.1 i metres."""
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    width, height = size
+    rgb_lines = ["# color images", "# timestamp filename"]
+    for i, stamp in enumerate(rgb_stamps):
+        iio.imwrite(folder / f"rgb/{stamp:.6f}.png", _rgb(width, height, 10 * i))
+        rgb_lines.append(f"{stamp:.6f} rgb/{stamp:.6f}.png")
+    depth_lines = ["# depth maps"]
+    for i, stamp in enumerate(depth_stamps):
+        iio.imwrite(folder / f"depth/{stamp:.6f}.png", _depth(width, height, 1.0 + 0.1 * i, 5000))
+        depth_lines.append(f"{stamp:.6f} depth/{stamp:.6f}.png")
+    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    gt = ["# timestamp tx ty tz qx qy qz qw"] + [_tum_line(s, p) for s, p in zip(gt_stamps, gt_poses)]
+    (folder / "groundtruth.txt").write_text("\n".join(gt) + "\n")
+    if calibration:
+        (folder / "intrinsics.json").write_text(json.dumps({"fx": 7.0, "fy": 7.5, "cx": 3.5, "cy": 2.5}))
+    return folder
+
+
+@pytest.fixture
+def tum_folder(tmp_path):
+    t0 = 1341841873.0
+    rgb = t0 + np.array([0.00, 0.033, 0.066, 0.100, 0.133, 0.166])
+    depth = rgb + 0.001
+    depth[3] += 0.025  # frame 3 has no depth within 0.02 s -> always dropped
+    gt_stamps = t0 + np.arange(0.02, 0.20, 0.01)  # frame 0 (t0) is 0.02 s before the first pose: kept
+    gt = _random_poses(len(gt_stamps))
+    return make_tum(tmp_path / "tum", rgb, depth, gt_stamps, gt), rgb, gt_stamps, gt
+
+
+# ------------------------------------------------------------------------------------------------
+# Intrinsics
+
+
+def _blob(width, height, u, v, sigma):
+    uu, vv = np.meshgrid(np.arange(width), np.arange(height))
+    value = np.exp(-((uu - u) ** 2 + (vv - v) ** 2) / (2 * sigma**2)).astype(np.float32)
+    return np.repeat(value[..., None], 3, -1)
+
+
+def _centroid(image):
+    weight = image[..., 0].astype(np.float64)
+    vv, uu = np.mgrid[: image.shape[0], : image.shape[1]]
+    return (weight * uu).sum() / weight.sum(), (weight * vv).sum() / weight.sum()
+
+
+@pytest.mark.parametrize("new_size", [(160, 120), (200, 90), (320, 240)])
+def test_scaled_intrinsics_follow_a_resized_image(new_size):
+    """A 3-D point's projection with the scaled K lands on the blob's centroid in the PIL-resized image."""
+    k = data.Intrinsics(**FR3, width=640, height=480)
+    point_cam = np.array([0.31, -0.17, 1.9])
+    u, v, _ = k.matrix() @ point_cam / point_cam[2]
+    image = _blob(640, 480, u, v, sigma=12.0)
+    resized = resize_rgb(image, *new_size)
+    small = k.resized(*new_size)
+    u2, v2, _ = small.matrix() @ point_cam / point_cam[2]
+    cu, cv = _centroid(resized)
+    assert (small.width, small.height) == new_size
+    assert abs(cu - u2) < 0.02 and abs(cv - v2) < 0.02
+
+
+def test_cropped_intrinsics_follow_a_cropped_image():
+    k = data.Intrinsics(**FR3, width=640, height=480)
+    point_cam = np.array([-0.2, 0.1, 2.0])
+    u, v, _ = k.matrix() @ point_cam / point_cam[2]
+    image = _blob(640, 480, u, v, sigma=5.0)[8:-10, 12:-4]  # top 8, bottom 10, left 12, right 4
+    crop = k.cropped(12, 8, 4, 10)
+    u2, v2, _ = crop.matrix() @ point_cam / point_cam[2]
+    cu, cv = _centroid(image)
+    assert (crop.width, crop.height) == (640 - 16, 480 - 18)
+    assert abs(cu - u2) < 1e-3 and abs(cv - v2) < 1e-3
+
+
+def test_intrinsics_matrix_and_bad_values():
+    k = data.Intrinsics(10.0, 11.0, 4.5, 3.5, 10, 8)
+    np.testing.assert_array_equal(k.matrix(), [[10, 0, 4.5], [0, 11, 3.5], [0, 0, 1]])
+    assert k.matrix().dtype == np.float64
+    assert k.scaled(2.0) == data.Intrinsics(20.0, 22.0, 9.5, 7.5, 20, 16)  # pixel (4.5) centre -> 9.5
+    with pytest.raises(ValueError, match="fx"):
+        data.Intrinsics(-1.0, 1.0, 0.0, 0.0, 4, 4)
+    with pytest.raises(ValueError, match="leaves no pixels"):
+        k.cropped(5, 0, 5, 0)
+    with pytest.raises(ValueError, match="> 0"):
+        k.scaled(0.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# TUM layout (tiny fixture)
+
+
+def test_tum_association_and_require_gt(tum_folder):
+    folder, rgb, gt_stamps, gt = tum_folder
+    sequence = data.load_sequence(folder)
+    # frame 3 lacks depth; frame 0 is exactly 0.02 s from the first pose (kept, nearest pose);
+    # frame 5 (t0 + 0.166) lies inside the GT window.
+    assert data.detect_dataset(folder) == "tum"
+    np.testing.assert_array_equal(sequence.timestamps, rgb[[0, 1, 2, 4, 5]])
+    assert sequence.timestamps.dtype == np.float64
+    assert sequence.intrinsics == data.Intrinsics(7.0, 7.5, 3.5, 2.5, 8, 6)
+    frame = sequence[3]
+    assert frame.index == 3 and frame.timestamp == rgb[4]
+    assert frame.rgb.shape == (6, 8, 3) and frame.rgb.dtype == np.float32
+    np.testing.assert_allclose(frame.rgb[0, :, 1], np.arange(8) / 255.0, atol=1e-7)
+    np.testing.assert_allclose(frame.depth, 1.4, atol=1e-6)  # depth file number 4
+    # GT: slerp/linear between bracketing 100 Hz lines (scipy oracle)
+    slerp = Slerp(gt_stamps, Rotation.from_matrix(gt[:, :3, :3]))
+    np.testing.assert_allclose(frame.pose_c2w[:3, :3], slerp([rgb[4]]).as_matrix()[0], atol=1e-6)
+    expected_t = np.array([np.interp(rgb[4], gt_stamps, gt[:, c, 3]) for c in range(3)])
+    np.testing.assert_allclose(frame.pose_c2w[:3, 3], expected_t, atol=1e-6)
+    np.testing.assert_allclose(sequence[0].pose_c2w, gt[0], atol=1e-6)  # before the first pose: nearest
+
+
+def test_tum_require_gt_false_keeps_frames_without_pose(tmp_path):
+    t0 = 100.0
+    rgb = t0 + np.arange(5) / 30.0
+    gt_stamps = t0 + 0.1 + np.arange(5) * 0.01
+    folder = make_tum(tmp_path / "t", rgb, rgb, gt_stamps, _random_poses(5))
+    strict = data.load_sequence(folder)
+    loose = data.load_sequence(folder, require_gt=False)
+    assert len(loose) == 5 and len(strict) == 2  # only frames at 0.1 and 0.133 have a pose
+    assert np.isnan(loose.gt_poses[0]).all() and loose[0].pose_c2w is None
+    assert loose.frames_with_gt == 2
+
+
+def test_frame_range_and_stride(tum_folder):
+    folder, rgb, _, _ = tum_folder
+    sequence = data.load_sequence(folder, frame_start=1, frame_stop=5, frame_step=2)
+    np.testing.assert_array_equal(sequence.timestamps, rgb[[1, 4]])
+    assert [f.index for f in sequence] == [0, 1]
+    with pytest.raises(ValueError, match="selects no frame"):
+        data.load_sequence(folder, frame_start=10)
+
+
+def test_tum_folder_name_selects_camera(tmp_path):
+    stamps = 10.0 + np.arange(2) / 30
+    for name, expected in [("rgbd_dataset_freiburg1_desk", (517.3, 516.5, 318.6, 255.3)),
+                           ("fr2_xyz", (520.9, 521.0, 325.1, 249.7)), ("my_capture", (535.4, 539.2, 320.1, 247.6))]:
+        folder = make_tum(tmp_path / name, stamps, stamps, stamps, _random_poses(2), size=(640, 480), calibration=False)
+        k = data.load_sequence(folder).intrinsics
+        assert (k.fx, k.fy, k.cx, k.cy) == expected
+
+
+def test_crop_and_resize_update_intrinsics(tmp_path):
+    stamps = 10.0 + np.arange(2) / 30
+    folder = make_tum(tmp_path / "fr3", stamps, stamps, stamps, _random_poses(2), size=(640, 480), calibration=False)
+    sequence = data.load_sequence(folder, crop_edge=8, resize_width=156)
+    k = sequence.intrinsics
+    s = 156 / 624  # width 640 - 16 = 624 -> 156; height 464 -> 116
+    assert (k.width, k.height) == (156, 116)
+    np.testing.assert_allclose([k.fx, k.cx], [535.4 * s, s * (320.1 - 8 + 0.5) - 0.5])
+    np.testing.assert_allclose([k.fy, k.cy], [539.2 * 116 / 464, 116 / 464 * (247.6 - 8 + 0.5) - 0.5])
+    frame = sequence[1]
+    assert frame.rgb.shape == (116, 156, 3) and frame.depth.shape == (116, 156)
+    np.testing.assert_allclose(frame.depth, 1.1, atol=1e-6)  # nearest resize keeps values
+
+
+def test_depth_resize_never_mixes_surfaces(tmp_path):
+    """Resized depth holds only values of the original (an edge 1 m | 3 m and holes stay exact)."""
+    stamps = 10.0 + np.arange(1) / 30
+    folder = make_tum(tmp_path / "t", stamps, stamps, stamps, _random_poses(1), size=(64, 48))
+    depth = np.full((48, 64), 5000, np.uint16)
+    depth[:, 29:] = 15000
+    depth[10:20, 5:9] = 0
+    iio.imwrite(folder / f"depth/{stamps[0]:.6f}.png", depth)
+    resized = data.load_sequence(folder, resize_width=20)[0].depth
+    assert resized.shape == (15, 20)
+    assert set(np.unique(resized).round(6)) <= {0.0, 1.0, 3.0} and (resized == 0).any()
+
+
+def test_depth_is_not_truncated(tmp_path):
+    stamps = 10.0 + np.arange(2) / 30
+    folder = make_tum(tmp_path / "t", stamps, stamps, stamps, _random_poses(2))
+    sequence = data.load_sequence(folder, depth_trunc=0.5)
+    assert sequence.depth_trunc == 0.5 and np.all(sequence[0].depth > 0.9)
+
+
+def test_loading_is_lazy(tmp_path):
+    """3000 frames (hard links to one image pair) load without reading pixels; frames are read on access."""
+    folder = tmp_path / "big"
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    iio.imwrite(folder / "rgb/base.png", _rgb(64, 48, 1))
+    iio.imwrite(folder / "depth/base.png", _depth(64, 48, 2.0, 5000))
+    lines_rgb, lines_depth = [], []
+    for i in range(3000):
+        stamp = 1000.0 + i / 30
+        os.link(folder / "rgb/base.png", folder / f"rgb/{i}.png")
+        os.link(folder / "depth/base.png", folder / f"depth/{i}.png")
+        lines_rgb.append(f"{stamp:.6f} rgb/{i}.png")
+        lines_depth.append(f"{stamp:.6f} depth/{i}.png")
+    (folder / "rgb.txt").write_text("\n".join(lines_rgb))
+    (folder / "depth.txt").write_text("\n".join(lines_depth))
+    (folder / "intrinsics.json").write_text(json.dumps({"fx": 50, "fy": 50, "cx": 31.5, "cy": 23.5}))
+    tracemalloc.start()
+    sequence = data.load_sequence(folder)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert len(sequence) == 3000 and sequence.gt_poses is None
+    assert peak < 8e6  # 3000 full frames would need 3000 * 64*48*16 B = 147 MB
+    iio.imwrite(folder / "depth/2999.png", _depth(64, 48, 3.0, 5000))  # replaces the link
+    np.testing.assert_allclose(sequence[2999].depth, 3.0, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------
+# Bad input
+
+
+def test_missing_folder():
+    with pytest.raises(FileNotFoundError, match="no_such_folder"):
+        data.load_sequence("/nonexistent/no_such_folder")
+
+
+def test_unknown_layout_lists_layouts(tmp_path):
+    with pytest.raises(ValueError) as error:
+        data.detect_dataset(tmp_path)
+    for kind in ("tum", "scannet", "neural_rgbd", "replica", "folder"):
+        assert kind in str(error.value)
+
+
+def test_listed_file_absent_names_list_and_line(tum_folder):
+    folder = tum_folder[0]
+    name = (folder / "rgb.txt").read_text().splitlines()[4].split()[1]  # line 5 = third entry
+    (folder / name).unlink()
+    with pytest.raises(FileNotFoundError, match=r"rgb\.txt:5: .*not found"):
+        data.load_sequence(folder)
+
+
+def test_malformed_line_names_file_and_line(tum_folder):
+    folder = tum_folder[0]
+    lines = (folder / "depth.txt").read_text().splitlines()
+    lines[2] = "abc depth/x.png"
+    (folder / "depth.txt").write_text("\n".join(lines))
+    with pytest.raises(ValueError, match=r"depth\.txt:3: timestamp 'abc'"):
+        data.load_sequence(folder)
+    gt = (folder / "groundtruth.txt").read_text().splitlines()
+    gt[3] = "1.0 2.0 3.0"
+    (folder / "groundtruth.txt").write_text("\n".join(gt))
+    with pytest.raises(ValueError, match=r"groundtruth\.txt:4: expected 8 numbers"):
+        data.read_tum_trajectory(folder / "groundtruth.txt")
+
+
+def test_timestamps_out_of_order(tum_folder):
+    folder = tum_folder[0]
+    lines = (folder / "rgb.txt").read_text().splitlines()
+    lines[3], lines[4] = lines[4], lines[3]
+    (folder / "rgb.txt").write_text("\n".join(lines))
+    with pytest.raises(ValueError, match=r"rgb\.txt:5: .*out of order"):
+        data.load_sequence(folder)
+
+
+def test_depth_png_not_16_bit(tum_folder):
+    folder = tum_folder[0]
+    name = (folder / "depth.txt").read_text().splitlines()[1].split()[1]
+    iio.imwrite(folder / name, np.zeros((6, 8), np.uint8))
+    sequence = data.load_sequence(folder)
+    with pytest.raises(ValueError, match=rf"{os.path.basename(name)}: depth must be a single-channel 16-bit PNG"):
+        sequence[0]
+
+
+def test_no_depth_within_tolerance_is_an_error_not_empty(tmp_path):
+    stamps = 10.0 + np.arange(3) / 30
+    folder = make_tum(tmp_path / "t", stamps, stamps + 1.0, stamps, _random_poses(3))
+    with pytest.raises(ValueError, match="within 0.02 s"):
+        data.load_sequence(folder)
+
+
+# ------------------------------------------------------------------------------------------------
+# Other layouts
+
+
+def test_scannet_layout(tmp_path):
+    folder = tmp_path / "scene0000_00"
+    for sub in ("color", "depth", "pose", "intrinsic"):
+        (folder / sub).mkdir(parents=True)
+    poses = _random_poses(3)
+    for n in range(3):
+        Image.fromarray(np.full((12, 16, 3), 40 * n, np.uint8)).save(folder / f"color/{n * 10}.jpg", quality=100)
+        iio.imwrite(folder / f"depth/{n * 10}.png", _depth(8, 6, 1.5 + n, 1000))
+        pose = poses[n].copy()
+        if n == 1:
+            pose[0, 0] = -np.inf  # ScanNet's invalid poses
+        np.savetxt(folder / f"pose/{n * 10}.txt", pose)
+    np.savetxt(folder / "intrinsic/intrinsic_depth.txt", [[6.1, 0, 3.6, 0], [0, 6.2, 2.7, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    assert data.detect_dataset(folder) == "scannet"
+    loose = data.load_sequence(folder, require_gt=False)
+    assert np.isnan(loose.gt_poses[1]).all()
+    sequence = data.load_sequence(folder)
+    np.testing.assert_allclose(sequence.timestamps, [0.0, 20 / 30])  # frame numbers / 30 FPS
+    assert sequence.intrinsics == data.Intrinsics(6.1, 6.2, 3.6, 2.7, 8, 6)
+    frame = sequence[1]
+    assert frame.rgb.shape == (6, 8, 3)  # colour resized to the depth size
+    np.testing.assert_allclose(frame.rgb, 80 / 255, atol=2 / 255)
+    np.testing.assert_allclose(frame.depth, 3.5, atol=1e-6)
+    np.testing.assert_allclose(frame.pose_c2w, poses[2], atol=1e-12)
+    (folder / "intrinsic/intrinsic_depth.txt").unlink()
+    with pytest.raises(FileNotFoundError, match="intrinsic_depth.txt"):
+        data.load_sequence(folder)
+
+
+def test_neural_rgbd_layout_converts_opengl_poses(tmp_path):
+    folder = tmp_path / "breakfast_room"
+    (folder / "images").mkdir(parents=True)
+    (folder / "depth_filtered").mkdir()
+    poses_gl = _random_poses(11, seed=3)
+    for i in range(11):  # natural order: img2 before img10
+        iio.imwrite(folder / f"images/img{i}.png", _rgb(8, 6, i))
+        iio.imwrite(folder / f"depth_filtered/depth{i}.png", _depth(8, 6, 1.0 + 0.01 * i, 1000))
+    np.savetxt(folder / "poses.txt", poses_gl.reshape(-1, 4))
+    sequence = data.load_sequence(folder)
+    assert sequence.kind == "neural_rgbd"
+    k = sequence.intrinsics
+    assert (k.fx, k.fy, k.cx, k.cy) == (554.2562584220408, 554.2562584220408, 4.0, 3.0)
+    frame = sequence[10]
+    np.testing.assert_allclose(frame.depth, 1.1, atol=1e-6)
+    gl = poses_gl[10]  # OpenGL camera looks along -z and has y up
+    np.testing.assert_allclose(frame.pose_c2w[:3, 0], gl[:3, 0])
+    np.testing.assert_allclose(frame.pose_c2w[:3, 1], -gl[:3, 1])
+    np.testing.assert_allclose(frame.pose_c2w[:3, 2], -gl[:3, 2])
+    np.testing.assert_allclose(frame.pose_c2w[:3, 3], gl[:3, 3])
+    (folder / "focal.txt").write_text("300.5\n")
+    assert data.load_sequence(folder).intrinsics.fx == 300.5
+    (folder / "poses.txt").write_text("1 0 0\n")
+    with pytest.raises(ValueError, match=r"poses\.txt:1: expected 4 numbers"):
+        data.load_sequence(folder)
+
+
+def test_replica_layout(tmp_path):
+    folder = tmp_path / "room0"
+    (folder / "results").mkdir(parents=True)
+    poses = _random_poses(2, seed=5)
+    for i in range(2):
+        Image.fromarray(np.full((680, 1200, 3), 100, np.uint8)).save(folder / f"results/frame{i:06d}.jpg")
+        iio.imwrite(folder / f"results/depth{i:06d}.png", _depth(1200, 680, 2.0, 6553.5))
+    np.savetxt(folder / "traj.txt", poses.reshape(2, 16))
+    sequence = data.load_sequence(folder, frame_start=1)
+    assert sequence.kind == "replica" and len(sequence) == 1
+    assert sequence.intrinsics == data.Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)  # not floored
+    frame = sequence[0]
+    np.testing.assert_allclose(frame.depth, round(2.0 * 6553.5) / 6553.5, atol=1e-6)
+    np.testing.assert_allclose(frame.pose_c2w, poses[1], atol=1e-12)
+    assert frame.timestamp == pytest.approx(1 / 30)
+
+
+def test_generic_folder_layout(tmp_path):
+    folder = tmp_path / "capture"
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    stamps = 50.0 + np.arange(4) / 15.0
+    for i, stamp in enumerate(stamps):
+        iio.imwrite(folder / f"rgb/{stamp:.6f}.png", _rgb(8, 6, i))
+        iio.imwrite(folder / f"depth/{stamp:.6f}.png", _depth(8, 6, 0.8, 1000))
+    (folder / "calibration.txt").write_text("# fx fy cx cy\n9 9 3.5 2.5\n")
+    poses = _random_poses(4)
+    (folder / "groundtruth.txt").write_text("\n".join(_tum_line(s, p) for s, p in zip(stamps, poses)))
+    sequence = data.load_sequence(folder)
+    assert sequence.kind == "folder"
+    np.testing.assert_allclose(sequence.timestamps, np.round(stamps, 6))
+    np.testing.assert_allclose(sequence[2].depth, 0.8, atol=1e-6)  # mm default scale
+    np.testing.assert_allclose(sequence[2].pose_c2w, poses[2], atol=1e-6)
+    (folder / "calibration.txt").write_text("9 9 3.5\n")
+    with pytest.raises(ValueError, match=r"calibration\.txt:1: expected"):
+        data.load_sequence(folder)
+
+
+# ------------------------------------------------------------------------------------------------
+# Trajectory files
+
+
+def test_tum_trajectory_write_read(tmp_path):
+    stamps = 1341841873.0 + np.arange(5) * 0.0333
+    poses = _random_poses(5)
+    path = data.write_tum_trajectory(tmp_path / "traj.txt", stamps, poses)
+    text = path.read_text().splitlines()
+    assert text[0].startswith("#") and text[1].split()[0] == f"{stamps[0]:.6f}"
+    # scipy as the independent quaternion oracle (x, y, z, w)
+    quat = np.array([float(v) for v in text[2].split()[4:]])
+    assert min(np.abs(quat - Rotation.from_matrix(poses[1, :3, :3]).as_quat()).max(),
+               np.abs(quat + Rotation.from_matrix(poses[1, :3, :3]).as_quat()).max()) < 1e-8
+    read_stamps, read_poses = data.read_tum_trajectory(path)
+    np.testing.assert_allclose(read_stamps, stamps, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(read_poses, poses, atol=1e-8)
+    with pytest.raises(FileExistsError):
+        data.write_tum_trajectory(path, stamps, poses)
+    data.write_tum_trajectory(path, stamps[:2], poses[:2], overwrite=True)
+    assert len(data.read_tum_trajectory(path)[0]) == 2
+
+
+# ------------------------------------------------------------------------------------------------
+# Real data: TUM fr3/teddy, first 120 frames
+
+
+def _raw_list(path):
+    rows = [line.split() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    return [float(r[0]) for r in rows], [r[1] for r in rows]
+
+
+def test_real_tum_teddy(shared_data):
+    folder = shared_data / "tum_fr3_teddy_120"
+    rgb_t, _ = _raw_list(folder / "rgb.txt")
+    depth_t, _ = _raw_list(folder / "depth.txt")
+    gt = np.loadtxt(folder / "groundtruth.txt", comments="#")
+    # independent brute-force association: nearest within 0.02 s
+    expected = [t for t in rgb_t if min(abs(t - d) for d in depth_t) <= 0.02 and np.abs(gt[:, 0] - t).min() <= 0.02]
+    sequence = data.load_sequence(folder)
+    assert len(sequence) == len(expected) == 116
+    np.testing.assert_array_equal(sequence.timestamps, expected)
+    assert sequence.gt_poses.shape == (116, 4, 4) and np.isfinite(sequence.gt_poses).all()
+    k = sequence.intrinsics
+    assert (k.fx, k.fy, k.cx, k.cy, k.width, k.height) == (535.4, 539.2, 320.1, 247.6, 640, 480)
+    frame = sequence[0]
+    valid = frame.depth[frame.depth > 0]
+    assert 0.3 < valid.min() and valid.max() < 10.0 and valid.size > 0.5 * frame.depth.size
+    raw = iio.imread(sequence.depth_paths[0])
+    np.testing.assert_allclose(frame.depth, raw / 5000.0, rtol=1e-6)
+    # frame 0 lies just before the first 100 Hz pose (within 0.02 s): the nearest line, TUM's rule
+    t0 = sequence.timestamps[0]
+    if t0 < gt[0, 0]:
+        assert gt[0, 0] - t0 <= 0.02
+        np.testing.assert_allclose(frame.pose_c2w[:3, 3], gt[0, 1:4], atol=1e-12)
+        np.testing.assert_allclose(frame.pose_c2w[:3, :3], Rotation.from_quat(gt[0, 4:8]).as_matrix(), atol=1e-9)
+    # later frames: scipy Slerp / linear interpolation between the two bracketing raw lines
+    for i in (1, 60, 115):
+        t = sequence.timestamps[i]
+        j = np.searchsorted(gt[:, 0], t)
+        slerp = Slerp(gt[j - 1 : j + 1, 0], Rotation.from_quat(gt[j - 1 : j + 1, 4:8]))
+        pose = sequence.gt_poses[i]
+        np.testing.assert_allclose(pose[:3, :3], slerp([t]).as_matrix()[0], atol=1e-6)
+        w = (t - gt[j - 1, 0]) / (gt[j, 0] - gt[j - 1, 0])
+        np.testing.assert_allclose(pose[:3, 3], (1 - w) * gt[j - 1, 1:4] + w * gt[j, 1:4], atol=1e-9)
+        nearest = np.abs(gt[:, 0] - t).argmin()
+        assert np.linalg.norm(pose[:3, 3] - gt[nearest, 1:4]) < 0.01
+
+
+def test_bundled_slice_matches_source(shared_data):
+    bundled = data.load_from_config(DataConfig())  # path "" -> the bundled slice
+    assert bundled.path == data.default_sequence_path() and len(bundled) == 100
+    k = bundled.intrinsics
+    np.testing.assert_allclose([k.fx, k.fy, k.cx, k.cy], [535.4 / 4, 539.2 / 4, (320.1 + 0.5) / 4 - 0.5, (247.6 + 0.5) / 4 - 0.5])
+    assert (k.width, k.height) == (160, 120)
+    source = data.load_sequence(shared_data / "tum_fr3_teddy_120")
+    np.testing.assert_array_equal(bundled.timestamps, source.timestamps[:100])
+    np.testing.assert_allclose(bundled.gt_poses, source.gt_poses[:100], atol=1e-12)
+    small, full = bundled[50], source[50]
+    np.testing.assert_allclose(small.rgb.mean(axis=(0, 1)), full.rgb.mean(axis=(0, 1)), atol=0.01)
+    assert abs(np.median(small.depth[small.depth > 0]) - np.median(full.depth[full.depth > 0])) < 0.02
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line
+
+
+def test_cli_info(tum_folder, capsys):
+    assert data.main(["info", str(tum_folder[0]), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    for key in ("type", "frames", "frames_with_gt", "width", "height", "fx", "fy", "cx", "cy", "duration_s",
+                "depth_valid_fraction"):
+        assert key in summary
+    assert summary["type"] == "tum" and summary["frames"] == 5 and summary["depth_valid_fraction"] == 1.0
+
+
+def test_cli_info_rejects_non_dataset(tmp_path, capsys):
+    assert data.main(["info", str(tmp_path)]) == 2
+    assert "Layouts tried" in capsys.readouterr().err
+
+
+def test_module_entry_point_exit_status(tmp_path):
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "tsslam_ref.data", "info", str(tmp_path)], capture_output=True, text=True)
+    assert result.returncode == 2 and "Layouts tried" in result.stderr
+
+
+def test_default_synthetic_path_generates_once(tmp_path, monkeypatch):
+    from tsslam_ref import synthetic
+
+    calls = []
+
+    def fake_synthesize(out_dir, **kwargs):
+        calls.append((out_dir, kwargs))
+        out_dir.mkdir(parents=True)
+        (out_dir / "rgb.txt").write_text("")
+        return out_dir
+
+    monkeypatch.setattr(synthetic, "synthesize", fake_synthesize)
+    cache = tmp_path / "cache"
+    assert data.default_synthetic_path(cache, verbose=False) == cache
+    assert data.default_synthetic_path(cache, verbose=False) == cache
+    assert len(calls) == 1 and calls[0][1]["n_frames"] == 60 and calls[0][1]["seed"] == 0

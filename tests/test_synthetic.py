@@ -1,0 +1,205 @@
+"""Tests for tsslam_ref.synthetic: SDF, sphere-traced depth against analytic ray intersections,
+two-view consistency, depth noise, trajectory resampling and placement, mesh, synthesize -> load.
+
+Oracles: closed-form ray-sphere and ray-box (slab) intersections, the eikonal property through
+autograd, scipy's Slerp, a numpy re-projection written here, the clean render for the round trip.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation, Slerp
+
+from tsslam_ref import data, synthetic
+from tsslam_ref.synthetic import ProceduralRoom, render_rgbd
+
+SPHERE_CENTRE = np.array([1.0, 0.2, 1.2])
+SPHERE_RADIUS = 0.4
+
+
+def _camera(position, forward):
+    pose = np.eye(4)
+    pose[:3, :3] = synthetic.look_rotation(forward)
+    pose[:3, 3] = position
+    return pose
+
+
+def _rays_world(pose, k):
+    v, u = np.mgrid[: k.height, : k.width].astype(np.float64)
+    rays_cam = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u)], -1)  # (H, W, 3)
+    return rays_cam @ pose[:3, :3].T  # unnormalised, camera z = 1
+
+
+def test_sphere_and_walls_depth_match_analytic_intersections():
+    """Every pixel's depth equals the nearer of the analytic ray-sphere and ray-room-box hits."""
+    scene = ProceduralRoom(boxes=[], cylinders=[], spheres=[(tuple(SPHERE_CENTRE), SPHERE_RADIUS, (1, 0, 0))])
+    k = data.Intrinsics(40.0, 40.0, 23.5, 17.5, 48, 36)
+    pose = _camera([-0.5, -0.3, 1.1], SPHERE_CENTRE - np.array([-0.5, -0.3, 1.1]))
+    _, depth = render_rgbd(scene, pose, k)
+    d = _rays_world(pose, k)  # a point at depth z is o + z d
+    o = pose[:3, 3]
+    # sphere: |o + z d - c|^2 = r^2
+    a = (d * d).sum(-1)
+    b = 2 * (d * (o - SPHERE_CENTRE)).sum(-1)
+    c = ((o - SPHERE_CENTRE) ** 2).sum() - SPHERE_RADIUS**2
+    disc = b * b - 4 * a * c
+    z_sphere = np.where(disc > 0, (-b - np.sqrt(np.clip(disc, 0, None))) / (2 * a), np.inf)
+    # room walls from inside: exit distance of the slab test
+    low, high = np.array(synthetic.ROOM_MIN), np.array(synthetic.ROOM_MAX)
+    with np.errstate(divide="ignore"):
+        z_exit = np.min(np.maximum((low - o) / d, (high - o) / d), axis=-1)
+    expected = np.minimum(z_sphere, z_exit)
+    assert (disc > 0).mean() > 0.1  # the sphere fills part of the view
+    np.testing.assert_allclose(depth, expected, atol=2e-4)
+
+
+def test_back_projected_depth_lies_on_the_surface():
+    """data.back_project of a clean render gives points on the zero level set of the scene SDF."""
+    scene = ProceduralRoom()
+    k = data.Intrinsics(50.0, 52.0, 30.2, 21.7, 64, 44)
+    pose = synthetic.builtin_trajectory(np.array([1.7]))[0]
+    _, depth = render_rgbd(scene, pose, k)
+    points = data.back_project(depth, k, pose)[depth > 0]  # (N, 3)
+    assert len(points) > 0.99 * depth.size
+    assert scene.sdf(torch.from_numpy(points)).abs().max().item() < 1e-4
+    np.testing.assert_allclose(data.back_project(depth, k)[..., 2], depth)  # camera frame: z = depth
+
+
+def test_sdf_is_a_distance_field():
+    """|grad sdf| = 1 almost everywhere (eikonal) and sdf > 0 at the room centre, < 0 inside objects."""
+    scene = ProceduralRoom()
+    generator = torch.Generator().manual_seed(0)
+    low, high = torch.tensor(synthetic.ROOM_MIN), torch.tensor(synthetic.ROOM_MAX)
+    points = (low + (high - low) * torch.rand(2000, 3, generator=generator, dtype=torch.float64)).requires_grad_()
+    (grad,) = torch.autograd.grad(scene.sdf(points).sum(), points)
+    norms = grad.norm(dim=-1)
+    assert ((norms - 1).abs() < 1e-6).float().mean() > 0.97
+    centre = torch.tensor([[0.0, 0.0, 1.25]], dtype=torch.float64)
+    # nearest surface: the table's top corner at (0.7, 0.35, 0.75) -> offsets (0.7, 0.35, 0.5)
+    assert scene.sdf(centre).item() == pytest.approx(np.sqrt(0.7**2 + 0.35**2 + 0.5**2))
+    inside = torch.tensor([list(synthetic.DEFAULT_SPHERES[0][0])], dtype=torch.float64)
+    assert scene.sdf(inside).item() == pytest.approx(-synthetic.DEFAULT_SPHERES[0][1])
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        scene.sdf(torch.zeros(4, 2))
+
+
+def test_two_views_agree_after_reprojection():
+    """Back-project view A with its pose, project into view B: depth and colour agree where both see it."""
+    scene = ProceduralRoom(seed=1)
+    k = data.Intrinsics(60.0, 60.0, 39.5, 29.5, 80, 60)
+    pose_a = _camera([0.2, 0.1, 1.3], [1.0, 0.1, -0.2])
+    pose_b = _camera([0.35, -0.05, 1.25], [1.0, -0.15, -0.1])
+    rgb_a, depth_a = render_rgbd(scene, pose_a, k)
+    rgb_b, depth_b = render_rgbd(scene, pose_b, k)
+    points_world = (_rays_world(pose_a, k) * depth_a[..., None] + pose_a[:3, 3]).reshape(-1, 3)
+    points_b = (points_world - pose_b[:3, 3]) @ pose_b[:3, :3]  # R^T (p - t), (N, 3)
+    u = np.round(k.fx * points_b[:, 0] / points_b[:, 2] + k.cx).astype(int)
+    v = np.round(k.fy * points_b[:, 1] / points_b[:, 2] + k.cy).astype(int)
+    inside = (points_b[:, 2] > 0) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+    z_seen = depth_b[v[inside], u[inside]]
+    same_surface = np.abs(z_seen - points_b[inside, 2]) < 0.02
+    assert inside.mean() > 0.5 and same_surface.mean() > 0.8
+    colour_a = rgb_a.reshape(-1, 3)[inside][same_surface]
+    colour_b = rgb_b[v[inside], u[inside]][same_surface]
+    assert np.median(np.abs(colour_a - colour_b)) < 0.02  # nearest-pixel rounding only
+    assert np.median(np.abs(colour_a - colour_b[np.random.default_rng(0).permutation(len(colour_b))])) > 0.04
+
+
+def test_depth_noise_model_and_determinism():
+    scene = ProceduralRoom()
+    k = data.Intrinsics(60.0, 60.0, 39.5, 29.5, 80, 60)
+    pose = synthetic.builtin_trajectory(np.array([0.5]))[0]
+    _, clean = render_rgbd(scene, pose, k)
+    _, noisy = render_rgbd(scene, pose, k, clean=False, generator=torch.Generator().manual_seed(3))
+    _, again = render_rgbd(scene, pose, k, clean=False, generator=torch.Generator().manual_seed(3))
+    _, other = render_rgbd(scene, pose, k, clean=False, generator=torch.Generator().manual_seed(4))
+    np.testing.assert_array_equal(noisy, again)
+    assert not np.array_equal(noisy, other)
+    valid = noisy > 0
+    assert 0.8 < valid.mean() < 0.999  # some dropouts, most pixels kept
+    sigma = 0.0012 + 0.0019 * (clean[valid] - 0.4) ** 2
+    ratio = np.std((noisy[valid] - clean[valid]) / sigma)
+    assert 0.85 < ratio < 1.15
+    with pytest.raises(ValueError, match="Generator"):
+        render_rgbd(scene, pose, k, clean=False)
+
+
+def test_resampling_is_linear_and_slerp(shared_data):
+    path = shared_data / "trajectories" / "tum_rgbd_fr2_desk_groundtruth.txt"
+    raw = np.loadtxt(path, comments="#")
+    start = raw[100, 0]
+    times, poses = synthetic.resample_trajectory(path, 20, 30.0, start_time=start)
+    np.testing.assert_allclose(times, start + np.arange(20) / 30.0)
+    np.testing.assert_allclose(poses[0][:3, 3], raw[100, 1:4], atol=1e-12)  # exactly on a sample
+    for i in (5, 19):
+        j = np.searchsorted(raw[:, 0], times[i])
+        slerp = Slerp(raw[j - 1 : j + 1, 0], Rotation.from_quat(raw[j - 1 : j + 1, 4:8]))
+        np.testing.assert_allclose(poses[i][:3, :3], slerp([times[i]]).as_matrix()[0], atol=1e-6)
+        w = (times[i] - raw[j - 1, 0]) / (raw[j, 0] - raw[j - 1, 0])
+        np.testing.assert_allclose(poses[i][:3, 3], (1 - w) * raw[j - 1, 1:4] + w * raw[j, 1:4], atol=1e-9)
+    with pytest.raises(ValueError, match="no pose for frame"):
+        synthetic.resample_trajectory(path, 10, 30.0, start_time=raw[-1, 0])
+
+
+def test_placement_keeps_relative_motion():
+    rng = np.random.default_rng(0)
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    poses[:, :3, :3] = Rotation.from_rotvec(rng.normal(size=(5, 3))).as_matrix()
+    poses[:, :3, 3] = rng.normal(size=(5, 3)) + 10.0
+    placed, _ = synthetic.place_in_room(poses)
+    np.testing.assert_allclose(placed[0][:3, 3], synthetic.START_POSITION, atol=1e-12)
+    np.testing.assert_allclose(placed[0][:3, :3], synthetic.START_ROTATION, atol=1e-12)
+    for i, j in [(0, 3), (2, 4)]:
+        np.testing.assert_allclose(np.linalg.inv(placed[i]) @ placed[j], np.linalg.inv(poses[i]) @ poses[j], atol=1e-9)
+
+
+def test_mesh_lies_on_the_zero_level_set():
+    scene = ProceduralRoom()
+    voxel = 0.1
+    mesh = scene.mesh(voxel)
+    vertices = torch.from_numpy(np.array(mesh.vertices))
+    assert scene.sdf(vertices).abs().max().item() < 0.5 * voxel
+    outward = vertices + 0.05 * torch.from_numpy(np.array(mesh.vertex_normals))
+    assert (scene.sdf(outward) > 0).double().mean().item() > 0.9  # normals point into free space
+    assert mesh.visual.vertex_colors.shape == (len(mesh.vertices), 4)
+
+
+def test_synthesize_round_trip(tmp_path):
+    out = synthetic.synthesize(tmp_path / "syn", n_frames=4, width=32, height=24, fps=15.0, seed=2,
+                               clean_depth=True, mesh_voxel=0.15)
+    sequence = data.load_sequence(out)
+    scene_info = json.loads((out / "scene.json").read_text())
+    k = synthetic.default_intrinsics(32, 24)
+    assert sequence.kind == "tum" and len(sequence) == 4
+    assert sequence.intrinsics == k and scene_info["intrinsics"] == k.to_dict()  # not the fr3 defaults
+    np.testing.assert_allclose(scene_info["bound"], [[-2, 2], [-1.5, 1.5], [0, 2.5]])
+    np.testing.assert_allclose(sequence.timestamps, np.arange(4) / 15.0, rtol=0, atol=1e-6)  # %.6f stamps
+    truth = synthetic.builtin_trajectory(np.arange(4) / 15.0)
+    np.testing.assert_allclose(sequence.gt_poses, truth, atol=1e-8)
+    frame = sequence[2]
+    rgb, depth = render_rgbd(ProceduralRoom(seed=2), truth[2], k)
+    np.testing.assert_allclose(frame.depth, depth, atol=0.5 / 5000 + 1e-6)
+    np.testing.assert_allclose(frame.rgb, rgb, atol=0.5 / 255 + 1e-6)
+    assert (out / "gt_mesh.ply").stat().st_size > 1000
+    with pytest.raises(FileExistsError, match="not empty"):
+        synthetic.synthesize(out, n_frames=2, width=32, height=24)
+    synthetic.synthesize(out, n_frames=2, width=32, height=24, overwrite=True, mesh_voxel=0.2)
+    assert len(data.load_sequence(out)) == 2
+
+
+def test_synthesize_along_real_motion_and_cli(tmp_path, shared_data, capsys):
+    trajectory = shared_data / "trajectories" / "tum_rgbd_fr2_desk_groundtruth.txt"
+    out = tmp_path / "desk"
+    status = data.main(["synthesize", "--out", str(out), "--trajectory", str(trajectory), "--frames", "3",
+                        "--size", "24x16", "--seed", "1", "--mesh-voxel", "0.2"])
+    assert status == 0
+    sequence = data.load_sequence(out)
+    stamps, poses = synthetic.resample_trajectory(trajectory, 3, 30.0)
+    np.testing.assert_allclose(sequence.timestamps, np.round(stamps, 6))
+    # same motion up to the rigid placement: relative poses equal the source's
+    np.testing.assert_allclose(np.linalg.inv(sequence.gt_poses[0]) @ sequence.gt_poses[2],
+                               np.linalg.inv(poses[0]) @ poses[2], atol=1e-6)
+    assert data.main(["synthesize", "--out", str(out), "--frames", "2"]) == 2
+    assert "not empty" in capsys.readouterr().err

@@ -1,0 +1,261 @@
+"""RGB-D datasets: detection, lazy loading, intrinsics, timestamps, ground truth; the command line.
+
+TS-SLAM §IV-A "Datasets" (TUM RGB-D, ScanNet and the NeuralRGBD synthetic scenes; "we assumed a
+constant frame rate of 30 FPS" where a dataset has no timestamps), Eq. (2) ``eq:cal_ray`` for
+:func:`back_project`, and Co-SLAM's ``datasets/dataset.py`` @3bb904e (shared/spec/coslam.md section 7;
+Replica is supported because Co-SLAM evaluates on it).  Side layer: imports layer 0 only (the ``synthesize`` command
+imports :mod:`tsslam_ref.synthetic` lazily).  Documented in docs/data.md; taught in
+notebooks/00_data_and_cameras.ipynb.
+
+This module is the public entry point; the readers live in :mod:`tsslam_ref.datasets`.
+
+Conventions: poses are camera-to-world with OpenCV camera axes; depth is metric z (0 = invalid)
+and is never truncated here (``depth_trunc`` is applied by the losses); timestamps are float64
+seconds of dataset time; pixel centres lie at integer coordinates (see ``Intrinsics``).
+
+Command line::
+
+    python -m tsslam_ref.data info PATH [--json]
+    python -m tsslam_ref.data synthesize --out DIR [--trajectory FILE] [--frames N] [--size WxH]
+                                         [--seed S] [--fps F] [--clean-depth] [--force]
+                                         [--mesh-voxel M]
+"""
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from tsslam_ref.datasets.intrinsics import Intrinsics, back_project, pixel_rays
+from tsslam_ref.datasets.layouts import (
+    DEPTH_SCALES,
+    LAYOUTS,
+    detect_dataset,
+    parse_folder,
+    parse_neural_rgbd,
+    parse_replica,
+    parse_scannet,
+    parse_tum,
+)
+from tsslam_ref.datasets.sequence import Frame, RGBDSequence
+from tsslam_ref.datasets.tum_format import TUM_MAX_TIME_DIFF, read_tum_trajectory, write_tum_trajectory
+
+__all__ = [
+    "Intrinsics", "Frame", "RGBDSequence", "detect_dataset", "load_sequence", "load_from_config",
+    "default_sequence_path", "default_synthetic_path", "read_tum_trajectory", "write_tum_trajectory",
+    "sequence_info", "back_project", "pixel_rays", "LAYOUTS", "DEPTH_SCALES",
+]
+
+ASSETS = Path(__file__).resolve().parent / "assets"
+BUNDLED_TUM = "tum_fr3_teddy_160x120"
+SYNTHETIC_CACHE = Path.home() / ".cache" / "tsslam_ref" / "synthetic_room_160x120"
+
+
+def default_sequence_path() -> Path:
+    """The bundled TUM slice: fr3/teddy, ~100 frames at 160x120 (made by data_scripts/make_bundled_tum_slice.py)."""
+    path = ASSETS / BUNDLED_TUM
+    if not (path / "rgb.txt").is_file():
+        raise FileNotFoundError(f"{path}: bundled sequence missing; run data_scripts/make_bundled_tum_slice.py")
+    return path
+
+
+def default_synthetic_path(cache_dir: Optional[Path] = None, verbose: bool = True) -> Path:
+    """The default synthetic sequence (60 frames, 160x120, built-in path, seed 0), generated on first
+    use into ``~/.cache/tsslam_ref/synthetic_room_160x120`` (or ``cache_dir``); the path is printed."""
+    path = Path(cache_dir) if cache_dir is not None else SYNTHETIC_CACHE
+    if not (path / "rgb.txt").is_file():
+        from tsslam_ref import synthetic  # lazy: side module, only needed on first use
+
+        if verbose:
+            print(f"tsslam_ref: generating the default synthetic sequence into {path}", file=sys.stderr)
+        synthetic.synthesize(path, n_frames=60, width=160, height=120, fps=30.0, seed=0, overwrite=True)
+    return path
+
+
+def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int, path: Path):
+    n = len(index.timestamps)
+    if frame_step < 1 or frame_start < 0 or (frame_stop is not None and frame_stop < 0):
+        raise ValueError(f"invalid frame range start={frame_start} stop={frame_stop} step={frame_step} (need start, stop >= 0, step >= 1)")
+    chosen = np.arange(n)[frame_start:frame_stop:frame_step]
+    if len(chosen) == 0:
+        raise ValueError(f"{path}: frame range start={frame_start} stop={frame_stop} step={frame_step} selects no frame out of {n}")
+    return chosen
+
+
+def load_sequence(
+    path,
+    dataset: str = "auto",
+    resize_width: Optional[int] = None,
+    crop_edge: int = 0,
+    depth_scale: Optional[float] = None,
+    depth_trunc: Optional[float] = None,
+    frame_start: int = 0,
+    frame_stop: Optional[int] = None,
+    frame_step: int = 1,
+    fps: float = 30.0,
+    require_gt: bool = True,
+    max_time_diff: float = TUM_MAX_TIME_DIFF,
+) -> RGBDSequence:
+    """Open a dataset folder as a lazy :class:`RGBDSequence`.
+
+    Order of operations: parse the layout (TUM association, GT lookup) -> drop frames without GT
+    if ``require_gt`` -> select ``[frame_start:frame_stop:frame_step]`` -> per frame on access:
+    crop ``crop_edge`` px per side, then resize to ``resize_width`` (aspect kept, intrinsics
+    updated exactly).
+
+    Args:
+        path: dataset folder.  dataset: 'auto' or one of :data:`LAYOUTS`.
+        resize_width: output width in px; None keeps the native size.
+        crop_edge: pixels removed from every side before resizing.
+        depth_scale: PNG value per metre; None = the layout's standard or the calibration file's.
+        depth_trunc: stored on the sequence for the losses; depth is never zeroed here.
+        frame_start, frame_stop, frame_step: Python slice over the usable frames.
+        fps: frame rate for layouts without timestamps (time = frame number / fps).
+        require_gt: drop frames whose ground-truth pose is unknown (no effect without GT).
+        max_time_diff: association tolerance in s (TUM: 0.02).
+
+    Raises:
+        FileNotFoundError / ValueError naming the file and line for bad input; ValueError when no
+        frame is left (never a silent empty sequence).
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: dataset folder not found")
+    kind = detect_dataset(folder) if dataset == "auto" else dataset
+    if kind not in LAYOUTS:
+        raise ValueError(f"dataset '{dataset}' unknown; expected 'auto' or one of {sorted(LAYOUTS)}")
+    if not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    if kind == "tum":
+        index = parse_tum(folder, fps, max_time_diff)
+    elif kind == "scannet":
+        index = parse_scannet(folder, fps)
+    elif kind == "neural_rgbd":
+        index = parse_neural_rgbd(folder, fps)
+    elif kind == "replica":
+        index = parse_replica(folder, fps)
+    else:
+        index = parse_folder(folder, fps, max_time_diff)
+    if require_gt and index.gt_poses is not None:
+        known = np.flatnonzero(np.isfinite(index.gt_poses).all(axis=(1, 2)))
+        if len(known) == 0:
+            raise ValueError(f"{folder}: no frame has a ground-truth pose within {max_time_diff} s (pass require_gt=False to keep them)")
+        index.rgb_paths = [index.rgb_paths[i] for i in known]
+        index.depth_paths = [index.depth_paths[i] for i in known]
+        index.timestamps = index.timestamps[known]
+        index.gt_poses = index.gt_poses[known]
+    chosen = _select(index, frame_start, frame_stop, frame_step, folder)
+    if depth_scale is None:
+        depth_scale = index.depth_scale if index.depth_scale is not None else DEPTH_SCALES[kind]
+    return RGBDSequence(
+        name=folder.resolve().name,
+        kind=kind,
+        path=folder,
+        rgb_paths=[index.rgb_paths[i] for i in chosen],
+        depth_paths=[index.depth_paths[i] for i in chosen],
+        timestamps=index.timestamps[chosen],
+        gt_poses=None if index.gt_poses is None else index.gt_poses[chosen],
+        native_intrinsics=index.intrinsics,
+        depth_scale=depth_scale,
+        crop_edge=crop_edge,
+        resize_width=resize_width,
+        depth_trunc=depth_trunc,
+    )
+
+
+def load_from_config(data_cfg) -> RGBDSequence:
+    """:func:`load_sequence` from a :class:`tsslam_ref.config.DataConfig`; path "" = the bundled slice."""
+    path = data_cfg.path or default_sequence_path()
+    return load_sequence(
+        path,
+        dataset=data_cfg.dataset,
+        resize_width=data_cfg.resize_width,
+        crop_edge=data_cfg.crop_edge,
+        depth_scale=data_cfg.depth_scale,
+        depth_trunc=data_cfg.depth_trunc,
+        frame_start=data_cfg.frame_start,
+        frame_stop=data_cfg.frame_stop,
+        frame_step=data_cfg.frame_step,
+        fps=data_cfg.fps,
+    )
+
+
+def sequence_info(sequence: RGBDSequence, depth_samples: int = 5) -> dict:
+    """Summary of a sequence (the ``info`` command): size, intrinsics, duration, depth coverage.
+
+    ``depth_valid_fraction`` is the mean share of pixels with depth > 0 over ``depth_samples``
+    frames spread evenly through the sequence.
+    """
+    k = sequence.intrinsics
+    picks = np.unique(np.linspace(0, len(sequence) - 1, min(depth_samples, len(sequence))).round().astype(int))
+    valid = [float((sequence[int(i)].depth > 0).mean()) for i in picks]
+    return {
+        "type": sequence.kind,
+        "name": sequence.name,
+        "path": str(sequence.path),
+        "frames": len(sequence),
+        "frames_with_gt": sequence.frames_with_gt,
+        "width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
+        "depth_scale": sequence.depth_scale,
+        "duration_s": float(sequence.timestamps[-1] - sequence.timestamps[0]),
+        "depth_valid_fraction": float(np.mean(valid)),
+    }
+
+
+def _parse_size(text: str):
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--size must look like 160x120, got '{text}'") from None
+    return width, height
+
+
+def main(argv=None) -> int:
+    """Command-line entry (see the module docstring).  Returns the exit status."""
+    parser = argparse.ArgumentParser(prog="python -m tsslam_ref.data", description="RGB-D dataset tools")
+    commands = parser.add_subparsers(dest="command", required=True)
+    info = commands.add_parser("info", help="summarise a dataset folder")
+    info.add_argument("path")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    synth = commands.add_parser("synthesize", help="render a synthetic TUM-layout sequence")
+    synth.add_argument("--out", required=True)
+    synth.add_argument("--trajectory", default=None, help="TUM-format trajectory (default: built-in path)")
+    synth.add_argument("--frames", type=int, default=60)
+    synth.add_argument("--size", type=_parse_size, default=(160, 120))
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--fps", type=float, default=30.0)
+    synth.add_argument("--clean-depth", action="store_true")
+    synth.add_argument("--mesh-voxel", type=float, default=0.03, help="marching-cubes voxel of gt_mesh.ply (m)")
+    synth.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
+    args = parser.parse_args(argv)
+    if args.command == "info":
+        try:
+            summary = sequence_info(load_sequence(args.path, require_gt=False))
+        except (ValueError, FileNotFoundError) as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 2
+        if args.json:
+            print(json.dumps(summary, indent=2))
+        else:
+            for key, value in summary.items():
+                print(f"{key:>22}: {value}")
+        return 0
+    from tsslam_ref import synthetic  # lazy: the renderer needs torch
+
+    try:
+        out = synthetic.synthesize(
+            args.out, trajectory=args.trajectory, n_frames=args.frames, width=args.size[0], height=args.size[1],
+            fps=args.fps, seed=args.seed, clean_depth=args.clean_depth, overwrite=args.force, mesh_voxel=args.mesh_voxel,
+        )
+    except (ValueError, FileNotFoundError, FileExistsError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    print(out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,114 @@
+"""Reading colour and 16-bit depth images; crop and resize with the pixel-centre convention.
+
+Co-SLAM dataset code (shared/spec/coslam.md section 7: colour /255, depth PNG / depth scale,
+colour resized to the depth size).  Side layer.  Taught in notebooks/00_data_and_cameras.ipynb.
+
+Resizing uses PIL, whose sampling grid maps image edges onto edges (pixel centres at integers,
+see ``intrinsics``): colour with bilinear filtering (antialiased when shrinking), depth with
+nearest neighbour so that no depth value is invented between a foreground and a background
+surface.  Depth 0 means "no measurement" everywhere.
+"""
+
+from pathlib import Path
+from typing import Optional, Tuple
+
+import imageio.v3 as iio
+import numpy as np
+from PIL import Image
+
+
+def read_rgb(path) -> np.ndarray:
+    """Colour image -> (H, W, 3) float32 in [0, 1] (8- or 16-bit; grey is repeated, alpha dropped).
+
+    Raises:
+        FileNotFoundError: naming the file.  ValueError: naming the file for an unreadable image.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: colour image not found")
+    try:
+        image = iio.imread(path)
+    except Exception as error:  # imageio raises many types for corrupt files
+        raise ValueError(f"{path}: cannot read colour image ({error})") from error
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=-1)  # (H, W, 3)
+    if image.ndim != 3 or image.shape[-1] not in (3, 4):
+        raise ValueError(f"{path}: expected an (H, W, 3) colour image, got shape {image.shape}")
+    image = image[..., :3]
+    if image.dtype == np.uint8:
+        return image.astype(np.float32) / 255.0
+    if image.dtype == np.uint16:
+        return image.astype(np.float32) / 65535.0
+    raise ValueError(f"{path}: unsupported colour dtype {image.dtype} (expected uint8 or uint16)")
+
+
+def read_depth(path, depth_scale: float) -> np.ndarray:
+    """16-bit depth PNG -> (H, W) float32 metres (value / depth_scale), 0 = invalid.
+
+    Raises:
+        FileNotFoundError: naming the file.
+        ValueError: naming the file when the image is not single-channel 16-bit.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: depth image not found")
+    try:
+        image = iio.imread(path)
+    except Exception as error:
+        raise ValueError(f"{path}: cannot read depth image ({error})") from error
+    if image.dtype != np.uint16 or image.ndim != 2:
+        raise ValueError(
+            f"{path}: depth must be a single-channel 16-bit PNG, got dtype {image.dtype} and shape {image.shape}"
+        )
+    return image.astype(np.float32) / np.float32(depth_scale)
+
+
+def image_size(path) -> Tuple[int, int]:
+    """(width, height) of an image file, reading only its header."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: image not found")
+    with Image.open(path) as image:
+        return image.size
+
+
+def resize_rgb(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W, 3) float32 -> (height, width, 3) float32, bilinear (antialiased), edges onto edges."""
+    if rgb.shape[1] == width and rgb.shape[0] == height:
+        return rgb
+    channels = [
+        np.asarray(Image.fromarray(rgb[..., c]).resize((width, height), Image.Resampling.BILINEAR))
+        for c in range(3)
+    ]
+    return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)  # (height, width, 3)
+
+
+def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W) float32 -> (height, width) float32 by nearest neighbour (no mixed depths)."""
+    if depth.shape[1] == width and depth.shape[0] == height:
+        return depth
+    image = Image.fromarray(depth.astype(np.float32))
+    return np.asarray(image.resize((width, height), Image.Resampling.NEAREST)).astype(np.float32)
+
+
+def crop(image: np.ndarray, edge: int) -> np.ndarray:
+    """Remove ``edge`` pixels from every side of an (H, W, ...) image."""
+    if edge == 0:
+        return image
+    return image[edge:-edge, edge:-edge]
+
+
+def output_size(width: int, height: int, crop_edge: int, resize_width: Optional[int]) -> Tuple[int, int]:
+    """Size after cropping ``crop_edge`` per side, then resizing to ``resize_width`` (aspect kept).
+
+    Raises:
+        ValueError: naming the values when the crop or the width leave no pixels.
+    """
+    if crop_edge < 0 or 2 * crop_edge >= min(width, height):
+        raise ValueError(f"crop_edge={crop_edge} is invalid for a {width}x{height} image")
+    cropped_w, cropped_h = width - 2 * crop_edge, height - 2 * crop_edge
+    if resize_width is None:
+        return cropped_w, cropped_h
+    if resize_width < 1:
+        raise ValueError(f"resize_width must be >= 1, got {resize_width}")
+    return int(resize_width), max(1, int(round(cropped_h * resize_width / cropped_w)))

@@ -1,0 +1,346 @@
+"""The five folder layouts: detection and parsing into file lists, timestamps and poses.
+
+TS-SLAM §IV-A "Datasets" evaluates on TUM RGB-D, ScanNet and the NeuralRGBD synthetic scenes
+(Co-SLAM adds Replica); the layouts, intrinsics and depth scales follow Co-SLAM's
+``datasets/dataset.py`` @3bb904e as recorded in shared/spec/coslam.md section 7, plus a generic
+folder layout of ours.  Side layer.
+Formats are documented in docs/data.md; taught in notebooks/00_data_and_cameras.ipynb.
+
+Every parser converts poses to camera-to-world with OpenCV camera axes (x right, y down,
+z forward) and returns a :class:`LayoutIndex`; :func:`tsslam_ref.data.load_sequence` then selects
+frames and builds the lazy sequence.  Bad input raises an error naming the file (and line).
+"""
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+
+from tsslam_ref.datasets.images import image_size
+from tsslam_ref.datasets.intrinsics import (
+    NEURAL_RGBD_FOCAL,
+    REPLICA_INTRINSICS,
+    TUM_INTRINSICS,
+    Intrinsics,
+    read_calibration,
+)
+from tsslam_ref.datasets.tum_format import associate_nearest, interpolate_poses, read_file_list, read_tum_trajectory
+from tsslam_ref.geometry import opengl_to_opencv_pose
+
+DEPTH_SCALES = {"tum": 5000.0, "scannet": 1000.0, "neural_rgbd": 1000.0, "replica": 6553.5, "folder": 1000.0}
+"""Standard PNG value per metre of each layout (Co-SLAM configs; folder: ours, millimetres)."""
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+LAYOUTS = {
+    "tum": "rgb.txt + depth.txt (+ groundtruth.txt), files listed relative to the folder",
+    "scannet": "color/<n>.jpg + depth/<n>.png + pose/<n>.txt + intrinsic/intrinsic_depth.txt",
+    "neural_rgbd": "images/*.png + depth_filtered/*.png (or depth/) + poses.txt",
+    "replica": "results/frame%06d.jpg + results/depth%06d.png + traj.txt",
+    "folder": "rgb/ + depth/ (same file names) + intrinsics.json or calibration.txt (+ groundtruth.txt)",
+}
+
+
+@dataclass
+class LayoutIndex:
+    """What a layout parser found: one entry per usable frame, before frame selection."""
+
+    kind: str
+    rgb_paths: List[Path]
+    depth_paths: List[Path]
+    timestamps: np.ndarray  # (N,) float64 s
+    gt_poses: Optional[np.ndarray]  # (N, 4, 4) float64, NaN rows unknown; None = no GT in the dataset
+    intrinsics: Intrinsics  # of the stored depth images
+    depth_scale: Optional[float]  # from a calibration file, else None (use DEPTH_SCALES)
+
+
+def natural_key(name: str):
+    """Sort key that orders 'img2' before 'img10'."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def _images(folder: Path, prefix: str = "") -> List[Path]:
+    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.name.startswith(prefix)]
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
+def _require_dir(path: Path) -> None:
+    if not path.is_dir():
+        raise FileNotFoundError(f"{path}: folder not found")
+
+
+def _stems_match(rgb_paths: List[Path], depth_paths: List[Path], rgb_dir: Path, depth_dir: Path) -> None:
+    rgb_stems = [p.stem for p in rgb_paths]
+    depth_stems = [p.stem for p in depth_paths]
+    if rgb_stems != depth_stems:
+        missing = sorted(set(rgb_stems) ^ set(depth_stems), key=natural_key)[:5]
+        raise ValueError(
+            f"{rgb_dir} ({len(rgb_stems)} images) and {depth_dir} ({len(depth_stems)} images) must hold the "
+            f"same file names; unmatched: {missing}"
+        )
+
+
+def _calibrated_intrinsics(folder: Path, first_depth: Path) -> Optional[tuple]:
+    """(Intrinsics, depth_scale or None) from intrinsics.json / calibration.txt, else None."""
+    calibration = read_calibration(folder)
+    if calibration is None:
+        return None
+    width, height = image_size(first_depth)
+    if "width" in calibration and (calibration["width"], calibration["height"]) != (width, height):
+        raise ValueError(
+            f"{folder}: calibration is for {calibration['width']}x{calibration['height']} images but "
+            f"{first_depth} is {width}x{height}"
+        )
+    k = Intrinsics(calibration["fx"], calibration["fy"], calibration["cx"], calibration["cy"], width, height)
+    return k, calibration.get("depth_scale")
+
+
+def _gt_at(timestamps: np.ndarray, gt_times: np.ndarray, gt_poses: np.ndarray, max_time_diff: float) -> np.ndarray:
+    """GT pose per frame: NaN unless a GT stamp lies within ``max_time_diff`` (TUM's rule); the value
+    is interpolated between the bracketing GT samples (gap <= 2 max_time_diff), else the nearest."""
+    nearest = associate_nearest(timestamps, gt_times, max_time_diff)
+    poses = interpolate_poses(timestamps, gt_times, gt_poses, max_gap=2.0 * max_time_diff)
+    fallback = (nearest >= 0) & ~np.isfinite(poses).all(axis=(1, 2))
+    poses[fallback] = gt_poses[nearest[fallback]]
+    poses[nearest < 0] = np.nan
+    return poses
+
+
+def tum_camera(folder: Path) -> str:
+    """'freiburg1' | 'freiburg2' | 'freiburg3' from the folder name (fr3 when none is named)."""
+    name = folder.resolve().name.lower()
+    for number in ("1", "2", "3"):
+        if f"freiburg{number}" in name or re.search(rf"(^|[^a-z0-9])fr{number}([^0-9]|$)", name):
+            return f"freiburg{number}"
+    return "freiburg3"
+
+
+def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
+    """TUM RGB-D: rgb.txt, depth.txt, groundtruth.txt; association by nearest stamp (0.02 s).
+
+    Each colour frame takes the nearest depth stamp within ``max_time_diff`` (frames without
+    one are dropped: no depth, no RGB-D frame) and the ground truth of :func:`_gt_at`.  The frame
+    timestamp is the colour stamp.  Intrinsics: ``intrinsics.json`` / ``calibration.txt`` in the
+    folder if present (our resized slices and synthetic sequences), else the published values of
+    the camera named by the folder (freiburg1/2/3, fr3 by default).
+    """
+    rgb_times, rgb_names, rgb_lines = read_file_list(folder / "rgb.txt")
+    depth_times, depth_names, depth_lines = read_file_list(folder / "depth.txt")
+    depth_index = associate_nearest(rgb_times, depth_times, max_time_diff)
+    keep = np.flatnonzero(depth_index >= 0)
+    if len(keep) == 0:
+        raise ValueError(f"{folder}: no colour stamp in rgb.txt has a depth stamp in depth.txt within {max_time_diff} s")
+    rgb_paths, depth_paths = [], []
+    for i in keep:
+        j = depth_index[i]
+        for listing, name, line in (("rgb.txt", rgb_names[i], rgb_lines[i]), ("depth.txt", depth_names[j], depth_lines[j])):
+            if not (folder / name).is_file():
+                raise FileNotFoundError(f"{folder / listing}:{line}: listed file '{name}' not found")
+        rgb_paths.append(folder / rgb_names[i])
+        depth_paths.append(folder / depth_names[j])
+    timestamps = rgb_times[keep]
+    gt_file = folder / "groundtruth.txt"
+    if not gt_file.is_file() and (folder / "pose.txt").is_file():
+        gt_file = folder / "pose.txt"
+    gt_poses = None
+    if gt_file.is_file():
+        gt_times, gt_all = read_tum_trajectory(gt_file)
+        gt_poses = _gt_at(timestamps, gt_times, gt_all, max_time_diff)
+    calibrated = _calibrated_intrinsics(folder, depth_paths[0])
+    if calibrated is not None:
+        intrinsics, depth_scale = calibrated
+    else:
+        intrinsics, depth_scale = TUM_INTRINSICS[tum_camera(folder)], None
+        size = image_size(depth_paths[0])
+        if size != (intrinsics.width, intrinsics.height):
+            raise ValueError(
+                f"{depth_paths[0]}: {size[0]}x{size[1]} image but no intrinsics.json/calibration.txt in {folder}; "
+                f"the published TUM values are for 640x480"
+            )
+    return LayoutIndex("tum", rgb_paths, depth_paths, timestamps, gt_poses, intrinsics, depth_scale)
+
+
+def _read_matrix_lines(path: Path, per_line: int, what: str) -> np.ndarray:
+    """All numbers of a text file as (-1, 4, 4) matrices, ``per_line`` (4 or 16) numbers per line.
+
+    Raises:
+        FileNotFoundError / ValueError naming the file (and line) for missing or malformed content.
+    """
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: file not found ({what})")
+    values = []
+    with open(path) as handle:
+        for number, line in enumerate(handle, start=1):
+            fields = line.split()
+            if not fields:
+                continue
+            try:
+                numbers = [float(f) for f in fields]
+            except ValueError:
+                raise ValueError(f"{path}:{number}: non-numeric value in '{line.strip()}' ({what})") from None
+            if len(numbers) != per_line:
+                raise ValueError(f"{path}:{number}: expected {per_line} numbers per line ({what}), got {len(numbers)}")
+            values.extend(numbers)
+    if not values or len(values) % 16:
+        raise ValueError(f"{path}: holds {len(values)} numbers, not a whole number of 4x4 matrices ({what})")
+    return np.asarray(values).reshape(-1, 4, 4)
+
+
+def _invalid_to_nan(poses: np.ndarray) -> np.ndarray:
+    bad = ~np.isfinite(poses).all(axis=(1, 2))
+    poses = poses.copy()
+    poses[bad] = np.nan
+    return poses
+
+
+def parse_scannet(folder: Path, fps: float) -> LayoutIndex:
+    """ScanNet export: color/<n>.jpg, depth/<n>.png (mm), pose/<n>.txt (c2w OpenCV; inf -> NaN),
+    intrinsic/intrinsic_depth.txt.  Colour is resized to the depth size; time = n / fps."""
+    for sub in ("color", "depth", "pose"):
+        _require_dir(folder / sub)
+    depth_paths = sorted((folder / "depth").glob("*.png"), key=lambda p: natural_key(p.name))
+    if not depth_paths:
+        raise ValueError(f"{folder / 'depth'}: no depth PNGs")
+    colour = {p.stem: p for p in _images(folder / "color")}
+    rgb_paths, poses, numbers = [], [], []
+    for depth_path in depth_paths:
+        if depth_path.stem not in colour:
+            raise FileNotFoundError(f"{folder / 'color'}: no colour image for {depth_path.name}")
+        pose_path = folder / "pose" / f"{depth_path.stem}.txt"
+        if not pose_path.is_file():
+            raise FileNotFoundError(f"{pose_path}: pose file not found for {depth_path.name}")
+        if not depth_path.stem.isdigit():
+            raise ValueError(f"{depth_path}: ScanNet frame names must be integers (frame numbers)")
+        rgb_paths.append(colour[depth_path.stem])
+        poses.append(_read_matrix_lines(pose_path, 4, "4x4 camera-to-world pose")[0])
+        numbers.append(int(depth_path.stem))
+    k_path = folder / "intrinsic" / "intrinsic_depth.txt"
+    if not k_path.is_file():
+        raise FileNotFoundError(f"{k_path}: ScanNet depth intrinsics not found (export them with SensReader)")
+    k = _read_matrix_lines(k_path, 4, "4x4 intrinsic matrix")[0]
+    width, height = image_size(depth_paths[0])
+    intrinsics = Intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
+    timestamps = np.asarray(numbers, dtype=np.float64) / fps
+    return LayoutIndex("scannet", rgb_paths, depth_paths, timestamps, _invalid_to_nan(np.stack(poses)), intrinsics, None)
+
+
+def parse_neural_rgbd(folder: Path, fps: float) -> LayoutIndex:
+    """NeuralRGBD synthetic: images/, depth_filtered/ (else depth/), poses.txt (4 lines per c2w,
+    OpenGL axes -> converted); fx = fy = 554.256... or focal.txt; cx = W/2, cy = H/2; time = i / fps."""
+    depth_dir = folder / "depth_filtered"
+    if not depth_dir.is_dir():
+        depth_dir = folder / "depth"
+    _require_dir(folder / "images")
+    _require_dir(depth_dir)
+    rgb_paths = _images(folder / "images")
+    depth_paths = _images(depth_dir)
+    if not rgb_paths:
+        raise ValueError(f"{folder / 'images'}: no images")
+    if len(rgb_paths) != len(depth_paths):
+        raise ValueError(f"{folder / 'images'} has {len(rgb_paths)} images but {depth_dir} has {len(depth_paths)}")
+    poses_gl = _read_matrix_lines(folder / "poses.txt", 4, "4 lines per 4x4 pose")
+    if len(poses_gl) < len(rgb_paths):
+        raise ValueError(f"{folder / 'poses.txt'}: {len(poses_gl)} poses for {len(rgb_paths)} images")
+    focal = NEURAL_RGBD_FOCAL
+    focal_path = folder / "focal.txt"
+    if focal_path.is_file():
+        try:
+            focal = float(focal_path.read_text().split()[0])
+        except (ValueError, IndexError):
+            raise ValueError(f"{focal_path}:1: expected one number (the focal length in pixels)") from None
+    width, height = image_size(depth_paths[0])
+    intrinsics = Intrinsics(focal, focal, width / 2.0, height / 2.0, width, height)
+    poses = opengl_to_opencv_pose(_invalid_to_nan(poses_gl[: len(rgb_paths)]))
+    timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
+    return LayoutIndex("neural_rgbd", rgb_paths, depth_paths, timestamps, poses, intrinsics, None)
+
+
+def parse_replica(folder: Path, fps: float) -> LayoutIndex:
+    """Replica (NICE-SLAM release): results/frame%06d.jpg, results/depth%06d.png, traj.txt (16
+    numbers per line, c2w OpenCV); 1200x680, fx = fy = 600, cx 599.5, cy 339.5; time = i / fps."""
+    results = folder / "results"
+    _require_dir(results)
+    rgb_paths = _images(results, "frame")
+    depth_paths = [p for p in _images(results, "depth") if p.suffix.lower() == ".png"]
+    if not rgb_paths:
+        raise ValueError(f"{results}: no frame*.jpg images")
+    if [p.stem[5:] for p in rgb_paths] != [p.stem[5:] for p in depth_paths]:
+        raise ValueError(f"{results}: frame*.jpg ({len(rgb_paths)}) and depth*.png ({len(depth_paths)}) do not pair up")
+    poses = _read_matrix_lines(folder / "traj.txt", 16, "16 numbers per line")
+    if len(poses) < len(rgb_paths):
+        raise ValueError(f"{folder / 'traj.txt'}: {len(poses)} poses for {len(rgb_paths)} frames")
+    calibrated = _calibrated_intrinsics(folder, depth_paths[0])
+    intrinsics = calibrated[0] if calibrated else REPLICA_INTRINSICS
+    timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
+    return LayoutIndex("replica", rgb_paths, depth_paths, timestamps, _invalid_to_nan(poses[: len(rgb_paths)]),
+                       intrinsics, calibrated[1] if calibrated else None)
+
+
+def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
+    """Generic folder (ours): rgb/ and depth/ with the same file names (sorted naturally),
+    intrinsics.json or calibration.txt, optional groundtruth.txt / trajectory.txt (TUM format).
+
+    Timestamps: the file stems when all of them are numbers (e.g. '1341841873.273798.png'),
+    else index / fps.  GT is associated to those stamps as in the TUM layout.
+    """
+    _require_dir(folder / "rgb")
+    _require_dir(folder / "depth")
+    rgb_paths = _images(folder / "rgb")
+    depth_paths = [p for p in _images(folder / "depth") if p.suffix.lower() == ".png"]
+    if not rgb_paths:
+        raise ValueError(f"{folder / 'rgb'}: no images")
+    _stems_match(rgb_paths, depth_paths, folder / "rgb", folder / "depth")
+    calibrated = _calibrated_intrinsics(folder, depth_paths[0])
+    if calibrated is None:
+        raise FileNotFoundError(f"{folder}: needs intrinsics.json or calibration.txt (see docs/data.md)")
+    try:
+        timestamps = np.asarray([float(p.stem) for p in rgb_paths], dtype=np.float64)
+    except ValueError:
+        timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
+    if np.any(np.diff(timestamps) <= 0):
+        raise ValueError(f"{folder / 'rgb'}: numeric file names must increase (timestamps out of order)")
+    gt_poses = None
+    for name in ("groundtruth.txt", "trajectory.txt"):
+        if (folder / name).is_file():
+            gt_times, gt_all = read_tum_trajectory(folder / name)
+            gt_poses = _gt_at(timestamps, gt_times, gt_all, max_time_diff)
+            break
+    return LayoutIndex("folder", rgb_paths, depth_paths, timestamps, gt_poses, calibrated[0], calibrated[1])
+
+
+def _looks_like(folder: Path) -> dict:
+    """For each layout, the missing entries (empty list = matches)."""
+    def missing(*names):
+        return [n for n in names if not (folder / n).exists()]
+
+    neural_depth = "depth_filtered" if (folder / "depth_filtered").is_dir() else "depth"
+    return {
+        "tum": missing("rgb.txt", "depth.txt"),
+        "scannet": missing("color", "depth", "pose"),
+        "neural_rgbd": missing("images", neural_depth, "poses.txt"),
+        "replica": missing("results", "traj.txt"),
+        "folder": missing("rgb", "depth") + ([] if read_calibration_exists(folder) else ["intrinsics.json|calibration.txt"]),
+    }
+
+
+def read_calibration_exists(folder: Path) -> bool:
+    return (folder / "intrinsics.json").is_file() or (folder / "calibration.txt").is_file()
+
+
+def detect_dataset(path) -> str:
+    """Layout of a dataset folder: 'tum' | 'scannet' | 'neural_rgbd' | 'replica' | 'folder'.
+
+    Raises:
+        FileNotFoundError: the folder does not exist.
+        ValueError: no layout matches; the message lists every layout tried and what was missing.
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: dataset folder not found")
+    checks = _looks_like(folder)
+    for kind, missing in checks.items():
+        if not missing:
+            return kind
+    tried = "; ".join(f"{kind} [{LAYOUTS[kind]}] missing {', '.join(missing)}" for kind, missing in checks.items())
+    raise ValueError(f"{folder}: not a recognised RGB-D dataset folder. Layouts tried: {tried}")

@@ -1,0 +1,204 @@
+"""TUM RGB-D text formats: file lists, trajectories, timestamp association, pose interpolation.
+
+TS-SLAM §IV-A (TUM RGB-D benchmark); Sturm et al., IROS 2012 (file formats and the 0.02 s
+association rule of ``associate.py``).  Side layer.  Taught in notebooks/00_data_and_cameras.ipynb.
+
+* File lists (``rgb.txt``, ``depth.txt``): ``timestamp filename`` per line, ``#`` comments.
+* Trajectories (``groundtruth.txt``): ``timestamp tx ty tz qx qy qz qw``, camera-to-world,
+  quaternion scalar-last.  Timestamps are float64 seconds and must not decrease.
+
+| symbol | variable | shape | unit |
+|---|---|---|---|
+| t | ``timestamps`` | (N,) float64 | s |
+| T_wc | ``poses`` | (N, 4, 4) float64 | m |
+"""
+
+import os
+import tempfile
+from pathlib import Path
+from typing import List, Tuple
+
+import numpy as np
+
+from tsslam_ref.geometry import matrix_to_quaternion_xyzw, pose_to_tum, quaternion_xyzw_to_matrix, tum_to_pose
+
+TUM_MAX_TIME_DIFF = 0.02
+"""Association tolerance (s) of TUM's associate.py."""
+
+
+def _data_lines(path: Path):
+    """Yield (line_number, fields) for the non-comment, non-blank lines of a text file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: file not found")
+    with open(path) as handle:
+        for number, line in enumerate(handle, start=1):
+            stripped = line.strip()
+            if stripped and not stripped.startswith("#"):
+                yield number, stripped.replace(",", " ").split()
+
+
+def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
+    """Read a TUM file list (``rgb.txt`` / ``depth.txt``): ``timestamp filename`` per line.
+
+    Returns:
+        timestamps (N,) float64 s, file names relative to the list's folder, line numbers (1-based).
+
+    Raises:
+        ValueError: '<file>:<line>: ...' for a malformed line, an empty list, or a timestamp
+            smaller than the previous one.
+    """
+    stamps, names, numbers = [], [], []
+    for number, fields in _data_lines(path):
+        if len(fields) < 2:
+            raise ValueError(f"{path}:{number}: expected 'timestamp filename', got '{' '.join(fields)}'")
+        try:
+            stamp = float(fields[0])
+        except ValueError:
+            raise ValueError(f"{path}:{number}: timestamp '{fields[0]}' is not a number") from None
+        if stamps and stamp < stamps[-1]:
+            raise ValueError(f"{path}:{number}: timestamp {fields[0]} is earlier than the previous line's {stamps[-1]:.6f} (timestamps out of order)")
+        stamps.append(stamp)
+        names.append(fields[1])
+        numbers.append(number)
+    if not stamps:
+        raise ValueError(f"{path}: no entries (expected lines 'timestamp filename')")
+    return np.asarray(stamps, dtype=np.float64), names, numbers
+
+
+def read_tum_trajectory(path) -> Tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory: ``timestamp tx ty tz qx qy qz qw`` per line, '#' comments.
+
+    Returns:
+        timestamps (N,) float64 s and camera-to-world poses (N, 4, 4) float64.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: '<file>:<line>: ...' for a line without 8 numbers, a zero quaternion, a
+            decreasing timestamp, or a file with no poses.
+    """
+    stamps, rows = [], []
+    for number, fields in _data_lines(path):
+        if len(fields) != 8:
+            raise ValueError(f"{path}:{number}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {len(fields)} fields")
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            raise ValueError(f"{path}:{number}: non-numeric value in '{' '.join(fields)}'") from None
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"{path}:{number}: non-finite value in '{' '.join(fields)}'")
+        if np.linalg.norm(values[4:8]) < 1e-12:
+            raise ValueError(f"{path}:{number}: zero quaternion")
+        if stamps and values[0] < stamps[-1]:
+            raise ValueError(f"{path}:{number}: timestamp {fields[0]} is earlier than the previous line's (timestamps out of order)")
+        stamps.append(values[0])
+        rows.append(values[1:])
+    if not stamps:
+        raise ValueError(f"{path}: no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
+    return np.asarray(stamps, dtype=np.float64), tum_to_pose(np.asarray(rows))
+
+
+def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Path:
+    """Write camera-to-world poses as a TUM trajectory, atomically (temporary file + os.replace).
+
+    Stamps are written with ``%.6f`` (microseconds), positions and quaternions with ``%.9f``.
+    Rows whose pose holds NaN are skipped (unknown ground truth).
+
+    Args:
+        path: output file.
+        timestamps: (N,) float64 s.
+        poses: (N, 4, 4) camera-to-world.
+        overwrite: replace an existing file; otherwise FileExistsError.
+    """
+    path = Path(path)
+    timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape != (timestamps.shape[0], 4, 4):
+        raise ValueError(f"poses must have shape ({timestamps.shape[0]}, 4, 4) to match the timestamps, got {poses.shape}")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+    known = np.isfinite(poses).all(axis=(1, 2))
+    values = pose_to_tum(poses[known]) if known.any() else np.zeros((0, 7))
+    lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes)"]
+    for stamp, row in zip(timestamps[known], values):
+        lines.append(f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in row))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(handle, "w") as stream:
+        stream.write("\n".join(lines) + "\n")
+    os.replace(temporary, path)
+    return path
+
+
+def associate_nearest(query: np.ndarray, reference: np.ndarray, max_time_diff: float) -> np.ndarray:
+    """Index of the nearest reference stamp for every query stamp, -1 where none is within tolerance.
+
+    Args:
+        query: (N,) float64 s.  reference: (M,) float64 s, non-decreasing.
+        max_time_diff: tolerance in s (TUM: 0.02).
+
+    Returns:
+        (N,) int64 indices into ``reference`` (ties go to the earlier stamp).
+    """
+    query = np.asarray(query, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    right = np.clip(np.searchsorted(reference, query), 1, len(reference) - 1) if len(reference) > 1 else np.zeros(len(query), int)
+    left = np.maximum(right - 1, 0)
+    pick_left = np.abs(query - reference[left]) <= np.abs(reference[right] - query)
+    nearest = np.where(pick_left, left, right)
+    nearest[np.abs(reference[nearest] - query) > max_time_diff] = -1
+    return nearest.astype(np.int64)
+
+
+def _slerp(rotation_a: np.ndarray, rotation_b: np.ndarray, fraction: np.ndarray) -> np.ndarray:
+    """Rotation a Exp(f Log(a^T b)) via quaternions.  (N, 3, 3), (N, 3, 3), (N,) -> (N, 3, 3)."""
+    qa = matrix_to_quaternion_xyzw(rotation_a)
+    qb = matrix_to_quaternion_xyzw(rotation_b)
+    dot = np.sum(qa * qb, axis=-1)
+    qb = np.where(dot[:, None] < 0, -qb, qb)  # shortest arc
+    dot = np.abs(dot).clip(max=1.0)
+    angle = np.arccos(dot)
+    sin = np.sin(angle)
+    small = sin < 1e-9  # nearly equal rotations: linear blend avoids 0/0
+    safe = np.where(small, 1.0, sin)
+    weight_a = np.where(small, 1.0 - fraction, np.sin((1.0 - fraction) * angle) / safe)
+    weight_b = np.where(small, fraction, np.sin(fraction * angle) / safe)
+    return quaternion_xyzw_to_matrix(weight_a[:, None] * qa + weight_b[:, None] * qb)
+
+
+def interpolate_poses(query: np.ndarray, timestamps: np.ndarray, poses: np.ndarray, max_gap: float) -> np.ndarray:
+    """Poses at ``query`` times: positions linear, rotations slerp, between bracketing samples.
+
+    A query time exactly at a sample returns that sample.  Where the bracketing samples are more
+    than ``max_gap`` apart, or the query lies outside [t_0, t_{M-1}], the result is NaN.
+
+    Args:
+        query: (N,) float64 s.  timestamps: (M,) float64 s, non-decreasing.
+        poses: (M, 4, 4) camera-to-world.  max_gap: largest usable sample spacing (s).
+
+    Returns:
+        (N, 4, 4) float64 poses, NaN-filled where unknown.
+    """
+    query = np.asarray(query, dtype=np.float64)
+    timestamps = np.asarray(timestamps, dtype=np.float64)
+    out = np.full((len(query), 4, 4), np.nan)
+    if len(timestamps) == 0:
+        return out
+    right = np.searchsorted(timestamps, query, side="left")  # first sample >= query
+    exact = (right < len(timestamps)) & (timestamps[np.minimum(right, len(timestamps) - 1)] == query)
+    out[exact] = poses[right[exact]]
+    inner = ~exact & (right > 0) & (right < len(timestamps))
+    if inner.any():
+        i1 = right[inner]
+        i0 = i1 - 1
+        gap = timestamps[i1] - timestamps[i0]
+        usable = gap <= max_gap
+        i0, i1, gap = i0[usable], i1[usable], gap[usable]
+        fraction = (query[inner][usable] - timestamps[i0]) / gap
+        pose = np.zeros((len(i0), 4, 4))
+        pose[:, :3, :3] = _slerp(poses[i0, :3, :3], poses[i1, :3, :3], fraction)
+        pose[:, :3, 3] = (1.0 - fraction[:, None]) * poses[i0, :3, 3] + fraction[:, None] * poses[i1, :3, 3]
+        pose[:, 3, 3] = 1.0
+        rows = np.flatnonzero(inner)[usable]
+        out[rows] = pose
+    return out
