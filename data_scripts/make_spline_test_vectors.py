@@ -1,0 +1,100 @@
+"""Generate the shipped spline conformance vectors in tsslam_ref/assets/spline_vectors/.
+
+Each vector is one JSON file holding an input (convention, dt, t0, rotvecs, translations, times)
+and our float64 output (R, p, v, a, omega_body, omegadot_body), in the format of
+:mod:`tsslam_ref.conformance`.  The outputs are validated in tests/test_conformance.py against
+oracles that do not use our closed forms (autograd in time, central differences, PyPose rotations,
+scipy B-splines for translation, the basalt golden table of shared/spec/spline.md §3.5).
+
+Deterministic: numpy ``default_rng(SEED)``.  Usage:
+
+    python data_scripts/make_spline_test_vectors.py [--out DIR] [--force]
+"""
+
+import argparse
+import os
+import sys
+
+import numpy as np
+import torch
+
+from tsslam_ref import conformance, spline
+from tsslam_ref.geometry import so3_exp, so3_log
+
+SEED = 20250521
+N_RANDOM_TIMES = 230
+
+# name, convention, n_ctrl, dt (s), t0 (s), max relative rotation between knots (rad), translation scale (m)
+RANDOM_SPLINES = [
+    ("paper_dt0.03_tum_stamps", "paper", 8, 0.03, 1305031102.175304, 0.3, 0.05),
+    ("paper_dt0.25_large_rot", "paper", 10, 0.25, 0.0, 2.0, 1.0),
+    ("basalt_dt1_large_rot", "basalt", 7, 1.0, -2.5, 2.0, 2.0),
+    ("basalt_dt0.1_floor_knots", "basalt", 12, 0.1, 0.1, 1.0, 0.5),
+]
+
+# shared/spec/spline.md §3.5 (basalt convention, t0 = 0, dt = 0.5 s).
+BASALT_GOLDEN_ROTVECS = [[0, 0, 0], [0.1, -0.2, 0.3], [0.4, -0.1, 0.5], [0.3, 0.3, 0.9], [-0.2, 0.6, 1.2], [-0.5, 0.4, 1.0]]
+BASALT_GOLDEN_TRANSLATIONS = [[0, 0, 0], [1, 0, 0.5], [1.5, 1, 0.5], [1, 2, 0], [0, 2.5, -0.5], [-1, 2, -1]]
+BASALT_GOLDEN_TIMES = [0.0, 0.35, 0.8, 1.2]
+
+
+def random_control_points(rng: np.random.Generator, n_ctrl: int, max_angle: float, scale: float):
+    """Random walk: R_k = R_{k-1} Exp(step), |step| uniform in [0, max_angle]; (N,3) rotvecs, (N,3) m."""
+    rotation = so3_exp(torch.as_tensor(rng.normal(size=3)))
+    rotations = [rotation]
+    for _ in range(n_ctrl - 1):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        step = axis * rng.uniform(0.0, max_angle)
+        rotation = rotation @ so3_exp(torch.as_tensor(step))
+        rotations.append(rotation)
+    rotvecs = so3_log(torch.stack(rotations)).numpy()
+    translations = np.cumsum(rng.normal(scale=scale, size=(n_ctrl, 3)), axis=0)
+    return rotvecs, translations
+
+
+def query_times(rng: np.random.Generator, n_ctrl: int, dt: float, t0: float, convention: str) -> np.ndarray:
+    """All knots in the domain (both ends included) plus random times, sorted, float64."""
+    t_min, t_max = spline.valid_time_range(n_ctrl, dt, t0, convention)
+    offset = 2 if convention == "paper" else 0
+    knots = t0 + dt * np.arange(offset, offset + n_ctrl - 2, dtype=np.float64)
+    random = t_min + (t_max - t_min) * rng.uniform(size=N_RANDOM_TIMES)
+    return np.sort(np.concatenate([[t_min, t_max], knots, random]))
+
+
+def make_vector(convention, dt, t0, rotvecs, translations, times, description) -> dict:
+    data = {"description": description, "convention": convention, "dt": dt, "t0": t0,
+            "rotvecs": np.asarray(rotvecs, dtype=np.float64).tolist(),
+            "translations": np.asarray(translations, dtype=np.float64).tolist(),
+            "times": np.asarray(times, dtype=np.float64).tolist()}
+    data.update(conformance.evaluate_input(data, description))
+    return data
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    default_out = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tsslam_ref", "assets", "spline_vectors")
+    parser.add_argument("--out", default=default_out)
+    parser.add_argument("--force", action="store_true", help="overwrite existing vector files")
+    args = parser.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+    rng = np.random.default_rng(SEED)
+    vectors = {}
+    for name, convention, n_ctrl, dt, t0, max_angle, scale in RANDOM_SPLINES:
+        rotvecs, translations = random_control_points(rng, n_ctrl, max_angle, scale)
+        times = query_times(rng, n_ctrl, dt, t0, convention)
+        description = (f"{name}: random spline, seed {SEED}, n_ctrl={n_ctrl}, relative rotations <= {max_angle} rad")
+        vectors[name] = make_vector(convention, dt, t0, rotvecs, translations, times, description)
+    golden_times = np.sort(np.concatenate([BASALT_GOLDEN_TIMES, query_times(rng, 6, 0.5, 0.0, "basalt")]))
+    vectors["basalt_golden_dt0.5"] = make_vector(
+        "basalt", 0.5, 0.0, BASALT_GOLDEN_ROTVECS, BASALT_GOLDEN_TRANSLATIONS, golden_times,
+        "basalt_golden_dt0.5: knots of shared/spec/spline.md 3.5 (basalt golden table)")
+    for name, data in vectors.items():
+        path = os.path.join(args.out, name + ".json")
+        conformance.write_json_atomic(path, data, force=args.force)
+        print(f"{path}: {len(data['times'])} times, {os.path.getsize(path) / 1024:.0f} KiB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,226 @@
+"""Tests for the conformance kit (tsslam_ref.conformance) and the shipped spline vectors.
+
+The shipped vectors are validated against oracles that do not use our closed-form derivatives:
+PyPose rotations (pp.bspline with interval=u), scipy B-splines for translation, autograd in time
+(spec §3.3) for v, a, ω, ω̇, central differences, and the basalt golden table (spec §3.5).
+"""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pypose as pp
+import pytest
+import scipy.interpolate
+import torch
+from scipy.spatial.transform import Rotation
+
+from tsslam_ref import conformance, spline
+from tsslam_ref.geometry import so3_exp, so3_log, vee
+
+F64 = torch.float64
+VECTOR_DIR = Path(spline.__file__).resolve().parent / "assets" / "spline_vectors"
+VECTOR_PATHS = sorted(VECTOR_DIR.glob("*.json"))
+OFFSET = {"paper": 2, "basalt": 0}
+
+
+def load_vector(path):
+    data = json.loads(Path(path).read_text())
+    arrays = {key: np.asarray(data[key], dtype=np.float64) for key in ("rotvecs", "translations", "times", *conformance.OUTPUT_KEYS)}
+    return data, arrays
+
+
+def scale_err(value, reference):
+    return np.abs(np.asarray(value) - reference).max() / np.abs(reference).max()
+
+
+def test_shipped_vectors_exist_and_are_small():
+    assert len(VECTOR_PATHS) >= 5
+    assert sum(path.stat().st_size for path in VECTOR_PATHS) < 1_000_000
+    conventions = {json.loads(path.read_text())["convention"] for path in VECTOR_PATHS}
+    assert conventions == {"paper", "basalt"}
+    for path in VECTOR_PATHS:
+        data, arrays = load_vector(path)
+        t_min, t_max = spline.valid_time_range(len(data["rotvecs"]), data["dt"], data["t0"], data["convention"])
+        assert arrays["times"].min() == t_min and arrays["times"].max() == t_max  # both domain ends
+        assert len(data["times"]) >= 200
+
+
+@pytest.mark.parametrize("path", VECTOR_PATHS, ids=lambda p: p.stem)
+def test_shipped_vector_rotations_match_pypose_and_translations_match_scipy(path):
+    data, arrays = load_vector(path)
+    dt, t0, convention = data["dt"], data["t0"], data["convention"]
+    n = arrays["rotvecs"].shape[0]
+    s = (arrays["times"] - t0) / dt - OFFSET[convention]
+    first = np.clip(np.floor(s + 1e-6).astype(int), 0, n - 4)
+    u = s - first
+    quaternions = Rotation.from_rotvec(arrays["rotvecs"]).as_quat()
+    se3 = pp.SE3(torch.as_tensor(np.concatenate([arrays["translations"], quaternions], -1)))
+    for m in np.linspace(0, len(u) - 1, 25).astype(int):  # a spread subset (PyPose is slow per call)
+        if 1e-6 < u[m] < 1 - 1e-6:
+            expected = pp.bspline(se3[first[m]:first[m] + 4], interval=float(u[m])).matrix()[1, :3, :3]
+            assert np.abs(arrays["R"][m] - expected.numpy()).max() < 1e-10
+    knots = dt * (np.arange(n + 4) - 3 + OFFSET[convention])  # relative to t0 (scipy is not stamp-safe)
+    oracle = scipy.interpolate.BSpline(knots, arrays["translations"], 3, extrapolate=True)
+    times = arrays["times"] - t0
+    assert scale_err(arrays["p"], oracle(times)) < 1e-9
+    assert scale_err(arrays["v"], oracle(times, 1)) < 1e-9
+    # Near knots our knot rule (spline.py) may use the next segment's cubic for up to ε of a
+    # segment (ε ~ 8e-6 for TUM stamps): a then differs by ε·Δt·(jerk jump), so compare a
+    # tightly away from knots and loosely everywhere.
+    s_rel = times / dt
+    away = np.abs(s_rel - np.round(s_rel)) > 1e-4
+    assert scale_err(arrays["a"][away], oracle(times[away], 2)) < 1e-9
+    assert scale_err(arrays["a"], oracle(times, 2)) < 1e-4
+
+
+@pytest.mark.parametrize("path", VECTOR_PATHS, ids=lambda p: p.stem)
+def test_shipped_vector_derivatives_match_autograd_in_time(path):
+    """v, a, ω_body, ω̇_body of the vector vs forward-mode autograd of the pose path (spec §3.3)."""
+    data, arrays = load_vector(path)
+    R = so3_exp(torch.as_tensor(arrays["rotvecs"]))
+    P = torch.as_tensor(arrays["translations"])
+    times = torch.as_tensor(arrays["times"])
+    ones = torch.ones_like(times)
+
+    def pose(t):
+        sample = spline.evaluate(R, P, t, data["dt"], data["t0"], data["convention"])
+        return sample.rotation, sample.translation
+
+    def first(t):
+        return torch.func.jvp(pose, (t,), (ones,))
+
+    (R_t, _), (R_dot, p_dot) = first(times)
+    _, (_, (R_ddot, p_ddot)) = torch.func.jvp(first, (times,), (ones,))
+    Rt = R_t.transpose(-1, -2)
+    assert scale_err(arrays["v"], p_dot.numpy()) < 1e-9
+    assert scale_err(arrays["a"], p_ddot.numpy()) < 1e-9
+    assert scale_err(arrays["omega_body"], vee(Rt @ R_dot).numpy()) < 1e-9
+    assert scale_err(arrays["omegadot_body"], vee(Rt @ R_ddot).numpy()) < 1e-9
+
+
+def test_shipped_vector_derivatives_match_central_differences():
+    data, arrays = load_vector(VECTOR_DIR / "paper_dt0.25_large_rot.json")
+    dt = data["dt"]
+    R = so3_exp(torch.as_tensor(arrays["rotvecs"]))
+    P = torch.as_tensor(arrays["translations"])
+    s = (arrays["times"] - data["t0"]) / dt
+    inside = np.abs(s - np.round(s)) > 1e-2  # away from knots (jerk jumps there)
+    times = arrays["times"][inside]
+    h = 1e-5 * dt
+    plus = spline.evaluate(R, P, times + h, dt, data["t0"], derivatives=1)
+    minus = spline.evaluate(R, P, times - h, dt, data["t0"], derivatives=1)
+    assert scale_err(arrays["v"][inside], ((plus.translation - minus.translation) / (2 * h)).numpy()) < 1e-7
+    assert scale_err(arrays["a"][inside], ((plus.velocity_world - minus.velocity_world) / (2 * h)).numpy()) < 1e-7
+    omega_fd = so3_log(minus.rotation.transpose(-1, -2) @ plus.rotation) / (2 * h)
+    assert scale_err(arrays["omega_body"][inside], omega_fd.numpy()) < 1e-7
+    assert scale_err(arrays["omegadot_body"][inside], ((plus.omega_body - minus.omega_body) / (2 * h)).numpy()) < 1e-7
+
+
+def test_basalt_golden_vector_matches_spec_table():
+    data, arrays = load_vector(VECTOR_DIR / "basalt_golden_dt0.5.json")
+    golden = {  # shared/spec/spline.md §3.5, t -> (rotvec, omegadot_body)
+        0.00: ((0.134116980, -0.151459662, 0.282680481), (0.896277239, 1.063012442, -0.512550323)),
+        0.35: ((0.289163844, -0.111468504, 0.450617209), (-0.532954773, 1.330922034, 0.317237811)),
+        0.80: ((0.325661486, 0.139534886, 0.740555699), (-1.292066019, 0.771943126, -0.060129717)),
+        1.20: ((0.093519323, 0.413904218, 1.016607449), (-0.781496148, -0.677918007, -1.109365084)),
+    }
+    positions = {0.00: (0.916666667, 0.166666667, 0.416666667), 0.35: (1.290583333, 0.7045, 0.469166667),
+                 0.80: (1.171333333, 1.582, 0.194666667), 1.20: (0.582, 2.171333333, -0.2)}
+    for t, (rotvec, omega_dot) in golden.items():
+        m = int(np.flatnonzero(arrays["times"] == t)[0])
+        assert np.abs(Rotation.from_matrix(arrays["R"][m]).as_rotvec() - rotvec).max() < 1e-8
+        assert np.abs(arrays["omegadot_body"][m] - omega_dot).max() < 1e-8
+        assert np.abs(arrays["p"][m] - positions[t]).max() < 1e-8
+
+
+# ------------------------------------------------------------------------------------------
+# Command line
+
+
+def _input_only(path, tmp_path):
+    data = json.loads(Path(path).read_text())
+    subset = {key: data[key] for key in conformance.INPUT_KEYS}
+    target = tmp_path / "input.json"
+    target.write_text(json.dumps(subset))
+    return target
+
+
+@pytest.mark.parametrize("path", VECTOR_PATHS, ids=lambda p: p.stem)
+def test_cli_evaluate_reproduces_the_shipped_vector_and_check_passes(path, tmp_path, capsys):
+    source = _input_only(path, tmp_path)
+    output = tmp_path / "out.json"
+    assert conformance.main(["evaluate", str(source), "-o", str(output)]) == 0
+    assert conformance.main(["check", str(path), str(output)]) == 0
+    assert "PASS" in capsys.readouterr().out
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".tmp_")] == []  # atomic write
+
+
+def test_cli_check_fails_on_one_perturbed_value(tmp_path, capsys):
+    path = VECTOR_PATHS[0]
+    data = json.loads(path.read_text())
+    data["omegadot_body"][17][1] += 1e-4
+    candidate = tmp_path / "cand.json"
+    candidate.write_text(json.dumps(data))
+    assert conformance.main(["check", str(path), str(candidate)]) == 1
+    table = capsys.readouterr().out
+    assert "omegadot_body" in table and "FAIL" in table
+    assert conformance.main(["check", str(path), str(candidate), "--atol", "1e-3"]) == 0
+
+
+def test_cli_refuses_to_overwrite_without_force(tmp_path, capsys):
+    source = _input_only(VECTOR_PATHS[0], tmp_path)
+    output = tmp_path / "out.json"
+    output.write_text("user data")
+    assert conformance.main(["evaluate", str(source), "-o", str(output)]) == 2
+    assert output.read_text() == "user data" and "--force" in capsys.readouterr().err
+    assert conformance.main(["evaluate", str(source), "-o", str(output), "--force"]) == 0
+    assert "R" in json.loads(output.read_text())
+
+
+def test_cli_out_of_domain_time_exits_2_naming_the_time(tmp_path, capsys):
+    data = {"convention": "paper", "dt": 0.5, "t0": 0.0, "rotvecs": [[0, 0, 0]] * 5,
+            "translations": [[0, 0, 0]] * 5, "times": [1.0, 2.25]}
+    source = tmp_path / "in.json"
+    source.write_text(json.dumps(data))
+    assert conformance.main(["evaluate", str(source), "-o", str(tmp_path / "o.json")]) == 2
+    err = capsys.readouterr().err
+    assert "2.25" in err and "domain" in err
+    assert not (tmp_path / "o.json").exists()
+
+
+@pytest.mark.parametrize("broken,key", [
+    ({"dt": None}, "dt"), ({"convention": "kontiki"}, "convention"), ({"rotvecs": [[0, 0]] * 5}, "rotvecs"),
+    ({"times": "soon"}, "times"), ({"translations": [[0, 0, 0]] * 4}, "rotvecs"),
+])
+def test_cli_malformed_input_exits_2_naming_the_key(tmp_path, capsys, broken, key):
+    data = {"convention": "paper", "dt": 0.5, "t0": 0.0, "rotvecs": [[0, 0, 0]] * 5,
+            "translations": [[0, 0, 0]] * 5, "times": [1.0]}
+    data.update(broken)
+    source = tmp_path / "in.json"
+    source.write_text(json.dumps(data))
+    assert conformance.main(["evaluate", str(source), "-o", str(tmp_path / "o.json")]) == 2
+    assert repr(key) in capsys.readouterr().err
+
+
+def test_cli_check_malformed_files_exit_2(tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    assert conformance.main(["check", str(VECTOR_PATHS[0]), str(bad)]) == 2
+    assert "bad.json" in capsys.readouterr().err
+    missing = tmp_path / "missing.json"
+    missing.write_text(json.dumps({"times": json.loads(VECTOR_PATHS[0].read_text())["times"]}))
+    assert conformance.main(["check", str(VECTOR_PATHS[0]), str(missing)]) == 2
+    assert "'R'" in capsys.readouterr().err
+
+
+def test_module_entry_point_runs_as_python_dash_m(tmp_path):
+    source = _input_only(VECTOR_DIR / "basalt_golden_dt0.5.json", tmp_path)
+    output = tmp_path / "out.json"
+    command = [sys.executable, "-m", "tsslam_ref.spline", "evaluate", str(source), "-o", str(output)]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert conformance.main(["check", str(VECTOR_DIR / "basalt_golden_dt0.5.json"), str(output)]) == 0

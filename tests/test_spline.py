@@ -1,0 +1,597 @@
+"""Tests for tsslam_ref.spline: every oracle of shared/spec/spline.md §5.
+
+Oracles are independent of the closed forms under test: exact fractions and analytic motions,
+scipy B-splines (translation, scalar angle), PyPose (rotations), basalt golden values, central
+finite differences and autograd in time (torch.func.jvp), gradcheck for control-point gradients.
+"""
+
+import math
+
+import numpy as np
+import pypose as pp
+import pytest
+import scipy.interpolate
+import torch
+from scipy.spatial.transform import Rotation
+
+from tsslam_ref import spline
+from tsslam_ref.geometry import make_pose, so3_exp, so3_log, vee
+
+F64 = torch.float64
+OFFSET = {"paper": 2, "basalt": 0}
+
+
+def random_spline(seed, n_ctrl=8, max_angle=1.0, scale=1.0, dtype=F64):
+    """Random-walk control points: R_k = R_{k-1} Exp(step), |step| <= max_angle (rad)."""
+    rng = np.random.default_rng(seed)
+    rotation = so3_exp(torch.as_tensor(rng.normal(size=3)))
+    rotations = [rotation]
+    for _ in range(n_ctrl - 1):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        rotation = rotation @ so3_exp(torch.as_tensor(axis * rng.uniform(0.3 * max_angle, max_angle)))
+        rotations.append(rotation)
+    translations = torch.as_tensor(np.cumsum(rng.normal(scale=scale, size=(n_ctrl, 3)), axis=0))
+    return torch.stack(rotations).to(dtype), translations.to(dtype)
+
+
+def interior_times(n_ctrl, dt, t0, convention, n_per_segment=7, margin=1e-2, seed=0):
+    """Random times inside segments, at least margin*dt away from knots (float64 numpy)."""
+    rng = np.random.default_rng(seed)
+    t_min, _ = spline.valid_time_range(n_ctrl, dt, t0, convention)
+    segments = np.repeat(np.arange(n_ctrl - 3), n_per_segment)
+    u = rng.uniform(margin, 1 - margin, size=segments.shape)
+    return t_min + (segments + u) * dt
+
+
+def scipy_bspline(values, dt, t0, convention):
+    """Independent oracle: scipy's degree-3 B-spline with uniform knots matching our convention.
+
+    Control point k is active on [t_{k-3+offset}, t_{k+1+offset}), so knot j is t0 + (j-3+offset)dt.
+    """
+    n = values.shape[0]
+    knots = t0 + dt * (np.arange(n + 4, dtype=np.float64) - 3 + OFFSET[convention])
+    return scipy.interpolate.BSpline(knots, np.asarray(values, dtype=np.float64), 3, extrapolate=False)
+
+
+def autograd_in_time(rotations, translations, times, dt, t0, convention):
+    """Spec §3.3 oracle: Ṙ, R̈, ṗ, p̈ by forward-mode autograd in t; ω = vee(RᵀṘ), ω̇ = vee(RᵀR̈)."""
+    times = torch.as_tensor(times, dtype=F64)
+    ones = torch.ones_like(times)
+
+    def pose(t):
+        sample = spline.evaluate(rotations, translations, t, dt, t0, convention)
+        return sample.rotation, sample.translation
+
+    def first(t):
+        return torch.func.jvp(pose, (t,), (ones,))
+
+    (R, p), (R_dot, p_dot) = first(times)
+    _, (_, (R_ddot, p_ddot)) = torch.func.jvp(first, (times,), (ones,))
+    Rt = R.transpose(-1, -2)
+    return p_dot, p_ddot, vee(Rt @ R_dot), vee(Rt @ R_ddot)
+
+
+def rel_err(value, reference):
+    value, reference = torch.as_tensor(value, dtype=F64), torch.as_tensor(reference, dtype=F64)
+    return float((value - reference).abs().max() / reference.abs().max().clamp_min(1e-300))
+
+
+# ------------------------------------------------------------------------------------------
+# Basis (spec §5.1)
+
+
+def test_basis_B0_identically_one_and_noncumulative_weights_partition_unity():
+    u = torch.linspace(0, 1, 101, dtype=F64)
+    B = spline.basis(u)
+    assert torch.equal(B[:, 0], torch.ones_like(u))
+    weights = torch.stack([B[:, 0] - B[:, 1], B[:, 1] - B[:, 2], B[:, 2] - B[:, 3], B[:, 3]], -1)
+    assert (weights >= -1e-16).all()
+    assert torch.allclose(weights.sum(-1), torch.ones_like(u), atol=1e-15, rtol=0)
+
+
+def test_basis_exact_fractions_at_segment_ends():
+    u = torch.tensor([0.0, 1.0], dtype=F64)
+    expected = {
+        0: [[6, 5, 1, 0], [6, 6, 5, 1]],  # ×1/6
+        1: [[0, 3, 3, 0], [0, 0, 3, 3]],  # Ḃ·Δt = (0,1,1,0)/2, (0,0,1,1)/2, ×1/6
+        2: [[0, -6, 6, 0], [0, 0, -6, 6]],  # B̈·Δt² = (0,-1,1,0), (0,0,-1,1), ×1/6
+    }
+    for order, values in expected.items():
+        assert torch.allclose(spline.basis(u, order), torch.tensor(values, dtype=F64) / 6, atol=1e-15, rtol=0)
+
+
+def test_basis_derivatives_match_fd_in_u():
+    u = torch.linspace(0.05, 0.95, 19, dtype=F64)
+    h = 1e-5
+    for order in (1, 2, 3):
+        fd = (spline.basis(u + h, order - 1) - spline.basis(u - h, order - 1)) / (2 * h)
+        assert rel_err(spline.basis(u, order), fd) < 1e-7
+
+
+def test_basis_rejects_bad_order():
+    with pytest.raises(ValueError, match="order"):
+        spline.basis(torch.zeros(1), 4)
+
+
+# ------------------------------------------------------------------------------------------
+# Knot closed forms (spec §2.3, §5.2)
+
+
+def test_eq5_eq6_eq9_closed_forms_at_knots():
+    dt, t0 = 0.4, 0.7
+    R, P = random_spline(1, n_ctrl=7, max_angle=1.5)
+    for i in range(2, 6):  # paper indexing: knot t_i starts the segment using i-2..i+1
+        s = spline.evaluate(R, P, np.array([t0 + i * dt]), dt, t0, derivatives=2)
+        assert torch.allclose(s.translation[0], (P[i - 2] + 4 * P[i - 1] + P[i]) / 6, atol=1e-12)
+        assert torch.allclose(s.velocity_world[0], (P[i] - P[i - 2]) / (2 * dt), atol=1e-12)
+        assert torch.allclose(s.acceleration_world[0], (P[i - 2] - 2 * P[i - 1] + P[i]) / dt**2, atol=1e-12)
+        d1 = so3_log(R[i - 2].T @ R[i - 1])
+        d2 = so3_log(R[i - 1].T @ R[i])
+        assert torch.allclose(s.rotation[0], R[i - 2] @ so3_exp(5 * d1 / 6) @ so3_exp(d2 / 6), atol=1e-12)
+        rotated_d1 = so3_exp(-d2 / 6) @ d1
+        assert torch.allclose(s.omega_body[0], (rotated_d1 + d2) / (2 * dt), atol=1e-12)
+        omega_dot = (torch.linalg.cross(rotated_d1, d2) / 4 + d2 - rotated_d1) / dt**2
+        assert torch.allclose(s.omegadot_body[0], omega_dot, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# C² continuity (spec §5.3)
+
+
+def test_c2_continuity_at_interior_knots_and_jerk_jumps():
+    dt = 0.3
+    R, P = random_spline(2, n_ctrl=9, max_angle=1.5)
+    n_seg = R.shape[0] - 3
+    left_first = torch.arange(n_seg - 1)
+    ones = torch.ones(n_seg - 1, dtype=F64)
+    left = spline.evaluate_segments(R, P, left_first, ones, dt, 2)
+    right = spline.evaluate_segments(R, P, left_first + 1, 0 * ones, dt, 2)
+    for a, b in zip(left, right):
+        assert torch.allclose(a, b, atol=1e-12, rtol=0)
+    # Jerk (third derivative) jumps: a is linear in u per segment, so its slope is exact.
+    seg_start = spline.evaluate_segments(R, P, torch.arange(n_seg), torch.zeros(n_seg, dtype=F64), dt, 2)
+    seg_end = spline.evaluate_segments(R, P, torch.arange(n_seg), torch.ones(n_seg, dtype=F64), dt, 2)
+    jerk = (seg_end.acceleration_world - seg_start.acceleration_world) / dt  # (n_seg, 3)
+    assert (torch.linalg.vector_norm(jerk[1:] - jerk[:-1], dim=-1) > 1e-2).all()
+    h = 1e-4
+    near_end = spline.evaluate_segments(R, P, left_first, ones - h, dt, 2).omegadot_body
+    after_start = spline.evaluate_segments(R, P, left_first + 1, ones * h, dt, 2).omegadot_body
+    rot_jerk_left = (left.omegadot_body - near_end) / (h * dt)
+    rot_jerk_right = (after_start - right.omegadot_body) / (h * dt)
+    assert (torch.linalg.vector_norm(rot_jerk_left - rot_jerk_right, dim=-1) > 1e-2).all()
+
+
+# ------------------------------------------------------------------------------------------
+# Exact motions (spec §5.4)
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_constant_velocity_control_points_give_exact_motion(convention):
+    dt, t0, n = 0.2, -0.3, 8
+    a0 = torch.tensor([0.3, -1.0, 2.0], dtype=F64)
+    b0 = torch.tensor([0.5, 0.2, -0.4], dtype=F64)
+    R0 = so3_exp(torch.tensor([0.4, 0.1, -0.9], dtype=F64))
+    w0 = torch.tensor([0.3, -0.5, 0.2], dtype=F64)
+    k = torch.arange(n, dtype=F64)[:, None]
+    P = a0 + b0 * k
+    R = R0 @ so3_exp(k * w0)
+    t_min, t_max = spline.valid_time_range(n, dt, t0, convention)
+    times = np.linspace(t_min, t_max, 41)
+    s = spline.evaluate(R, P, times, dt, t0, convention, derivatives=2)
+    index = torch.as_tensor((times - t0) / dt - OFFSET[convention] + 1)[:, None]  # s − i + (i − offset + 1)
+    assert torch.allclose(s.translation, a0 + b0 * index, atol=1e-12)
+    assert torch.allclose(s.rotation, R0 @ so3_exp(index * w0), atol=1e-12)
+    assert torch.allclose(s.velocity_world, (b0 / dt).expand(41, 3), atol=1e-12)
+    assert torch.allclose(s.omega_body, (w0 / dt).expand(41, 3), atol=1e-12)
+    assert s.acceleration_world.abs().max() < 1e-12
+    assert s.omegadot_body.abs().max() < 1e-12
+
+
+def test_identical_control_points_give_constant_pose_and_zero_derivatives():
+    R = so3_exp(torch.tensor([0.2, -1.1, 0.5], dtype=F64)).expand(6, 3, 3)
+    P = torch.tensor([1.0, 2.0, -3.0], dtype=F64).expand(6, 3)
+    s = spline.evaluate(R, P, np.linspace(0.2, 0.5, 13), 0.1, 0.0, derivatives=2)
+    assert torch.allclose(s.rotation, R[0].expand(13, 3, 3), atol=1e-15)
+    assert torch.allclose(s.translation, P[0].expand(13, 3), atol=1e-15)
+    for value in s[2:]:
+        assert value.abs().max() == 0
+
+
+def test_single_axis_rotation_equals_scalar_spline_scipy():
+    dt, t0 = 0.25, 1.0
+    rng = np.random.default_rng(3)
+    theta = np.cumsum(rng.uniform(-2.5, 2.5, size=8))  # |Δθ| < π, not wrapped
+    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
+    R = so3_exp(torch.as_tensor(theta[:, None] * axis))
+    P = torch.zeros(8, 3, dtype=F64)
+    times = interior_times(8, dt, t0, "paper")
+    s = spline.evaluate(R, P, times, dt, t0, derivatives=2)
+    scalar = scipy_bspline(theta, dt, t0, "paper")
+    expected_R = so3_exp(torch.as_tensor(scalar(times)[:, None] * axis))
+    assert torch.allclose(s.rotation, expected_R, atol=1e-12)
+    assert torch.allclose(s.omega_body, torch.as_tensor(scalar(times, 1)[:, None] * axis), atol=1e-11)
+    assert torch.allclose(s.omegadot_body, torch.as_tensor(scalar(times, 2)[:, None] * axis), atol=1e-10)
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_eq5_eq8_translation_velocity_acceleration_match_scipy_bspline(convention):
+    dt, t0 = 0.1, 0.1
+    R, P = random_spline(4, n_ctrl=10)
+    times = interior_times(10, dt, t0, convention)
+    s = spline.evaluate(R, P, times, dt, t0, convention, derivatives=2)
+    oracle = scipy_bspline(P.numpy(), dt, t0, convention)
+    assert rel_err(s.translation, oracle(times)) < 1e-12
+    assert rel_err(s.velocity_world, oracle(times, 1)) < 1e-12
+    assert rel_err(s.acceleration_world, oracle(times, 2)) < 1e-11
+
+
+# ------------------------------------------------------------------------------------------
+# Invariances (spec §5.5)
+
+
+def _all_outputs(R, P, times, dt, t0=0.0):
+    return spline.evaluate(R, P, times, dt, t0, derivatives=2)
+
+
+def test_left_invariance_of_poses_and_body_rates():
+    R, P = random_spline(5, max_angle=1.5)
+    G = so3_exp(torch.tensor([0.7, -0.4, 1.9], dtype=F64))
+    g = torch.tensor([3.0, -1.0, 0.5], dtype=F64)
+    times = interior_times(8, 0.5, 0.0, "paper")
+    base = _all_outputs(R, P, times, 0.5)
+    moved = _all_outputs(G @ R, P @ G.T + g, times, 0.5)
+    assert torch.allclose(moved.rotation, G @ base.rotation, atol=1e-12)
+    assert torch.allclose(moved.translation, base.translation @ G.T + g, atol=1e-12)
+    assert torch.allclose(moved.velocity_world, base.velocity_world @ G.T, atol=1e-12)
+    assert torch.allclose(moved.acceleration_world, base.acceleration_world @ G.T, atol=1e-12)
+    assert torch.allclose(moved.omega_body, base.omega_body, atol=1e-12)
+    assert torch.allclose(moved.omegadot_body, base.omegadot_body, atol=1e-12)
+
+
+def test_right_invariance_rotates_body_rates():
+    R, P = random_spline(6, max_angle=1.5)
+    H = so3_exp(torch.tensor([-1.2, 0.3, 0.8], dtype=F64))
+    times = interior_times(8, 0.5, 0.0, "paper")
+    base = _all_outputs(R, P, times, 0.5)
+    moved = _all_outputs(R @ H, P, times, 0.5)
+    assert torch.allclose(moved.rotation, base.rotation @ H, atol=1e-12)
+    assert torch.allclose(moved.omega_body, base.omega_body @ H, atol=1e-12)  # Hᵀ ω as row vectors
+    assert torch.allclose(moved.omegadot_body, base.omegadot_body @ H, atol=1e-12)
+
+
+def test_time_scaling_of_derivatives():
+    R, P = random_spline(7, max_angle=1.5)
+    c, dt = 3.7, 0.2
+    times = interior_times(8, dt, 0.0, "paper")
+    base = _all_outputs(R, P, times, dt)
+    slow = _all_outputs(R, P, times * c, dt * c)
+    assert torch.allclose(slow.rotation, base.rotation, atol=1e-12)
+    assert torch.allclose(slow.translation, base.translation, atol=1e-12)
+    assert rel_err(slow.velocity_world * c, base.velocity_world) < 1e-12
+    assert rel_err(slow.acceleration_world * c**2, base.acceleration_world) < 1e-12
+    assert rel_err(slow.omega_body * c, base.omega_body) < 1e-12
+    assert rel_err(slow.omegadot_body * c**2, base.omegadot_body) < 1e-12
+
+
+# ------------------------------------------------------------------------------------------
+# Finite differences with large rotations (spec §5.6)
+
+
+@pytest.mark.parametrize("seed,dt,max_angle", [(10, 1.0, 0.8), (11, 0.1, 2.0), (12, 0.05, 0.3)])
+def test_eq8_eq9_derivatives_match_central_differences(seed, dt, max_angle):
+    R, P = random_spline(seed, n_ctrl=8, max_angle=max_angle)
+    times = interior_times(8, dt, 0.0, "paper", margin=1e-2, seed=seed)
+    s = _all_outputs(R, P, times, dt)
+
+    def at(shift):
+        return _all_outputs(R, P, times + shift, dt)
+
+    h = 1e-5 * dt
+    plus, minus = at(h), at(-h)
+    assert rel_err(s.velocity_world, (plus.translation - minus.translation) / (2 * h)) < 1e-7
+    assert rel_err(s.acceleration_world, (plus.velocity_world - minus.velocity_world) / (2 * h)) < 1e-7
+    omega_fd = so3_log(minus.rotation.transpose(-1, -2) @ plus.rotation) / (2 * h)  # body frame
+    assert rel_err(s.omega_body, omega_fd) < 1e-7
+    assert rel_err(s.omegadot_body, (plus.omega_body - minus.omega_body) / (2 * h)) < 1e-7
+    # Second differences, independent of the recursion (spec §3.1 last row).
+    h = 1e-4 * dt
+    plus, minus = at(h), at(-h)
+    a_fd = (plus.translation - 2 * s.translation + minus.translation) / h**2
+    assert rel_err(s.acceleration_world, a_fd) < 1e-5
+    Rt = s.rotation.transpose(-1, -2)
+    omega_dot_fd = (so3_log(Rt @ plus.rotation) + so3_log(Rt @ minus.rotation)) / h**2
+    assert rel_err(s.omegadot_body, omega_dot_fd) < 1e-5
+
+
+# ------------------------------------------------------------------------------------------
+# Autograd in time (spec §3.3, §5.7)
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_eq8_eq9_match_autograd_in_time(convention):
+    dt, t0 = 0.3, 2.0
+    R, P = random_spline(13, n_ctrl=7, max_angle=2.0)
+    t_min, t_max = spline.valid_time_range(7, dt, t0, convention)
+    times = np.concatenate([np.linspace(t_min, t_max, 9), interior_times(7, dt, t0, convention)])
+    s = spline.evaluate(R, P, times, dt, t0, convention, derivatives=2)
+    v, a, omega, omega_dot = autograd_in_time(R, P, times, dt, t0, convention)
+    assert rel_err(s.velocity_world, v) < 1e-10
+    assert rel_err(s.acceleration_world, a) < 1e-10
+    assert rel_err(s.omega_body, omega) < 1e-10
+    assert rel_err(s.omegadot_body, omega_dot) < 1e-10
+
+
+# ------------------------------------------------------------------------------------------
+# External oracles (spec §5.8)
+
+
+def _pypose_poses(R, P):
+    """(N, 7) SE3 LieTensor (tx, ty, tz, qx, qy, qz, qw) from our control points."""
+    quaternions = torch.as_tensor(Rotation.from_matrix(R.numpy()).as_quat())
+    return pp.SE3(torch.cat([P, quaternions], dim=-1))
+
+
+@pytest.mark.parametrize("u", [0.0, 0.123, 0.5, 0.77, 0.999])
+def test_eq6_rotation_matches_pypose_at_arbitrary_u(u):
+    dt, t0 = 0.5, 0.0
+    R, P = random_spline(14, n_ctrl=7, max_angle=2.0)
+    data = _pypose_poses(R, P)
+    for first in range(4):  # basalt convention: window first..first+3 at u ↔ t0 + (first + u)dt
+        if u == 0.0:
+            expected = pp.bspline(data[first:first + 4], interval=0.5).matrix()[0]
+        else:
+            expected = pp.bspline(data[first:first + 4], interval=u).matrix()[1]
+        ours = spline.evaluate(R, P, np.array([t0 + (first + u) * dt]), dt, t0, "basalt")
+        assert torch.allclose(ours.rotation[0], expected[:3, :3].to(F64), atol=1e-12)
+
+
+def test_eq5_translation_matches_pypose_when_rotations_equal():
+    R, P = random_spline(15, n_ctrl=6)
+    R = R[2].expand(6, 3, 3).clone()
+    data = _pypose_poses(R, P)
+    for u in (0.2, 0.6):
+        for first in range(3):
+            expected = pp.bspline(data[first:first + 4], interval=u).matrix()[1]
+            ours = spline.evaluate(R, P, np.array([(first + u) * 0.5 + 1.0]), 0.5, 0.0, "paper")
+            assert torch.allclose(ours.translation[0], expected[:3, 3].to(F64), atol=1e-12)
+
+
+BASALT_ROTVECS = [[0, 0, 0], [0.1, -0.2, 0.3], [0.4, -0.1, 0.5], [0.3, 0.3, 0.9], [-0.2, 0.6, 1.2], [-0.5, 0.4, 1.0]]
+BASALT_POSITIONS = [[0, 0, 0], [1, 0, 0.5], [1.5, 1, 0.5], [1, 2, 0], [0, 2.5, -0.5], [-1, 2, -1]]
+BASALT_TABLE = {  # spec §3.5: t -> rotvec, p, v, a, omega_body, omegadot_body
+    0.00: [(0.134116980, -0.151459662, 0.282680481), (0.916666667, 0.166666667, 0.416666667), (1.5, 1.0, 0.5),
+           (-2, 4, -2), (0.419692610, -0.127856638, 0.478245352), (0.896277239, 1.063012442, -0.512550323)],
+    0.35: [(0.289163844, -0.111468504, 0.450617209), (1.290583333, 0.7045, 0.469166667), (0.555, 1.91, -0.2),
+           (-3.4, 1.2, -2.0), (0.486098815, 0.289351146, 0.436568364), (-0.532954773, 1.330922034, 0.317237811)],
+    0.80: [(0.325661486, 0.139534886, 0.740555699), (1.171333333, 1.582, 0.194666667), (-1.02, 1.82, -0.92),
+           (-2.8, -1.2, -0.8), (-0.011635585, 0.865875154, 0.595161303), (-1.292066019, 0.771943126, -0.060129717)],
+    1.20: [(0.093519323, 0.413904218, 1.016607449), (0.582, 2.171333333, -0.2), (-1.82, 1.02, -1.0),
+           (-1.2, -2.8, 0.0), (-0.506706704, 0.905555220, 0.391334791), (-0.781496148, -0.677918007, -1.109365084)],
+}
+
+
+@pytest.mark.parametrize("convention,shift", [("basalt", 0.0), ("paper", 1.0)])
+def test_basalt_golden_values(convention, shift):
+    R = so3_exp(torch.tensor(BASALT_ROTVECS, dtype=F64))
+    P = torch.tensor(BASALT_POSITIONS, dtype=F64)
+    times = np.array(sorted(BASALT_TABLE)) + shift
+    s = spline.evaluate(R, P, times, 0.5, 0.0, convention, derivatives=2)
+    ours = [so3_log(s.rotation), s.translation, s.velocity_world, s.acceleration_world, s.omega_body, s.omegadot_body]
+    for column, value in enumerate(ours):
+        golden = torch.tensor([BASALT_TABLE[t][column] for t in sorted(BASALT_TABLE)], dtype=F64)
+        assert torch.allclose(value, golden, atol=1e-8, rtol=0), column
+
+
+# ------------------------------------------------------------------------------------------
+# Domain (spec §5.9)
+
+
+def test_valid_time_range_both_conventions():
+    assert spline.valid_time_range(6, 0.5, 1.0, "paper") == (2.0, 3.5)
+    assert spline.valid_time_range(6, 0.5, 1.0, "basalt") == (1.0, 2.5)
+    with pytest.raises(ValueError, match="at least 4"):
+        spline.valid_time_range(3, 0.5, 0.0)
+    with pytest.raises(ValueError, match="convention"):
+        spline.valid_time_range(6, 0.5, 0.0, "kontiki")
+    with pytest.raises(ValueError, match="dt"):
+        spline.valid_time_range(6, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_domain_is_closed_tmax_maps_to_last_segment_at_u_equal_one(convention):
+    dt, t0, n = 0.25, 3.0, 7
+    R, P = random_spline(16, n_ctrl=n)
+    t_min, t_max = spline.valid_time_range(n, dt, t0, convention)
+    s = spline.evaluate(R, P, np.array([t_min, t_max]), dt, t0, convention, derivatives=2)
+    start = spline.evaluate_segments(R, P, torch.tensor([0]), torch.tensor([0.0], dtype=F64), dt, 2)
+    end = spline.evaluate_segments(R, P, torch.tensor([n - 4]), torch.tensor([1.0], dtype=F64), dt, 2)
+    for value, a, b in zip(s, start, end):
+        assert torch.allclose(value[0], a[0], atol=1e-14) and torch.allclose(value[1], b[0], atol=1e-14)
+    indices = spline.active_control_indices(np.array([t_min, t_max]), n, dt, t0, convention)
+    assert indices.tolist() == [[0, 1, 2, 3], [n - 4, n - 3, n - 2, n - 1]]
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_out_of_domain_raises_value_error_naming_time_and_domain(convention):
+    dt, t0, n = 0.25, 3.0, 7
+    R, P = random_spline(16, n_ctrl=n)
+    t_min, t_max = spline.valid_time_range(n, dt, t0, convention)
+    for bad in (t_min - 1e-6, t_max + 1e-6, float("nan")):
+        with pytest.raises(ValueError, match="outside the spline domain") as info:
+            spline.evaluate(R, P, np.array([t_min, bad]), dt, t0, convention)
+        assert repr(bad) in str(info.value) and repr(t_max) in str(info.value)
+
+
+def test_exact_knots_belong_to_the_segment_starting_there():
+    dt = t0 = 0.1  # floor((t - t0)/dt) mis-rounds several of these knots (spec §5.9)
+    n = 53
+    knots = t0 + dt * np.arange(n, dtype=np.float64)
+    naive = np.floor((knots - t0) / dt).astype(int)
+    assert (naive != np.arange(n)).any()  # the pitfall is present in this example
+    indices = spline.active_control_indices(knots[:n - 2], n, dt, t0, "basalt")
+    assert indices[:, 0].tolist() == list(range(n - 3)) + [n - 4]  # last knot is t_max (closed)
+    indices = spline.active_control_indices(knots[2:n - 1], n, dt, t0, "paper")
+    assert indices[:, 0].tolist() == list(range(n - 4)) + [n - 4]
+
+
+def test_large_absolute_timestamps_handled_in_float64():
+    dt, stamp = 0.03, 1305031102.175304  # TUM stamp: float32 spacing 128 s
+    R, P = random_spline(17, n_ctrl=8, scale=0.05)
+    ends = spline.evaluate(R, P, np.array([stamp + 2 * dt, stamp + 7 * dt]), dt, stamp)  # accepted
+    assert torch.allclose(ends.translation[0], (P[0] + 4 * P[1] + P[2]) / 6, atol=1e-6)
+    relative = np.linspace(2 * dt + 1e-4, 7 * dt - 1e-4, 21)
+    absolute = stamp + relative
+    ours = spline.evaluate(R, P, absolute, dt, stamp, derivatives=2)
+    reference = spline.evaluate(R, P, absolute - stamp, dt, 0.0, derivatives=2)
+    for a, b in zip(ours, reference):
+        assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_times_shape_is_preserved_and_batched_control_points_match_loop():
+    dt = 0.2
+    rotations, translations = zip(*(random_spline(seed, n_ctrl=6) for seed in (20, 21)))
+    R, P = torch.stack(rotations), torch.stack(translations)  # (2, 6, 3, 3), (2, 6, 3)
+    times = np.array([[0.45, 0.5], [0.61, 0.99]])
+    batched = spline.evaluate(R, P, times, dt, 0.0, derivatives=2)
+    assert batched.rotation.shape == (2, 2, 2, 3, 3) and batched.omegadot_body.shape == (2, 2, 2, 3)
+    for b in range(2):
+        single = spline.evaluate(R[b], P[b], times, dt, 0.0, derivatives=2)
+        for x, y in zip(batched, single):
+            assert torch.allclose(x[b], y, atol=1e-15)
+    scalar = spline.evaluate(R[0], P[0], 0.5, dt, 0.0, derivatives=1)
+    assert scalar.rotation.shape == (3, 3) and scalar.acceleration_world is None
+
+
+def test_evaluate_rejects_malformed_control_points():
+    R, P = random_spline(22, n_ctrl=6)
+    with pytest.raises(ValueError, match="control_translations"):
+        spline.evaluate(R, P[:5], 0.5, 0.2, 0.0)
+    with pytest.raises(ValueError, match="dtype"):
+        spline.evaluate(R, P.float(), 0.5, 0.2, 0.0)
+    with pytest.raises(ValueError, match="derivatives"):
+        spline.evaluate(R, P, 0.5, 0.2, 0.0, derivatives=3)
+
+
+# ------------------------------------------------------------------------------------------
+# Gradients w.r.t. control points (spec §5.10)
+
+
+@pytest.mark.parametrize("gap", [0.0, 1e-9, 1e-5, 0.7])
+def test_gradcheck_poses_and_derivatives_wrt_control_points(gap):
+    base_R, base_P = random_spline(23, n_ctrl=5, max_angle=1.0)
+    axis = torch.tensor([0.6, -0.8, 0.0], dtype=F64)
+    base_R[2] = base_R[1] @ so3_exp(gap * axis)  # neighbours exactly equal / 1e-9 / 1e-5 apart
+    times = np.array([0.43, 0.61])  # paper, dt 0.2: domain [0.4, 0.8]
+
+    def outputs(delta, P):
+        R = so3_exp(delta) @ base_R  # left tangent increments
+        s = spline.evaluate(R, P, times, 0.2, 0.0, derivatives=2)
+        return torch.cat([s.rotation.reshape(-1), *(value.reshape(-1) for value in s[1:])])
+
+    delta = torch.zeros(5, 3, dtype=F64, requires_grad=True)
+    P = base_P.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(outputs, (delta, P), eps=1e-7, atol=1e-6)
+    loss = outputs(delta, P).square().sum()
+    grads = torch.autograd.grad(loss, (delta, P))
+    assert all(torch.isfinite(g).all() for g in grads)
+
+
+def test_local_support_zero_gradient_outside_the_four_active_points():
+    R0, P0 = random_spline(24, n_ctrl=9)
+    delta = torch.zeros(9, 3, dtype=F64, requires_grad=True)
+    P = P0.clone().requires_grad_(True)
+    time = np.array([0.2 * 4.5])  # paper, dt 0.2: segment i = 4 uses control points 2..5
+    active = spline.active_control_indices(time, 9, 0.2, 0.0)[0].tolist()
+    assert active == [2, 3, 4, 5]
+    s = spline.evaluate(so3_exp(delta) @ R0, P, time, 0.2, 0.0, derivatives=2)
+    loss = sum(value.sum() for value in s)
+    grad_delta, grad_P = torch.autograd.grad(loss, (delta, P))
+    outside = [k for k in range(9) if k not in active]
+    assert grad_delta[outside].abs().max() == 0 and grad_P[outside].abs().max() == 0
+    assert (grad_delta[active].abs().sum(-1) > 0).all() and (grad_P[active].abs().sum(-1) > 0).all()
+
+
+# ------------------------------------------------------------------------------------------
+# Precision (spec §5.11)
+
+
+def test_float32_matches_float64():
+    R, P = random_spline(25, n_ctrl=8, max_angle=1.5)
+    times = interior_times(8, 0.1, 100.0, "paper")
+    s64 = spline.evaluate(R, P, times, 0.1, 100.0, derivatives=2)
+    s32 = spline.evaluate(R.float(), P.float(), times, 0.1, 100.0, derivatives=2)
+    for a, b in zip(s32, s64):
+        assert a.dtype == torch.float32
+        assert rel_err(a, b) < 1e-5
+
+
+# ------------------------------------------------------------------------------------------
+# BSplineTrajectory
+
+
+def test_trajectory_accessors_and_pose():
+    R, P = random_spline(26, n_ctrl=7)
+    traj = spline.BSplineTrajectory.from_rotvecs(so3_log(R), P, 0.2, 1.0)
+    assert len(traj) == traj.n_ctrl == 7
+    assert np.allclose(traj.knot_times(), 1.0 + 0.2 * np.arange(7), atol=1e-15)
+    assert (traj.min_time, traj.max_time) == spline.valid_time_range(7, 0.2, 1.0)
+    assert traj.valid(np.array([traj.min_time, traj.max_time, 1.0, 3.0])).tolist() == [True, True, False, False]
+    times = np.array([1.45, 1.9])
+    s = spline.evaluate(R, P, times, 0.2, 1.0)
+    assert torch.allclose(traj.pose(times), make_pose(s.rotation, s.translation), atol=1e-14)
+    assert traj.to(torch.float32).control_translations.dtype == torch.float32
+    assert "n_ctrl=7" in repr(traj)
+
+
+def test_trajectory_pop_front_window_and_append_keep_the_curve():
+    R, P = random_spline(27, n_ctrl=9)
+    traj = spline.BSplineTrajectory(R, P, 0.3, 0.0)
+    times = np.linspace(traj.min_time + 0.3, traj.max_time, 11)
+    reference = traj.evaluate(times, derivatives=2)
+    window = traj.window(1, 9)
+    popped = traj.clone()
+    popped.pop_front()
+    for other in (window, popped):
+        assert other.t0 == pytest.approx(0.3)
+        for a, b in zip(other.evaluate(times, derivatives=2), reference):
+            assert torch.allclose(a, b, atol=1e-14)
+    short = spline.BSplineTrajectory(R[:8], P[:8], 0.3, 0.0)
+    short.append(R[8], P[8])
+    assert short.max_time == pytest.approx(traj.max_time)
+    assert torch.allclose(short.pose(times), traj.pose(times), atol=1e-14)
+    with pytest.raises(ValueError):
+        traj.window(5, 8)
+
+
+# ------------------------------------------------------------------------------------------
+# Curve approximation, Eq. (11)
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_eq11_fit_recovers_control_points_of_a_sampled_spline(convention):
+    dt, t0, n = 0.25, 10.0, 8
+    R, P = random_spline(28, n_ctrl=n, max_angle=0.6)
+    t_min, t_max = spline.valid_time_range(n, dt, t0, convention)
+    times = np.linspace(t_min, t_max, 60)
+    s = spline.evaluate(R, P, times, dt, t0, convention)
+    fit_R, fit_P = spline.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n,
+                                             convention=convention)
+    assert torch.allclose(fit_R, R, atol=1e-8)
+    assert torch.allclose(fit_P, P, atol=1e-8)
+
+
+def test_eq11_fit_new_control_point_with_the_others_fixed():
+    dt, t0, n = 0.2, 0.0, 7
+    R, P = random_spline(29, n_ctrl=n, max_angle=0.5)
+    times = np.linspace(t0 + 5 * dt, t0 + 6 * dt, 7)  # last interval only, as in local BA
+    s = spline.evaluate(R, P, times, dt, t0)
+    init_R, init_P = R.clone(), P.clone()
+    init_R[-1], init_P[-1] = R[-2], P[-2]  # new point starts at its neighbour
+    fixed = torch.tensor([True] * (n - 1) + [False])
+    fit_R, fit_P = spline.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n,
+                                             init_rotations=init_R, init_translations=init_P, fixed=fixed)
+    assert torch.equal(fit_R[:-1], R[:-1]) and torch.equal(fit_P[:-1], P[:-1])
+    assert torch.allclose(fit_R[-1], R[-1], atol=1e-8) and torch.allclose(fit_P[-1], P[-1], atol=1e-8)
+    with pytest.raises(ValueError, match="fixed"):
+        spline.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n, fixed=fixed)

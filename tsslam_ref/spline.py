@@ -1,0 +1,656 @@
+"""Uniform cubic B-spline trajectory on split SO(3) x R^3, cumulative form.
+
+TS-SLAM §III-B, Eq. (5) ``eq:bspline_p`` (translation), Eq. (6) ``eq:bspline_r`` (rotation), Eq. (7)
+(d_j), the unnumbered B(u), C, Ḃ(u), B̈(u); §III-C Eq. (8) ``eq_jeck`` (a(t)) and Eq. (9)
+``eq_rot_jeck`` (the ω / ω̇ recursion); §III-D Eq. (11) (curve approximation, :func:`fit_control_points`).
+
+Layer 1 (math).  Imports layer 0 (``geometry``) only.  Taught in notebooks/01_bspline_trajectory.ipynb.
+Sources: Sommer et al. 2020 "Efficient derivative computation for cumulative B-splines on Lie groups";
+basalt-headers ``so3_spline.h`` / ``rd_spline.h`` @a585db3 (same recursion, body frame).  All the
+maths, conventions and pitfalls are worked out in shared/spec/spline.md; docs/spline.md is the user doc.
+
+Index conventions (s = (t − t0)/Δt, control point k sits at t_k = t0 + kΔt, n = n_ctrl ≥ 4):
+
+* ``"paper"`` (default): segment [t_i, t_{i+1}) uses control points i−2..i+1;
+  valid times [t0 + 2Δt, t0 + (n−1)Δt].
+* ``"basalt"``: segment [t_i, t_{i+1}) uses control points i..i+3; valid times [t0, t0 + (n−3)Δt].
+
+Both give the same curve with paper time = basalt time + 2Δt.  **The domain is closed**: t_max
+maps to the last segment at u = 1 (like PyPose; basalt and kontiki are half-open and reject t_max).
+
+Segment rule (robust on exact knots): i = floor(s + ε), u = s − i, with the tolerance
+ε = KNOT_SNAP + 4·eps64·(|t| + |t0|)/Δt (1e-9 of a segment plus the float64 resolution of the
+absolute times; ~8e-6 for TUM stamps of 1.3e9 s at Δt = 0.03 s).  A time that is a knot up to
+float64 rounding (t0 + kΔt computed in float64 may give s = k − 1e-16) therefore belongs to the
+segment that *starts* at that knot, with u ≥ −ε; the cubic is continued by at most ε of a segment
+there.  By C² continuity that changes p and R by O((εΔt)³·Δjerk), v and ω by O((εΔt)²·Δjerk)
+and a and ω̇ by O(εΔt·Δjerk) (Δjerk: the jump of the third derivative at the knot), i.e. nothing
+for ordinary times and the float64 resolution of the stamps themselves for absolute stamps.  The
+segment index is clamped to the last segment, so t_max gives u = 1.  Times outside
+[t_min − εΔt, t_max + εΔt] raise ValueError naming the time and the domain.
+
+Not an interpolant (spec §2.3): with the paper convention the curve near t_i is dominated by
+control point i−1, so control point k "belongs" to time t_{k+1} (basalt: t_{k−1}).
+
+Glossary
+
+| symbol | variable | shape | frame | unit |
+|---|---|---|---|---|
+| R_k | ``control_rotations`` / ``rot_cp`` | (..., N, 3, 3) | body→world | - |
+| t_k (translation) | ``control_translations`` / ``trans_cp`` | (..., N, 3) | world | m |
+| t (time) | ``times`` | any shape, float64 | - | s |
+| Δt, t0 | ``dt``, ``t0`` | python float | - | s |
+| u | ``u`` | (M,) | - | 1 (segment fraction) |
+| B, Ḃ·Δt, B̈·Δt² | ``basis(u, 0/1/2)`` | (M, 4) | - | 1 |
+| d_j = Log(R_{j−1}ᵀ R_j) | ``d`` | (..., N−1, 3) | body | rad |
+| A_j = Exp(B_j d_j) | ``A`` | (..., M, 3, 3) | - | - |
+| R(t), t(t) | ``rotation``, ``translation`` | (..., M, 3, 3), (..., M, 3) | world | -, m |
+| v, a | ``velocity_world``, ``acceleration_world`` | (..., M, 3) | world | m/s, m/s² |
+| ω, ω̇ | ``omega_body``, ``omegadot_body`` | (..., M, 3) | body | rad/s, rad/s² |
+
+Here M stands for ``times.shape`` (the outputs carry the query shape).
+"""
+
+import math
+from typing import NamedTuple, Optional, Tuple, Union
+
+import numpy as np
+import torch
+
+from tsslam_ref.geometry import make_pose, so3_exp, so3_log
+
+# Cumulative cubic basis matrix C of §III-B (rows: B_0..B_3, columns: powers 1, u, u², u³).
+_C = (
+    (6.0, 0.0, 0.0, 0.0),
+    (5.0, 3.0, -3.0, 1.0),
+    (1.0, 3.0, 3.0, -2.0),
+    (0.0, 0.0, 0.0, 1.0),
+)
+
+KNOT_SNAP = 1e-9
+"""Tolerance (in units of Δt) for exact knots and domain ends: prevents float64 rounding of
+(t − t0)/Δt from moving a knot time into the previous segment or out of the domain."""
+
+CONVENTIONS = ("paper", "basalt")
+
+_FIRST_SEGMENT_OFFSET = {"paper": 2, "basalt": 0}
+"""Knot index of the first valid time: segment i uses control points i − offset .. i − offset + 3."""
+
+_ROTATION_JUMP_WARN = 0.5 * math.pi
+"""Consecutive control rotations further apart than this (rad) are suspicious (spec §6): the
+principal Log flips sign at π, so the spline becomes discontinuous in its control points."""
+
+TimesLike = Union[float, np.ndarray, torch.Tensor]
+
+
+class SplineSample(NamedTuple):
+    """Spline outputs at query times; fields not requested are None.
+
+    rotation (..., M, 3, 3) body→world; translation (..., M, 3) world [m];
+    velocity_world, acceleration_world (..., M, 3) [m/s, m/s²];
+    omega_body, omegadot_body (..., M, 3) body frame [rad/s, rad/s²].
+    """
+
+    rotation: torch.Tensor
+    translation: torch.Tensor
+    velocity_world: Optional[torch.Tensor] = None
+    acceleration_world: Optional[torch.Tensor] = None
+    omega_body: Optional[torch.Tensor] = None
+    omegadot_body: Optional[torch.Tensor] = None
+
+
+# --------------------------------------------------------------------------------------------
+# Basis
+
+
+def basis(u: torch.Tensor, order: int = 0) -> torch.Tensor:
+    """Cumulative cubic basis B(u) = C [1, u, u², u³]ᵀ and its u-derivatives.
+
+    order 0: B(u); order 1: dB/du = Ḃ(u)·Δt = C [0, 1, 2u, 3u²]ᵀ; order 2: d²B/du² = B̈(u)·Δt²
+    = C [0, 0, 2, 6u]ᵀ; order 3: d³B/du³ = C [0, 0, 0, 6]ᵀ (jerk, used in tests).  Divide by
+    Δt^order to get the paper's time derivatives.
+
+    Args:
+        u: (...) segment fractions (any float dtype/device; a python float is accepted).
+        order: derivative order in u, 0..3.
+
+    Returns:
+        (..., 4) basis values [B_0, B_1, B_2, B_3] in u's dtype and device.
+
+    Example:
+        >>> basis(torch.tensor(0.0, dtype=torch.float64)) * 6
+        tensor([6., 5., 1., 0.], dtype=torch.float64)
+    """
+    u = torch.as_tensor(u)
+    if not u.is_floating_point():
+        u = u.to(torch.get_default_dtype())
+    one, zero = torch.ones_like(u), torch.zeros_like(u)
+    if order == 0:
+        powers = [one, u, u * u, u * u * u]
+    elif order == 1:
+        powers = [zero, one, 2.0 * u, 3.0 * u * u]
+    elif order == 2:
+        powers = [zero, zero, 2.0 * one, 6.0 * u]
+    elif order == 3:
+        powers = [zero, zero, zero, 6.0 * one]
+    else:
+        raise ValueError(f"basis order must be 0, 1, 2 or 3, got {order}")
+    monomials = torch.stack(powers, dim=-1)  # (..., 4)
+    C = torch.tensor(_C, dtype=u.dtype, device=u.device) / 6.0
+    return monomials @ C.T  # (..., 4)
+
+
+# --------------------------------------------------------------------------------------------
+# Time domain
+
+
+def _check_convention(convention: str) -> int:
+    if convention not in _FIRST_SEGMENT_OFFSET:
+        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+    return _FIRST_SEGMENT_OFFSET[convention]
+
+
+def valid_time_range(n_ctrl: int, dt: float, t0: float, convention: str = "paper") -> Tuple[float, float]:
+    """Closed valid time interval [t_min, t_max] in seconds for ``n_ctrl`` control points.
+
+    paper: [t0 + 2Δt, t0 + (n−1)Δt]; basalt: [t0, t0 + (n−3)Δt].
+
+    Raises:
+        ValueError: n_ctrl < 4, dt ≤ 0 or an unknown convention.
+    """
+    offset = _check_convention(convention)
+    if n_ctrl < 4:
+        raise ValueError(f"a cubic B-spline needs at least 4 control points, got n_ctrl={n_ctrl}")
+    if not dt > 0:
+        raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
+    t0 = float(t0)
+    return t0 + offset * dt, t0 + (offset + n_ctrl - 3) * dt
+
+
+def _times_float64(times: TimesLike) -> torch.Tensor:
+    """Times as a float64 tensor (keeps autograd and device of a tensor input)."""
+    if isinstance(times, torch.Tensor):
+        return times.to(torch.float64)
+    return torch.as_tensor(np.asarray(times, dtype=np.float64))
+
+
+def _snap_tolerance(times64, dt: float, t0: float):
+    """Knot/domain tolerance in units of Δt: KNOT_SNAP plus 4 float64 ulps of |t| and |t0|
+    (a TUM stamp of 1.3e9 s has a float64 spacing of 2.4e-7 s, i.e. 8e-6 Δt at Δt = 0.03 s)."""
+    return KNOT_SNAP + 4.0 * np.finfo(np.float64).eps * (abs(times64) + abs(float(t0))) / float(dt)
+
+
+def _locate(times: TimesLike, n_ctrl: int, dt: float, t0: float, convention: str):
+    """Segment lookup: (first control index (M,) int64, u (M,) float64, times.shape).
+
+    s = (t − t0)/Δt − offset is computed in float64 before any cast; see the module docstring
+    for the knot rule.  Raises ValueError naming the first out-of-domain time.
+    """
+    t_min, t_max = valid_time_range(n_ctrl, dt, t0, convention)
+    offset = _FIRST_SEGMENT_OFFSET[convention]
+    times64 = _times_float64(times)
+    shape = times64.shape
+    flat = times64.reshape(-1)  # (M,)
+    s = (flat - float(t0)) / float(dt) - offset  # (M,) float64, 0 at t_min
+    n_segments = n_ctrl - 3
+    with torch.no_grad():
+        snap = _snap_tolerance(flat.detach(), dt, t0)  # (M,)
+        bad = ~((s >= -snap) & (s <= n_segments + snap))  # NaN is bad too
+        if bool(bad.any()):
+            first_bad = float(flat[bad.nonzero()[0, 0]])
+            raise ValueError(
+                f"time {first_bad!r} s is outside the spline domain [{t_min!r}, {t_max!r}] s "
+                f"(n_ctrl={n_ctrl}, dt={dt}, t0={t0}, convention={convention!r}, closed interval)"
+            )
+        first = torch.floor(s + snap).to(torch.int64).clamp_(0, n_segments - 1)  # (M,)
+    u = s - first.to(s.dtype)  # (M,), differentiable w.r.t. times
+    return first, u, shape
+
+
+def active_control_indices(
+    times: TimesLike, n_ctrl: int, dt: float, t0: float, convention: str = "paper"
+) -> torch.Tensor:
+    """Indices of the 4 control points that shape the spline at each time.
+
+    Args:
+        times: any shape, seconds (float64 array or tensor).
+
+    Returns:
+        (*times.shape, 4) int64 tensor, consecutive indices k..k+3 (device of a tensor input).
+
+    Raises:
+        ValueError: a time outside the closed domain (see :func:`valid_time_range`).
+    """
+    first, _, shape = _locate(times, n_ctrl, dt, t0, convention)
+    window = first[:, None] + torch.arange(4, device=first.device)  # (M, 4)
+    return window.reshape(*shape, 4)
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation
+
+
+def knot_rotation_differences(control_rotations: torch.Tensor) -> torch.Tensor:
+    """Eq. (7): d_j = Log(R_{j−1}ᵀ R_j) for every consecutive pair, computed once.
+
+    Args:
+        control_rotations: (..., N, 3, 3).
+
+    Returns:
+        (..., N−1, 3) rotation vectors in rad (body frame of R_{j−1}).
+
+    Differs from: the paper writes d_j ∈ se(3); in the split representation it is so(3)
+    (shared/spec/spline.md §0).
+    """
+    relative = control_rotations[..., :-1, :, :].transpose(-1, -2) @ control_rotations[..., 1:, :, :]
+    return so3_log(relative)  # (..., N-1, 3)
+
+
+def evaluate_segments(
+    control_rotations: torch.Tensor,
+    control_translations: torch.Tensor,
+    first_index: torch.Tensor,
+    u: torch.Tensor,
+    dt: float,
+    derivatives: int = 0,
+) -> SplineSample:
+    """Evaluate given the first control index of each 4-point window and u (no domain logic).
+
+    Eq. (5) t(t) = t_{k} + Σ_{j=1..3} B_j(u) (t_{k+j} − t_{k+j−1});
+    Eq. (6) R(t) = R_{k} Π_{j=1..3} Exp(B_j(u) d_j);
+    Eq. (8) a = Σ B̈_j Δt_j (v likewise with Ḃ);
+    Eq. (9) ω^(j+1) = A_jᵀ ω^(j) + Ḃ_j d_j, ω̇^(j+1) = Ḃ_j ω^(j+1) × d_j + A_jᵀ ω̇^(j) + B̈_j d_j,
+    with ω^(1) = ω̇^(1) = 0; ω^(4), ω̇^(4) are body-frame.  Here k = first_index (k = i−2 in the
+    paper's indexing).  Used by :func:`evaluate`; also lets tests take one-sided limits at knots.
+
+    Args:
+        control_rotations: (..., N, 3, 3); control_translations: (..., N, 3).
+        first_index: (M,) int64 in [0, N−4].
+        u: (M,) segment fractions (cast to the control points' dtype).
+        dt: knot spacing in s.
+        derivatives: 0 pose only; 1 adds v and ω; 2 adds a and ω̇.
+
+    Returns:
+        :class:`SplineSample` with leading shape (..., M).
+    """
+    if derivatives not in (0, 1, 2):
+        raise ValueError(f"derivatives must be 0, 1 or 2, got {derivatives}")
+    dtype, device = control_translations.dtype, control_translations.device
+    first_index = first_index.to(device)
+    u = u.to(device=device, dtype=dtype)
+    # Only the knot pairs some time needs: pairs lo .. hi+2 (each Log computed once, then gathered).
+    lo = int(first_index.min()) if first_index.numel() else 0
+    hi = int(first_index.max()) if first_index.numel() else 0
+    used_rotations = control_rotations[..., lo:hi + 4, :, :]  # (..., hi-lo+4, 3, 3)
+    used_translations = control_translations[..., lo:hi + 4, :]  # (..., hi-lo+4, 3)
+    window = (first_index - lo)[:, None] + torch.arange(3, device=device)  # (M, 3): pair j = 1..3
+
+    d = knot_rotation_differences(used_rotations)  # (..., hi-lo+3, 3): one Log per knot pair
+    delta_p = used_translations[..., 1:, :] - used_translations[..., :-1, :]  # (..., hi-lo+3, 3)
+    d = d[..., window, :]  # (..., M, 3, 3): [..., m, j-1, :] = d_j
+    delta_p = delta_p[..., window, :]  # (..., M, 3, 3)
+
+    B = basis(u, 0)[:, 1:, None]  # (M, 3, 1): B_1..B_3
+    translation = control_translations[..., first_index, :] + (B * delta_p).sum(-2)  # (..., M, 3)
+    A = so3_exp(B * d)  # (..., M, 3, 3, 3): A_j = Exp(B_j d_j)
+    rotation = control_rotations[..., first_index, :, :] @ A[..., 0, :, :] @ A[..., 1, :, :] @ A[..., 2, :, :]
+
+    velocity = acceleration = omega = omega_dot = None
+    if derivatives >= 1:
+        B_dot = basis(u, 1)[:, 1:, None] / dt  # (M, 3, 1)
+        velocity = (B_dot * delta_p).sum(-2)  # (..., M, 3)
+        A_T = A.transpose(-1, -2)
+        omega = torch.zeros_like(translation)  # ω^(1)
+        if derivatives >= 2:
+            B_ddot = basis(u, 2)[:, 1:, None] / dt**2  # (M, 3, 1)
+            acceleration = (B_ddot * delta_p).sum(-2)  # (..., M, 3)
+            omega_dot = torch.zeros_like(translation)  # ω̇^(1)
+        for j in range(3):
+            d_j = d[..., j, :]  # (..., M, 3)
+            omega = (A_T[..., j, :, :] @ omega.unsqueeze(-1)).squeeze(-1) + B_dot[:, j] * d_j
+            if derivatives >= 2:
+                omega_dot = (
+                    B_dot[:, j] * torch.linalg.cross(omega, d_j)
+                    + (A_T[..., j, :, :] @ omega_dot.unsqueeze(-1)).squeeze(-1)
+                    + B_ddot[:, j] * d_j
+                )
+    return SplineSample(rotation, translation, velocity, acceleration, omega, omega_dot)
+
+
+def _check_control_points(control_rotations: torch.Tensor, control_translations: torch.Tensor) -> int:
+    if control_rotations.shape[-2:] != (3, 3) or control_rotations.dim() < 3:
+        raise ValueError(f"control_rotations must be (..., N, 3, 3), got {tuple(control_rotations.shape)}")
+    if control_translations.shape[-1] != 3 or control_translations.shape[:-1] != control_rotations.shape[:-2]:
+        raise ValueError(
+            f"control_translations must be (..., N, 3) matching control_rotations "
+            f"{tuple(control_rotations.shape)}, got {tuple(control_translations.shape)}"
+        )
+    if control_rotations.dtype != control_translations.dtype:
+        raise ValueError(
+            f"control rotations ({control_rotations.dtype}) and translations "
+            f"({control_translations.dtype}) must share a dtype"
+        )
+    return control_rotations.shape[-3]
+
+
+def evaluate(
+    control_rotations: torch.Tensor,
+    control_translations: torch.Tensor,
+    times: TimesLike,
+    dt: float,
+    t0: float,
+    convention: str = "paper",
+    derivatives: int = 0,
+) -> SplineSample:
+    """Pose (and derivatives) of the spline at query times: Eq. (5)-(9), see :func:`evaluate_segments`.
+
+    Args:
+        control_rotations: (..., N, 3, 3) rotation matrices R_k (parametrise them as you like,
+            e.g. Exp(δ_k) R_k0); differentiable.
+        control_translations: (..., N, 3) translations t_k in m, world frame; differentiable.
+        times: any shape, seconds; float64 numpy array, python float or tensor (cast to float64
+            before t0 is subtracted; a float64 tensor may require grad).
+        dt, t0: knot spacing and time of control point 0, seconds (python floats).
+        convention: "paper" (segment i uses i−2..i+1) or "basalt" (i..i+3).
+        derivatives: 0 pose only; 1 adds velocity_world and omega_body; 2 adds
+            acceleration_world and omegadot_body.
+
+    Returns:
+        :class:`SplineSample`, each field (..., *times.shape, 3[, 3]) in the control points'
+        dtype and device; unrequested fields are None.
+
+    Raises:
+        ValueError: "time ... is outside the spline domain [t_min, t_max]" (closed interval),
+            malformed shapes, N < 4, unknown convention.
+    """
+    n_ctrl = _check_control_points(control_rotations, control_translations)
+    first, u, shape = _locate(times, n_ctrl, dt, t0, convention)
+    sample = evaluate_segments(control_rotations, control_translations, first, u, dt, derivatives)
+    batch = control_translations.shape[:-2]
+
+    def _reshape(value: Optional[torch.Tensor], tail: Tuple[int, ...]) -> Optional[torch.Tensor]:
+        return None if value is None else value.reshape(*batch, *shape, *tail)
+
+    return SplineSample(
+        _reshape(sample.rotation, (3, 3)),
+        *(_reshape(value, (3,)) for value in sample[1:]),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Trajectory object
+
+
+class BSplineTrajectory:
+    """A cubic B-spline trajectory: control points plus Δt, t0 and the index convention.
+
+    Holds plain tensors (not an nn.Module): callers that optimise control points keep their own
+    parametrisation (e.g. tangent increments) and call the functional :func:`evaluate`.
+    Methods return new objects except :meth:`append` and :meth:`pop_front`, which edit the
+    sliding window in place (basalt's ``knots_push_back`` / ``knots_pop_front``).
+
+    Args:
+        control_rotations: (N, 3, 3); control_translations: (N, 3), same dtype and device.
+        dt, t0: knot spacing and time of control point 0 in seconds.
+        convention: "paper" or "basalt" (module docstring).
+    """
+
+    def __init__(
+        self,
+        control_rotations: torch.Tensor,
+        control_translations: torch.Tensor,
+        dt: float,
+        t0: float,
+        convention: str = "paper",
+    ):
+        _check_control_points(control_rotations, control_translations)
+        if control_rotations.dim() != 3:
+            raise ValueError(f"BSplineTrajectory takes unbatched (N, 3, 3) rotations, got {tuple(control_rotations.shape)}")
+        _check_convention(convention)
+        if not dt > 0:
+            raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
+        self.control_rotations = control_rotations
+        self.control_translations = control_translations
+        self.dt = float(dt)
+        self.t0 = float(t0)
+        self.convention = convention
+
+    @classmethod
+    def from_rotvecs(cls, rotvecs: torch.Tensor, translations: torch.Tensor, dt: float, t0: float,
+                     convention: str = "paper") -> "BSplineTrajectory":
+        """Build from (N, 3) rotation vectors (rad) and (N, 3) translations (m)."""
+        return cls(so3_exp(rotvecs), translations, dt, t0, convention)
+
+    # --- sizes and domain
+    @property
+    def n_ctrl(self) -> int:
+        return self.control_translations.shape[0]
+
+    def __len__(self) -> int:
+        return self.n_ctrl
+
+    @property
+    def min_time(self) -> float:
+        """First valid time in s (included)."""
+        return valid_time_range(self.n_ctrl, self.dt, self.t0, self.convention)[0]
+
+    @property
+    def max_time(self) -> float:
+        """Last valid time in s (included: the domain is closed)."""
+        return valid_time_range(self.n_ctrl, self.dt, self.t0, self.convention)[1]
+
+    def knot_times(self) -> np.ndarray:
+        """(N,) float64 times t0 + kΔt of the control points, seconds."""
+        return self.t0 + self.dt * np.arange(self.n_ctrl, dtype=np.float64)
+
+    def valid(self, times: TimesLike) -> np.ndarray:
+        """Boolean numpy array (times' shape): inside the closed domain (same rule as evaluate)."""
+        times64 = np.asarray(times.detach().cpu() if isinstance(times, torch.Tensor) else times, dtype=np.float64)
+        if self.n_ctrl < 4:
+            return np.zeros(times64.shape, dtype=bool)
+        offset = _FIRST_SEGMENT_OFFSET[self.convention]
+        s = (times64 - self.t0) / self.dt - offset
+        snap = _snap_tolerance(times64, self.dt, self.t0)
+        return (s >= -snap) & (s <= self.n_ctrl - 3 + snap)
+
+    # --- evaluation
+    def evaluate(self, times: TimesLike, derivatives: int = 0) -> SplineSample:
+        """See :func:`evaluate`."""
+        return evaluate(self.control_rotations, self.control_translations, times, self.dt, self.t0,
+                        self.convention, derivatives)
+
+    def pose(self, times: TimesLike) -> torch.Tensor:
+        """(*times.shape, 4, 4) camera-to-world poses T_wc(t)."""
+        sample = self.evaluate(times)
+        return make_pose(sample.rotation, sample.translation)
+
+    # --- sliding window
+    def append(self, rotation: torch.Tensor, translation: torch.Tensor) -> None:
+        """Add control point N at t0 + NΔt (in place).  rotation (3, 3), translation (3,)."""
+        if rotation.shape != (3, 3) or translation.shape != (3,):
+            raise ValueError(f"append expects (3, 3) and (3,), got {tuple(rotation.shape)} and {tuple(translation.shape)}")
+        rotation = rotation.to(self.control_rotations)
+        translation = translation.to(self.control_translations)
+        if self.n_ctrl > 0:
+            angle = float(torch.linalg.vector_norm(so3_log(self.control_rotations[-1].T @ rotation)))
+            if angle > _ROTATION_JUMP_WARN:
+                import warnings
+
+                warnings.warn(f"appended control rotation is {angle:.3f} rad from the previous one (> pi/2)")
+        self.control_rotations = torch.cat([self.control_rotations, rotation[None]], dim=0)
+        self.control_translations = torch.cat([self.control_translations, translation[None]], dim=0)
+
+    def pop_front(self) -> None:
+        """Drop control point 0 and advance t0 by Δt (in place); the curve is unchanged where defined."""
+        if self.n_ctrl <= 4:
+            raise ValueError(f"pop_front would leave {self.n_ctrl - 1} control points; a cubic spline needs 4")
+        self.control_rotations = self.control_rotations[1:]
+        self.control_translations = self.control_translations[1:]
+        self.t0 += self.dt
+
+    def window(self, first: int, stop: int) -> "BSplineTrajectory":
+        """Control points [first, stop) as a new trajectory (views), t0 moved to knot ``first``."""
+        if not 0 <= first < stop <= self.n_ctrl or stop - first < 4:
+            raise ValueError(f"window [{first}, {stop}) must lie in [0, {self.n_ctrl}] with >= 4 points")
+        return BSplineTrajectory(self.control_rotations[first:stop], self.control_translations[first:stop],
+                                 self.dt, self.t0 + first * self.dt, self.convention)
+
+    # --- tensor helpers
+    def to(self, *args, **kwargs) -> "BSplineTrajectory":
+        """Copy with tensors moved/cast as ``Tensor.to(*args, **kwargs)``."""
+        return BSplineTrajectory(self.control_rotations.to(*args, **kwargs),
+                                 self.control_translations.to(*args, **kwargs), self.dt, self.t0, self.convention)
+
+    def detach(self) -> "BSplineTrajectory":
+        return BSplineTrajectory(self.control_rotations.detach(), self.control_translations.detach(),
+                                 self.dt, self.t0, self.convention)
+
+    def clone(self) -> "BSplineTrajectory":
+        return BSplineTrajectory(self.control_rotations.clone(), self.control_translations.clone(),
+                                 self.dt, self.t0, self.convention)
+
+    def __repr__(self) -> str:
+        return (f"BSplineTrajectory(n_ctrl={self.n_ctrl}, dt={self.dt}, t0={self.t0}, "
+                f"convention={self.convention!r}, domain=[{self.min_time}, {self.max_time}], "
+                f"dtype={self.control_translations.dtype})")
+
+
+# --------------------------------------------------------------------------------------------
+# Curve approximation (Eq. 11)
+
+
+def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "paper") -> np.ndarray:
+    """(N,) float64 time at which each control point dominates the curve (its basis peak).
+
+    paper: t_{k+1} = t0 + (k+1)Δt; basalt: t_{k−1}.  Initialising R_k, t_k from the pose at these
+    times avoids the one-Δt lag of spec §2.3.
+    """
+    offset = _check_convention(convention)
+    return float(t0) + dt * (np.arange(n_ctrl, dtype=np.float64) + offset - 1)
+
+
+def initial_control_points_from_poses(
+    times: np.ndarray, target_poses: torch.Tensor, dt: float, t0: float, n_ctrl: int, convention: str = "paper"
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Initial control points from discrete poses: nearest-in-time rotation, linearly interpolated
+    translation, both at :func:`control_point_times` (constant extrapolation beyond the data).
+
+    Args:
+        times: (K,) float64 seconds; target_poses: (K, 4, 4) camera-to-world.
+
+    Returns:
+        rotations (N, 3, 3), translations (N, 3) in target_poses' dtype and device.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    order = np.argsort(times)
+    ctrl_times = control_point_times(n_ctrl, dt, t0, convention)
+    nearest = order[np.abs(times[order][None, :] - ctrl_times[:, None]).argmin(axis=1)]  # (N,)
+    rotations = target_poses[torch.as_tensor(nearest, device=target_poses.device), :3, :3]
+    positions = target_poses[:, :3, 3].detach().cpu().double().numpy()[order]  # (K, 3)
+    translations = np.stack([np.interp(ctrl_times, times[order], positions[:, c]) for c in range(3)], -1)
+    return rotations.clone(), torch.as_tensor(translations).to(target_poses)
+
+
+def fit_control_points(
+    times: np.ndarray,
+    target_poses: torch.Tensor,
+    dt: float,
+    t0: float,
+    n_ctrl: int,
+    init_rotations: Optional[torch.Tensor] = None,
+    init_translations: Optional[torch.Tensor] = None,
+    fixed: Optional[torch.Tensor] = None,
+    iters: int = 100,
+    convention: str = "paper",
+    tolerance: float = 1e-12,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Curve approximation, Eq. (11): control points whose spline best matches discrete poses.
+
+    minimise Σ_k ‖Log(R_kᵀ R(t_k))‖² + ‖t_k − t(t_k)‖² over the free control points.
+
+    Method: Levenberg-Marquardt on a tangent increment per free control point, R_j ← Exp(δ_j) R_j
+    (left increment) and t_j ← t_j + τ_j, Jacobian by ``torch.func.jacrev``, in float64.  The
+    split spline decouples rotation and translation; the translation part is linear, so one step
+    solves it exactly.  A control point that no time touches stays at its initial value (the
+    damping keeps it).  Stops after ``iters`` steps or when the step norm is below ``tolerance``.
+
+    Initialisation (when no init is given): :func:`initial_control_points_from_poses`, i.e. each
+    control point from the pose at the time it dominates (paper: t_{k+1}), not at its own knot
+    time t_k, which would make the curve lag by one Δt (spec §2.3).
+
+    Args:
+        times: (K,) float64 seconds, all inside the spline domain.
+        target_poses: (K, 4, 4) camera-to-world poses.
+        dt, t0, n_ctrl, convention: the spline layout.
+        init_rotations, init_translations: (N, 3, 3), (N, 3) starting values (required for
+            fixed points); missing ones come from the poses.
+        fixed: (N,) bool mask of control points kept at their initial value.
+        iters: maximum LM iterations.
+
+    Returns:
+        rotations (N, 3, 3), translations (N, 3) in target_poses' dtype and device (detached).
+
+    Differs from: Eq. (11) sums unsquared norms; we use squared norms (smooth least squares with
+    the same minimiser for exact data; less robust to outliers).
+    """
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    if target_poses.shape != (times.shape[0], 4, 4):
+        raise ValueError(f"target_poses must be ({times.shape[0]}, 4, 4) to match times, got {tuple(target_poses.shape)}")
+    out_dtype, device = target_poses.dtype, target_poses.device
+    work = torch.float64
+    first, u, _ = _locate(times, n_ctrl, dt, t0, convention)  # raises on out-of-domain times
+    if fixed is None:
+        fixed = torch.zeros(n_ctrl, dtype=torch.bool)
+    fixed = torch.as_tensor(fixed, dtype=torch.bool).reshape(-1).to(device)
+    if fixed.shape[0] != n_ctrl:
+        raise ValueError(f"fixed mask must have n_ctrl={n_ctrl} entries, got {fixed.shape[0]}")
+    guess_R, guess_p = initial_control_points_from_poses(times, target_poses.detach(), dt, t0, n_ctrl, convention)
+    if bool(fixed.any()) and (init_rotations is None or init_translations is None):
+        raise ValueError("fixed control points need init_rotations and init_translations")
+    rotations = (init_rotations if init_rotations is not None else guess_R).detach().to(device, work).clone()
+    translations = (init_translations if init_translations is not None else guess_p).detach().to(device, work).clone()
+    target_R = target_poses[:, :3, :3].detach().to(work)
+    target_p = target_poses[:, :3, 3].detach().to(work)
+    free = (~fixed).nonzero().reshape(-1)  # (F,)
+    n_free = free.shape[0]
+    if n_free == 0:
+        return rotations.to(out_dtype), translations.to(out_dtype)
+
+    def residuals(increments: torch.Tensor) -> torch.Tensor:
+        """(F, 6) increments [δ, τ] -> (K*6,) stacked rotation and translation residuals."""
+        R = rotations.index_copy(0, free, so3_exp(increments[:, :3]) @ rotations[free])
+        p = translations.index_copy(0, free, translations[free] + increments[:, 3:])
+        sample = evaluate_segments(R, p, first, u, dt, 0)
+        rot_res = so3_log(target_R.transpose(-1, -2) @ sample.rotation)  # (K, 3)
+        return torch.cat([rot_res, target_p - sample.translation], dim=-1).reshape(-1)
+
+    damping = 1e-6
+    zero = torch.zeros(n_free, 6, dtype=work, device=device)
+    for _ in range(iters):
+        r = residuals(zero)
+        J = torch.func.jacrev(residuals)(zero).reshape(r.shape[0], -1)  # (K*6, F*6)
+        JtJ, Jtr = J.T @ J, J.T @ r
+        cost = float(r @ r)
+        while True:
+            H = JtJ + damping * (torch.diag(torch.diagonal(JtJ)) + 1e-9 * torch.eye(JtJ.shape[0], dtype=work, device=device))
+            step = -torch.linalg.solve(H, Jtr).reshape(n_free, 6)
+            new_cost = float((residuals(step) ** 2).sum())
+            if new_cost <= cost or damping > 1e10:
+                break
+            damping *= 10.0
+        if new_cost > cost:
+            break
+        damping = max(damping / 10.0, 1e-12)
+        rotations = rotations.index_copy(0, free, so3_exp(step[:, :3]) @ rotations[free])
+        translations = translations.index_copy(0, free, translations[free] + step[:, 3:])
+        if float(torch.linalg.vector_norm(step)) < tolerance:
+            break
+    return rotations.to(out_dtype), translations.to(out_dtype)
+
+
+if __name__ == "__main__":
+    import sys
+
+    from tsslam_ref.conformance import main
+
+    sys.exit(main())
