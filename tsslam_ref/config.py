@@ -146,6 +146,9 @@ class TrackingConfig:
     """Keep the lowest-loss pose (Co-SLAM ``tracking.best``)."""
     const_speed: bool = True
     """Constant-velocity initialisation (Co-SLAM ``const_speed``)."""
+    max_loss_ratio: float = 50.0
+    """The run stops with a clear message when a frame's best tracking loss exceeds this multiple
+    of the median over the first tracked frames (ours: the 'w/o LBA' failure of paper Table V)."""
 
 
 @dataclass
@@ -234,6 +237,9 @@ class LocalBAConfig:
     """False gives the 'w/o B-S.' ablation: local BA on discrete per-frame poses (paper Table V)."""
     use_dynamics: bool = True
     """False gives the 'w/o DR' ablation (paper Table V)."""
+    max_deviation: float = 0.3
+    """The run stops with a clear message when the spline is farther than this (m) from the
+    tracked poses of the newest interval (ours: how the 'w/o LBA' failure shows)."""
 
 
 @dataclass
@@ -340,6 +346,7 @@ def tum_cpu() -> Config:
     cfg = tum()
     cfg.name = "tum-cpu"
     cfg.data.resize_width = 160
+    cfg.data.crop_edge = 0  # in native pixels; the bundled slice is already 160 px wide
     cfg.field.log2_hashmap_size = 16
     cfg.field.voxel_sdf = 0.04
     cfg.render.n_samples = 32

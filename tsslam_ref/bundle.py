@@ -1,0 +1,301 @@
+"""What tracking, local BA and global BA share: pose parametrisations, keyframe rays, one joint loop.
+
+TS-SLAM (Sec. III-D) optimises the same objective, Eq. (10) = L_NeRF + L_DR, in four places that
+differ only in which parameters move and which rays are used:
+
+| stage | poses that move | map | rays | L_DR |
+|---|---|---|---|---|
+| tracking | one frame's pose | frozen | one frame | off |
+| local BA refinement | window control points | frozen | window frames | in the window |
+| local BA joint | window control points | optimised | window keyframes | in the window |
+| global BA | control points outside the window (Co-SLAM: keyframe poses) | optimised | all keyframes + current frame | outside the window |
+
+This module holds the pieces: :class:`PoseIncrement` (a pose as a tangent increment around a base
+pose), :class:`DiscretePoses` (Co-SLAM: one pose per slot), :class:`SplinePoses` (TS-SLAM: poses
+are spline evaluations, Eq. 5-6, of control points R_k = Exp(delta_k) R_k^0, t_k), the
+:class:`KeyframeDatabase`, and :func:`joint_optimization`, the one loop all BA stages run.
+
+Rays carry a *slot* in ``frame_ids``; a pose model returns one (4, 4) pose per slot.
+
+Layer 2.5 (shared optimisation pieces): imports config, geometry, render, losses, spline; never the
+optimisers (tracking, local_ba, global_ba) or the system.
+"""
+
+import contextlib
+from dataclasses import dataclass
+from dataclasses import field as _field
+from typing import Callable, Dict, Iterator, List, Optional, Protocol, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from . import spline as spline_module
+from .config import Config
+from .geometry import make_pose, so3_exp
+from .losses import render_loss
+from .render import RayBatch
+
+
+@contextlib.contextmanager
+def frozen(module: torch.nn.Module) -> Iterator[None]:
+    """Temporarily turn off gradients for every parameter of ``module`` (a frozen map)."""
+    flags = [parameter.requires_grad for parameter in module.parameters()]
+    for parameter in module.parameters():
+        parameter.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for parameter, flag in zip(module.parameters(), flags):
+            parameter.requires_grad_(flag)
+
+
+class PoseIncrement(torch.nn.Module):
+    """Camera-to-world poses parametrised around fixed base poses.
+
+    T(delta, t) = [Exp(delta) R_base | t]: delta (..., 3) is a world-frame rotation increment in
+    rad, t (..., 3) the translation in m.  At delta = 0 the pose equals the base pose and the
+    gradient is finite (no singularity at the identity).
+    """
+
+    def __init__(self, base_pose: torch.Tensor):
+        super().__init__()
+        base_pose = base_pose.detach()
+        self.register_buffer("base_rotation", base_pose[..., :3, :3].clone())
+        self.rotation_delta = torch.nn.Parameter(torch.zeros_like(base_pose[..., :3, 3]))
+        self.translation = torch.nn.Parameter(base_pose[..., :3, 3].clone())
+
+    def forward(self) -> torch.Tensor:
+        """(..., 4, 4) current camera-to-world poses."""
+        return make_pose(so3_exp(self.rotation_delta) @ self.base_rotation, self.translation)
+
+    def optimizer(self, lr_rot: float, lr_trans: float) -> torch.optim.Adam:
+        return torch.optim.Adam(
+            [{"params": [self.rotation_delta], "lr": lr_rot}, {"params": [self.translation], "lr": lr_trans}]
+        )
+
+
+class PoseModel(Protocol):
+    """What :func:`joint_optimization` needs from a trajectory representation."""
+
+    def parameter_groups(self) -> List[dict]:
+        """Adam parameter groups (empty: nothing to optimise)."""
+
+    def poses(self) -> torch.Tensor:
+        """(P, 4, 4) differentiable camera-to-world poses, one per ray slot."""
+
+
+class DiscretePoses(torch.nn.Module):
+    """One free pose per slot (Co-SLAM); slots listed in ``fixed`` keep their pose.
+
+    Args:
+        poses: (P, 4, 4) initial camera-to-world poses.
+        fixed: (P,) bool, True for slots that must not move (Co-SLAM: keyframe 0, and the current
+            frame unless ``optim_cur``).
+        lr_rot, lr_trans: Adam learning rates.
+    """
+
+    def __init__(self, poses: torch.Tensor, fixed: torch.Tensor, lr_rot: float, lr_trans: float):
+        super().__init__()
+        self.increments = PoseIncrement(poses)
+        self.register_buffer("fixed", fixed.to(device=poses.device, dtype=torch.bool))
+        self.register_buffer("initial", poses.detach().clone())
+        self.lr_rot, self.lr_trans = lr_rot, lr_trans
+
+    def parameter_groups(self) -> List[dict]:
+        if bool(self.fixed.all()):
+            return []
+        return [
+            {"params": [self.increments.rotation_delta], "lr": self.lr_rot},
+            {"params": [self.increments.translation], "lr": self.lr_trans},
+        ]
+
+    def poses(self) -> torch.Tensor:
+        free_poses = self.increments()
+        return torch.where(self.fixed[:, None, None], self.initial, free_poses)
+
+
+class SplinePoses(torch.nn.Module):
+    """Poses of ray slots evaluated on a cubic B-spline whose free control points are optimised.
+
+    Control point k is R_k = Exp(delta_k) R_k^0 and t_k (world frame, m); only the indices in
+    ``free`` get parameters, the rest are constants.  Slot s has time ``slot_times[s]`` (float64
+    s); slots whose time lies outside the spline's valid domain use ``fallback_poses[s]``
+    (constant, e.g. the tracked pose of a frame the spline does not reach yet).
+
+    Args:
+        rotations: (N, 3, 3) control rotations; translations: (N, 3).
+        free: indices of the control points to optimise.
+        dt, t0, convention: the spline's knot spacing, origin and index convention.
+        slot_times: (P,) float64 seconds.
+        fallback_poses: (P, 4, 4) used outside the domain.
+        lr_rot, lr_trans: Adam learning rates for the increments.
+    """
+
+    def __init__(self, rotations: torch.Tensor, translations: torch.Tensor, free: Sequence[int], dt: float,
+                 t0: float, convention: str, slot_times: np.ndarray, fallback_poses: torch.Tensor,
+                 lr_rot: float, lr_trans: float):
+        super().__init__()
+        n_ctrl = rotations.shape[0]
+        free_mask = torch.zeros(n_ctrl, dtype=torch.bool, device=rotations.device)
+        free_mask[list(free)] = True
+        self.register_buffer("free_mask", free_mask)
+        self.register_buffer("rotations0", rotations.detach().clone())
+        self.register_buffer("translations0", translations.detach().clone())
+        self.rotation_delta = torch.nn.Parameter(torch.zeros_like(translations))
+        self.translation_delta = torch.nn.Parameter(torch.zeros_like(translations))
+        self.dt, self.t0, self.convention = float(dt), float(t0), convention
+        self.slot_times = np.asarray(slot_times, dtype=np.float64)
+        t_min, t_max = spline_module.valid_time_range(n_ctrl, self.dt, self.t0, convention)
+        self.slot_valid = (self.slot_times >= t_min) & (self.slot_times <= t_max)
+        self.register_buffer("fallback", fallback_poses.detach().clone())
+        self.lr_rot, self.lr_trans = lr_rot, lr_trans
+
+    def parameter_groups(self) -> List[dict]:
+        if not bool(self.free_mask.any()):
+            return []
+        return [{"params": [self.rotation_delta], "lr": self.lr_rot},
+                {"params": [self.translation_delta], "lr": self.lr_trans}]
+
+    def control_points(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        """(N, 3, 3) rotations and (N, 3) translations, differentiable in the free points."""
+        mask = self.free_mask[:, None].to(self.rotation_delta.dtype)
+        rotations = so3_exp(self.rotation_delta * mask) @ self.rotations0
+        translations = self.translations0 + self.translation_delta * mask
+        return rotations, translations
+
+    def trajectory(self) -> "spline_module.BSplineTrajectory":
+        """The current spline (differentiable in the free control points), for L_DR."""
+        rotations, translations = self.control_points()
+        return spline_module.BSplineTrajectory(rotations, translations, self.dt, self.t0, self.convention)
+
+    def poses_at(self, times: np.ndarray) -> torch.Tensor:
+        """(M, 4, 4) spline poses at ``times`` (all inside the domain)."""
+        rotations, translations = self.control_points()
+        sample = spline_module.evaluate(rotations, translations, np.asarray(times, dtype=np.float64),
+                                        self.dt, self.t0, convention=self.convention, derivatives=0)
+        return make_pose(sample.rotation, sample.translation)
+
+    def poses(self) -> torch.Tensor:
+        if not self.slot_valid.any():
+            return self.fallback
+        inside = torch.as_tensor(self.slot_valid, device=self.fallback.device)
+        spline_poses = self.fallback.clone()
+        spline_poses[inside] = self.poses_at(self.slot_times[self.slot_valid]).to(self.fallback.dtype)
+        return spline_poses
+
+
+class KeyframeDatabase:
+    """Camera-frame rays of every keyframe (Co-SLAM keeps ``n_pixels`` = 5 % of each one's pixels).
+
+    Keyframes get *slots* 0, 1, 2, ... in insertion order; :attr:`frame_indices` and
+    :attr:`timestamps` map slots back to frames.
+    """
+
+    def __init__(self) -> None:
+        self._rays: List[RayBatch] = []
+        self.frame_indices: List[int] = []
+        self.timestamps: List[float] = []
+
+    def __len__(self) -> int:
+        return len(self._rays)
+
+    def add(self, frame_index: int, timestamp: float, rays: RayBatch) -> int:
+        """Store a keyframe's rays; returns its slot."""
+        self._rays.append(rays)
+        self.frame_indices.append(int(frame_index))
+        self.timestamps.append(float(timestamp))
+        return len(self._rays) - 1
+
+    def rays(self, slots: Optional[Sequence[int]] = None) -> RayBatch:
+        """Rays of ``slots`` (default all) with ``frame_ids`` = position in ``slots``."""
+        slots = range(len(self._rays)) if slots is None else slots
+        batches = []
+        for position, slot in enumerate(slots):
+            rays = self._rays[slot]
+            batches.append(RayBatch(rays.directions_cam, rays.rgb, rays.depth,
+                                    torch.full_like(rays.frame_ids, position)))
+        return RayBatch.cat(batches)
+
+
+@dataclass
+class BAStats:
+    """Per-call record of a joint optimisation."""
+
+    losses: List[float] = _field(default_factory=list)
+    terms: List[Dict[str, float]] = _field(default_factory=list)
+    pose_steps: int = 0
+
+
+def draw_rays(pool: RayBatch, n_rays: int, generator: Optional[torch.Generator]) -> RayBatch:
+    """``n_rays`` rays of ``pool`` uniformly without replacement (all if it holds fewer)."""
+    if n_rays >= len(pool):
+        return pool
+    index = torch.randperm(len(pool), generator=generator)[:n_rays]
+    return pool.subset(index.to(pool.depth.device))
+
+
+def joint_optimization(
+    field_model: torch.nn.Module,
+    map_optimizer: Optional[torch.optim.Optimizer],
+    ray_sources: Sequence[Tuple[RayBatch, int]],
+    poses: PoseModel,
+    cfg: Config,
+    iters: int,
+    generator: Optional[torch.Generator] = None,
+    extra_loss: Optional[Callable[[], torch.Tensor]] = None,
+    optimise_map: bool = True,
+    pose_accum_step: int = 1,
+    smoothness: Optional[bool] = None,
+) -> BAStats:
+    """Minimise Eq. (10) over the map (optionally) and the parameters of ``poses``.
+
+    Each iteration draws ``n`` rays from every ``(pool, n)`` of ``ray_sources`` (their
+    ``frame_ids`` index ``poses.poses()``), renders them with their slot's pose, adds
+    ``extra_loss()`` (the dynamics regulariser) and takes one map-optimizer step (if
+    ``optimise_map``); the pose optimizer (a fresh Adam per call) steps every ``pose_accum_step``
+    iterations on the gradients summed in between (Co-SLAM's ``pose_accum_step``).
+
+    Args:
+        field_model: the scene field.
+        map_optimizer: the run's map optimizer (ignored when ``optimise_map`` is False).
+        ray_sources: list of (RayBatch pool, rays per iteration).
+        poses: a :class:`PoseModel`.
+        cfg: run config (losses, rendering).
+        iters: iterations.
+        generator: random generator for ray draws and depth-sample jitter.
+        extra_loss: callable returning a scalar added to every iteration's loss.
+        optimise_map: False keeps the map frozen (local BA refinement).
+        pose_accum_step: pose steps every this many iterations.
+        smoothness: add the feature-smoothness term (default: when the map is optimised).
+
+    Returns:
+        :class:`BAStats`.  Raises FloatingPointError on a non-finite loss.
+    """
+    groups = poses.parameter_groups()
+    pose_optimizer = torch.optim.Adam(groups) if groups else None
+    smoothness = optimise_map if smoothness is None else smoothness
+    stats = BAStats()
+    context = contextlib.nullcontext() if optimise_map else frozen(field_model)
+    with context:
+        for iteration in range(iters):
+            rays = RayBatch.cat([draw_rays(pool, n, generator) for pool, n in ray_sources if n > 0 and len(pool) > 0])
+            c2w = poses.poses()[rays.frame_ids]  # (R, 4, 4)
+            loss, terms = render_loss(field_model, rays, c2w, cfg, generator=generator, smoothness=smoothness)
+            if extra_loss is not None:
+                regulariser = extra_loss()
+                terms = dict(terms, dynamics=float(regulariser.detach()))
+                loss = loss + regulariser
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"joint optimisation loss is not finite at iteration {iteration}: {terms}")
+            if optimise_map:
+                map_optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if optimise_map:
+                map_optimizer.step()
+            if pose_optimizer is not None and (iteration + 1) % pose_accum_step == 0:
+                pose_optimizer.step()
+                pose_optimizer.zero_grad(set_to_none=True)
+                stats.pose_steps += 1
+            stats.losses.append(float(loss.detach()))
+            stats.terms.append({key: float(value) for key, value in terms.items()})
+    return stats

@@ -1,0 +1,103 @@
+"""Tracking: per-frame camera pose optimisation with the map frozen.
+
+TS-SLAM Sec. III-D "Tracking Thread": each new frame's camera-to-world pose is initialised with a
+constant-velocity model and optimised on its own by minimising Eq. (10) with lambda_1 = lambda_2 = 0,
+i.e. the reconstruction loss L_NeRF of Eq. (4), while the map f_theta stays fixed.  The behaviour
+follows Co-SLAM's ``tracking_render`` (shared/spec/coslam.md section 4):
+
+* one pixel set per frame (uniform, away from the border), reused for every iteration;
+* a fresh Adam per frame with separate rotation / translation learning rates;
+* the pose of the lowest-loss iteration is kept (``best``); as in Co-SLAM the loss of iteration k
+  is evaluated at the pose *before* step k, so the candidates are the poses of iterations 0..N-1.
+
+Differs from Co-SLAM: the rotation is optimised as a tangent-space increment ``delta`` with
+R = Exp(delta) R_init (no singularity at the identity, no NaN from a Rodrigues formula that divides
+by |w|); Co-SLAM optimises an absolute axis-angle or quaternion.  The map is frozen by turning off
+``requires_grad`` of its parameters instead of computing map gradients and not stepping them.
+
+Layer 3 (optimiser): uses geometry, render, losses, bundle; never local_ba or global_ba.
+Taught in notebooks/05_tracking.ipynb.
+"""
+
+from dataclasses import dataclass
+from typing import List, Optional
+
+import torch
+
+from .config import Config
+from .bundle import PoseIncrement, frozen
+from .geometry import invert_pose
+from .losses import render_loss
+from .render import RayBatch
+
+
+def constant_velocity_init(previous: torch.Tensor, before_previous: Optional[torch.Tensor]) -> torch.Tensor:
+    """Constant-velocity prediction T_t = (T_{t-1} T_{t-2}^-1) T_{t-1} (Co-SLAM ``const_speed``).
+
+    Args:
+        previous: (4, 4) camera-to-world pose of frame t-1.
+        before_previous: (4, 4) pose of frame t-2, or None for the second frame (then T_{t-1}).
+
+    Returns:
+        (4, 4) predicted camera-to-world pose of frame t.  The relative motion is applied in the
+        world frame, exactly as Co-SLAM does.
+    """
+    if before_previous is None:
+        return previous.clone()
+    return previous @ invert_pose(before_previous) @ previous
+
+
+@dataclass
+class TrackingResult:
+    """What :func:`track_frame` returns."""
+
+    pose: torch.Tensor
+    """(4, 4) camera-to-world pose kept (the best one if ``best``)."""
+    losses: List[float]
+    """Loss of every iteration, evaluated at the pose before that iteration's step."""
+    best_iteration: int
+    """Iteration whose pose was kept."""
+
+
+def track_frame(
+    field: torch.nn.Module,
+    rays: RayBatch,
+    init_pose: torch.Tensor,
+    cfg: Config,
+    generator: Optional[torch.Generator] = None,
+) -> TrackingResult:
+    """Optimise one frame's camera-to-world pose against a frozen map.
+
+    Args:
+        field: the scene field (its parameters are frozen for the duration of the call).
+        rays: (R,) camera-frame rays of this frame with their colour and depth targets.  The same
+            rays are used in every iteration.
+        init_pose: (4, 4) initial camera-to-world pose (e.g. :func:`constant_velocity_init`).
+        cfg: the run's config (``cfg.tracking`` for iterations and learning rates, ``cfg.loss`` and
+            ``cfg.render`` for the loss).
+        generator: random generator for the depth-sample jitter.
+
+    Returns:
+        :class:`TrackingResult` with the kept pose, detached.
+    """
+    tracking = cfg.tracking
+    pose_parameters = PoseIncrement(init_pose)
+    optimizer = pose_parameters.optimizer(tracking.lr_rot, tracking.lr_trans)
+    losses: List[float] = []
+    best_loss = float("inf")
+    best_pose = init_pose.detach().clone()
+    best_iteration = 0
+    with frozen(field):
+        for iteration in range(tracking.iters):
+            pose = pose_parameters()
+            loss, _ = render_loss(field, rays, pose, cfg, generator=generator)
+            value = float(loss.detach())
+            losses.append(value)
+            if not torch.isfinite(loss):
+                break
+            if not tracking.best or value < best_loss:
+                best_loss, best_pose, best_iteration = value, pose.detach().clone(), iteration
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+    return TrackingResult(pose=best_pose, losses=losses, best_iteration=best_iteration)
