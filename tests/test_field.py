@@ -1,0 +1,198 @@
+"""Tests for tsslam_ref.field: OneBlob (spec 1.2), hash-grid geometry (spec 1.3), the field."""
+
+import math
+
+import pytest
+import torch
+
+from tsslam_ref import config
+from tsslam_ref.field import HashGridEncoding, OneBlobEncoding, SceneField, finest_resolution, gather_rows
+
+
+# ---------------------------------------------------------------- OneBlob
+
+
+def _oneblob_direct(x: float, n_bins: int = 16):
+    """Independent oracle: integrate the periodic quartic kernel over each bin numerically."""
+    values = []
+    for k in range(n_bins):
+        lo, hi = k / n_bins, (k + 1) / n_bins
+        t = torch.linspace(lo, hi, 4001, dtype=torch.float64)
+        total = torch.zeros_like(t)
+        for shift in (-1.0, 0.0, 1.0):
+            v = (t - x + shift) * n_bins
+            total += torch.where(v.abs() <= 1, (15 / 16) * (1 - v**2) ** 2, torch.zeros_like(v)) * n_bins
+        values.append(torch.trapezoid(total, t))
+    return torch.stack(values)
+
+
+def test_oneblob_matches_numerical_integral_of_quartic_kernel():
+    encoding = OneBlobEncoding(16)
+    xs = [0.0, 0.013, 0.3, 0.5, 0.77, 0.99]
+    codes = encoding(torch.tensor([[x, x, x] for x in xs], dtype=torch.float64))
+    for row, x in zip(codes, xs):
+        assert torch.allclose(row[:16], _oneblob_direct(x), atol=1e-6)
+
+
+def test_oneblob_partition_of_unity_and_periodicity():
+    encoding = OneBlobEncoding(16)
+    points = torch.rand(500, 3, dtype=torch.float64) * 3 - 1
+    codes = encoding(points).view(-1, 3, 16)
+    assert torch.allclose(codes.sum(-1), torch.ones(500, 3, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(encoding(points + 1.0), encoding(points), atol=1e-12)
+    edge = encoding(torch.zeros(1, 3, dtype=torch.float64)).view(3, 16)
+    assert torch.allclose(edge[:, 0], torch.full((3,), 0.5, dtype=torch.float64))
+    assert torch.allclose(edge[:, 15], torch.full((3,), 0.5, dtype=torch.float64))
+    assert encoding.out_dim == 48
+
+
+def test_oneblob_gradient_matches_finite_differences():
+    points = torch.rand(8, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(OneBlobEncoding(16), (points,))
+
+
+# ---------------------------------------------------------------- hash-grid geometry
+
+
+@pytest.mark.parametrize(
+    "extent, voxel, log2_size, res_max, scale, params_millions",
+    [
+        (6.5, 0.02, 16, 325, 1.2223, 1.641),  # TUM fr1_desk / Replica office0
+        (8.0, 0.02, 16, 400, 1.2394, 1.667),  # Replica room0
+        (9.0, 0.04, 16, 225, 1.1927, 1.594),  # ScanNet scene0000
+        (9.3, 0.04, 12, 232, 1.1952, 0.131),  # ScanNet scene0059
+        (12.0, 0.02, 16, 600, 1.2733, 1.713),  # TUM fr3_office
+    ],
+)
+def test_level_geometry_matches_spec_table(extent, voxel, log2_size, res_max, scale, params_millions):
+    bound = torch.tensor([[0.0, extent], [0.0, 1.0], [0.0, 2.0]])
+    assert finest_resolution(bound, voxel) == res_max
+    grid = HashGridEncoding(res_max, log2_hashmap_size=log2_size)
+    assert grid.per_level_scale == pytest.approx(scale, abs=1e-4)
+    assert grid.n_params / 1e6 == pytest.approx(params_millions, abs=0.0015)
+
+
+def test_levels_dense_then_hashed_with_tcnn_sizes():
+    grid = HashGridEncoding(325, log2_hashmap_size=16)
+    # level 0: scale 15, 16 vertices per axis, 4096 entries dense.
+    assert grid.level_scales[0] == pytest.approx(15.0)
+    assert grid.level_resolutions[0] == 16 and grid.level_sizes[0] == 4096 and grid.level_dense[0]
+    for level, (resolution, size, dense) in enumerate(
+        zip(grid.level_resolutions, grid.level_sizes, grid.level_dense)
+    ):
+        expected_scale = 16 * grid.per_level_scale**level - 1
+        assert grid.level_scales[level] == pytest.approx(expected_scale)
+        assert resolution == math.ceil(expected_scale) + 1
+        assert size == min(-(-resolution**3 // 8) * 8, 2**16)
+        assert dense == (resolution**3 <= size)
+    assert grid.level_dense == sorted(grid.level_dense, reverse=True)
+    assert grid.level_scales[-1] == pytest.approx(324.0)
+
+
+def test_trilinear_interpolation_reproduces_a_linear_function():
+    """Set every table row to a linear function of its vertex; the encoding returns it exactly."""
+    grid = HashGridEncoding(40, n_levels=3, base_resolution=16, log2_hashmap_size=20).double()
+    coefficients = torch.tensor([[0.3, -1.1], [0.7, 0.2], [-0.4, 0.9]], dtype=torch.float64)
+    with torch.no_grad():
+        for level in range(grid.n_levels):
+            resolution = grid.level_resolutions[level]
+            assert grid.level_dense[level]
+            axis = torch.arange(resolution)
+            vertex = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+            rows = grid.level_index(level, vertex)
+            # vertex v sits at x_n = (v - 0.5) / scale
+            grid.table[rows] = ((vertex.double() - 0.5) / grid.level_scales[level]) @ coefficients
+    points = torch.rand(300, 3, dtype=torch.float64) * 0.9 + 0.05
+    for fast in (True, False):
+        grid.fast_gather = fast
+        features = grid(points).view(300, 3, 2)
+        for level in range(3):
+            assert torch.allclose(features[:, level], points @ coefficients, atol=1e-10)
+
+
+def test_fast_and_reference_paths_agree_in_values_and_gradients():
+    torch.manual_seed(3)
+    grid = HashGridEncoding(120, log2_hashmap_size=12)
+    with torch.no_grad():
+        grid.table.normal_()
+    points = torch.rand(2000, 3) * 1.4 - 0.2  # includes points outside the box
+    upstream = torch.randn(2000, grid.out_dim)
+    results = []
+    for fast in (True, False):
+        grid.fast_gather = fast
+        grid.table.grad = None
+        x = points.clone().requires_grad_(True)
+        out = grid(x)
+        (out * upstream).sum().backward()
+        results.append((out.detach(), grid.table.grad.clone(), x.grad.clone()))
+    (v_fast, g_fast, x_fast), (v_ref, g_ref, x_ref) = results
+    assert torch.allclose(v_fast, v_ref, atol=1e-5)
+    assert torch.allclose(g_fast, g_ref, atol=1e-4)
+    assert torch.allclose(x_fast, x_ref, atol=1e-3, rtol=1e-4)
+
+
+def test_gather_gradcheck_float64():
+    table = torch.randn(7, 2, dtype=torch.float64, requires_grad=True)
+    index = torch.tensor([0, 3, 3, 6, 1, 3])
+    assert torch.autograd.gradcheck(lambda t: gather_rows(t, index), (table,))
+    assert torch.autograd.gradgradcheck(lambda t: gather_rows(t, index) ** 2, (table,))
+
+
+def test_fast_encoding_gradcheck_on_tiny_grid():
+    """Gradients of the fast path w.r.t. the table and the points vs finite differences (float64)."""
+    grid = HashGridEncoding(6, n_levels=2, base_resolution=4, log2_hashmap_size=7).double()
+    assert grid.level_dense == [True, False]
+    points = torch.rand(5, 3, dtype=torch.float64) * 0.8 + 0.1
+    table = grid.table.detach().clone().normal_().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda t: torch.func.functional_call(grid, {"table": t}, (points,)), (table,)
+    )
+    x = points.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(grid._encode_fast, (x,))
+
+
+# ---------------------------------------------------------------- the field
+
+
+def test_scene_field_shapes_ranges_and_normalisation():
+    cfg = config.tiny()
+    bound = [[-1.0, 2.0], [0.0, 1.0], [-0.5, 0.5]]
+    field = SceneField(cfg.field, bound, generator=torch.Generator().manual_seed(0))
+    assert field.bound.dtype == torch.float32 and field.bound.shape == (3, 2)
+    corners = torch.tensor([[-1.0, 0.0, -0.5], [2.0, 1.0, 0.5], [0.5, 0.5, 0.0]])
+    assert torch.allclose(field.normalize(corners), torch.tensor([[0.0, 0, 0], [1, 1, 1], [0.5, 0.5, 0.5]]))
+    rgb, sdf = field(torch.rand(50, 3))
+    assert rgb.shape == (50, 3) and sdf.shape == (50,)
+    assert bool((rgb > 0).all() and (rgb < 1).all())
+    assert torch.allclose(field.sdf(corners), field(corners)[1])
+    assert field.grid_features(corners).shape == (3, cfg.field.n_levels * cfg.field.n_features_per_level)
+    mlp_params = sum(p.numel() for p in field.decoder_parameters())
+    assert mlp_params == 5184  # spec 1.4: 3,072 + 2,112, bias-free
+
+
+def test_integer_bound_is_stored_as_float_and_bad_bound_rejected():
+    cfg = config.tiny()
+    field = SceneField(cfg.field, [[0, 2], [0, 2], [0, 2]])
+    assert field.bound.dtype == torch.float32
+    with pytest.raises(ValueError, match="bound"):
+        SceneField(cfg.field, [[1.0, 0.0], [0, 1], [0, 1]])
+
+
+def test_same_generator_seed_gives_same_field():
+    cfg = config.tiny()
+    bound = [[0.0, 1.0]] * 3
+    a = SceneField(cfg.field, bound, generator=torch.Generator().manual_seed(5))
+    b = SceneField(cfg.field, bound, generator=torch.Generator().manual_seed(5))
+    c = SceneField(cfg.field, bound, generator=torch.Generator().manual_seed(6))
+    points = torch.rand(10, 3)
+    assert torch.equal(a(points)[1], b(points)[1])
+    assert not torch.equal(a(points)[1], c(points)[1])
+
+
+def test_parameter_groups_follow_coslam_adam_settings():
+    cfg = config.synthetic()
+    field = SceneField(cfg.field, [[0.0, 2.0]] * 3)
+    decoder, grid = field.parameter_groups(cfg.mapping)
+    assert decoder["lr"] == 0.01 and decoder["weight_decay"] == 1e-6
+    assert grid["lr"] == 0.001 and grid["eps"] == 1e-15
+    assert grid["params"][0] is field.grid.table

@@ -1,0 +1,112 @@
+"""Tests for tsslam_ref.mapping: optimiser settings, ray sampling, bounds, mapping with GT poses."""
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from tsslam_ref import config
+from tsslam_ref.eval import cull_mesh, mesh_metrics
+from tsslam_ref.field import SceneField
+from tsslam_ref.mapping import estimate_bound, fit_map, make_map_optimizer, sample_rays_from_frames
+from tsslam_ref.mesh import extract_mesh
+from tsslam_ref.render import render_image
+from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
+
+
+def _plane_frame(depth_value=2.0, width=40, height=30, fill=None):
+    depth = np.full((height, width), depth_value, dtype=np.float32)
+    rgb = np.zeros((height, width, 3), dtype=np.float32)
+    rgb[..., 0] = np.arange(width)[None, :] / width  # encodes the column
+    rgb[..., 1] = np.arange(height)[:, None] / height  # encodes the row
+    if fill is not None:
+        rgb[..., 2] = fill
+    return SimpleNamespace(rgb=rgb, depth=depth, intrinsics=(20.0, 20.0, (width - 1) / 2, (height - 1) / 2))
+
+
+def test_map_optimizer_uses_coslam_adam_settings():
+    cfg = config.tum_cpu()
+    field = SceneField(cfg.field, [[0.0, 1.0]] * 3)
+    optimizer = make_map_optimizer(field, cfg.mapping)
+    assert optimizer.defaults["betas"] == (0.9, 0.99)
+    decoder, grid = optimizer.param_groups
+    assert decoder["lr"] == cfg.mapping.lr_decoder and decoder["weight_decay"] == 1e-6
+    assert grid["lr"] == cfg.mapping.lr_embed and grid["eps"] == 1e-15
+    assert optimizer.defaults.get("fused") in (True, None)
+
+
+def test_sample_rays_from_frames_uniform_over_frames_and_consistent_targets():
+    frames = [_plane_frame(fill=0.1 * k) for k in range(3)]
+    rays = sample_rays_from_frames(frames, 1200, torch.Generator().manual_seed(0), "cpu", ignore_edge=2)
+    assert len(rays) == 1200
+    # each ray's blue channel identifies its frame, red/green its pixel: check against directions
+    assert torch.allclose(rays.rgb[:, 2], 0.1 * rays.frame_ids.float())
+    cols = rays.directions_cam[:, 0] * 20.0 + 19.5
+    rows = rays.directions_cam[:, 1] * 20.0 + 14.5
+    assert torch.allclose(rays.rgb[:, 0] * 40, cols, atol=1e-4) and torch.allclose(rays.rgb[:, 1] * 30, rows, atol=1e-4)
+    assert cols.min() >= 2 and cols.max() <= 37 and rows.min() >= 2 and rows.max() <= 27
+    counts = torch.bincount(rays.frame_ids, minlength=3).float()
+    assert (counts - 400).abs().max() < 80  # 3 sigma of a uniform draw is ~45
+    pairs = set(zip(rays.frame_ids.tolist(), rows.round().long().tolist(), cols.round().long().tolist()))
+    assert len(pairs) == 1200  # without replacement
+
+
+def test_estimate_bound_of_a_fronto_parallel_plane():
+    frame = _plane_frame(depth_value=2.0)
+    bound = estimate_bound([frame], np.eye(4)[None], margin=0.1, percentile=0.0, stride=1)
+    # x = (col - cx) / fx * z over cols 0..39: +-19.5 / 20 * 2 = +-1.95; y: +-14.5 / 20 * 2
+    expected = np.array([[-1.95, 1.95], [-1.45, 1.45], [0.0, 2.0]]) + np.array([-0.1, 0.1])
+    assert np.allclose(bound, expected, atol=1e-6)  # z min is the camera centre (z = 0)
+    shifted = np.eye(4)
+    shifted[:3, 3] = [1.0, 2.0, 3.0]
+    assert np.allclose(estimate_bound([frame], shifted[None], 0.1, 0.0, 1), expected + np.array([[1.0], [2.0], [3.0]]))
+    far = _plane_frame(depth_value=2.0)
+    far.depth[:, 20:] = 9.0  # right half of the image sees a far wall
+    limited = estimate_bound([far], np.eye(4)[None], 0.1, 0.0, 1, max_depth=5.0)
+    # only the near (left) half remains; x max is the camera centre (0) + margin
+    assert limited[2, 1] == pytest.approx(2.1) and limited[0, 1] == pytest.approx(0.1)
+
+
+@pytest.fixture(scope="module")
+def synthetic_views():
+    """9 clean RGB-D views of the procedural room along the built-in path (sphere traced)."""
+    scene = ProceduralRoom()
+    intrinsics = default_intrinsics(64, 48)
+    times = np.linspace(0.0, 6.0, 9)
+    poses = builtin_trajectory(times)
+    frames = []
+    for index, pose in enumerate(poses):
+        rgb, depth = render_rgbd(scene, pose, intrinsics)
+        frames.append(SimpleNamespace(index=index, rgb=rgb, depth=depth, intrinsics=intrinsics, pose_c2w=pose))
+    return scene, intrinsics, frames
+
+
+def test_mapping_with_gt_poses_reconstructs_the_synthetic_room(synthetic_views):
+    """Map from 6 posed views, evaluate on 3 held-out views and against the analytic mesh."""
+    scene, intrinsics, frames = synthetic_views
+    train, held_out = [f for f in frames if f.index % 3 != 1], [f for f in frames if f.index % 3 == 1]
+    cfg = config.tiny()
+    bound = estimate_bound(train, np.stack([f.pose_c2w for f in train]), margin=cfg.field.bound_margin)
+    assert np.all(bound[:, 0] < scene.bound[:, 1]) and np.all(bound[:, 1] > scene.bound[:, 0])
+    field = SceneField(cfg.field, bound, generator=torch.Generator().manual_seed(0))
+    optimizer = make_map_optimizer(field, cfg.mapping)
+    poses = torch.from_numpy(np.stack([f.pose_c2w for f in train]))
+    losses = fit_map(field, optimizer, train, poses, cfg, iters=60, n_rays=256, generator=torch.Generator().manual_seed(0))
+    assert len(losses) == 60 and np.mean(losses[-10:]) < 0.2 * np.mean(losses[:10])
+
+    errors = []
+    for frame in held_out:
+        out = render_image(field, torch.from_numpy(frame.pose_c2w), intrinsics, cfg.render, depth=torch.from_numpy(frame.depth))
+        valid = frame.depth > 0
+        errors.append(np.abs(out["depth"].numpy()[valid] - frame.depth[valid]).mean())
+    assert np.mean(errors) < 0.05  # metres, generous for 60 iterations at tiny size
+
+    all_poses = np.stack([f.pose_c2w for f in frames])
+    depths = np.stack([f.depth for f in frames])
+    camera = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height)
+    reconstruction = cull_mesh(extract_mesh(field, voxel_size=0.08, color=False), all_poses, camera, depths)
+    ground_truth = cull_mesh(scene.mesh(0.04), all_poses, camera, depths)
+    metrics = mesh_metrics(reconstruction, ground_truth, n_points=20_000, threshold=0.05, seed=0)
+    assert metrics["accuracy_m"] < 0.08 and metrics["completion_m"] < 0.08

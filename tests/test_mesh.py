@@ -1,0 +1,79 @@
+"""Tests for tsslam_ref.mesh: marching cubes of analytic SDFs, the |s| cutoff, colours, saving."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from tsslam_ref.mesh import extract_mesh, save_mesh
+
+CENTRE = torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64)
+RADIUS = 0.45
+TRUNCATION = 0.1
+
+
+class AnalyticField:
+    """A lambda wrapped as a field: normalised SDF of a sphere (metric / tr) and a colour ramp."""
+
+    def __init__(self, sdf_metric):
+        self.sdf_metric = sdf_metric
+        self.bound = torch.tensor([[-0.5, 0.9], [-0.8, 0.6], [-0.4, 1.0]], dtype=torch.float64)
+
+    def sdf(self, points):
+        return self.sdf_metric(points) / TRUNCATION
+
+    def __call__(self, points):
+        rgb = torch.stack([points[:, 0] * 0 + 0.25, points[:, 1] * 0 + 0.5, points[:, 2] * 0 + 0.75], dim=-1)
+        return rgb, self.sdf(points)
+
+
+def sphere(points):
+    return torch.linalg.vector_norm(points - CENTRE, dim=-1) - RADIUS
+
+
+def test_sphere_mesh_has_the_right_radius_and_outward_normals():
+    mesh = extract_mesh(AnalyticField(sphere), voxel_size=0.04)
+    radii = np.linalg.norm(mesh.vertices - CENTRE.numpy(), axis=1)
+    assert np.abs(radii - RADIUS).max() < 0.01
+    assert mesh.is_watertight
+    # volume of the polyhedron vs the sphere (marching cubes cuts corners: slightly smaller)
+    assert mesh.volume == pytest.approx(4 / 3 * np.pi * RADIUS**3, rel=0.03)
+    outward = np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles_center - CENTRE.numpy())
+    assert (outward > 0).all()
+    assert mesh.visual.vertex_colors.shape == (len(mesh.vertices), 4)
+    assert np.allclose(mesh.visual.vertex_colors[:, :3], [64, 127, 191], atol=1)
+
+
+def test_cells_far_from_any_surface_are_skipped():
+    """A field that crosses zero far from the true surface (|s| > cutoff on both sides) gives no faces there."""
+
+    def sphere_with_far_jump(points):
+        metric = sphere(points)
+        far_side = points[:, 0] > 0.75  # a sign flip in empty space, |s| = 5 on both sides
+        return torch.where(far_side, torch.full_like(metric, -0.5), torch.where(points[:, 0] > 0.7, torch.full_like(metric, 0.5), metric))
+
+    field = AnalyticField(sphere_with_far_jump)
+    kept = extract_mesh(field, voxel_size=0.04, sdf_cutoff=3.0, color=False)
+    assert kept.vertices[:, 0].max() < 0.7  # only the sphere
+    everything = extract_mesh(field, voxel_size=0.04, sdf_cutoff=1e9, color=False)
+    assert everything.vertices[:, 0].max() > 0.7  # without the cutoff the jump becomes a wall
+
+
+def test_save_mesh_is_atomic_and_refuses_to_overwrite(tmp_path):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    target = tmp_path / "m.ply"
+    save_mesh(mesh, target)
+    loaded = trimesh.load(target)
+    assert np.allclose(loaded.vertices, mesh.vertices)
+    with pytest.raises(FileExistsError):
+        save_mesh(mesh, target)
+    save_mesh(mesh, target, overwrite=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["m.ply"]
+    with pytest.raises(ValueError, match=".ply"):
+        save_mesh(mesh, tmp_path / "m.obj")
+
+
+def test_no_surface_raises():
+    field = AnalyticField(lambda p: torch.ones(p.shape[0], dtype=p.dtype))
+    with pytest.raises(ValueError, match="zero crossing"):
+        extract_mesh(field, voxel_size=0.1)

@@ -1,0 +1,181 @@
+"""Tests for tsslam_ref.render: rays (Eq. 2), samples (spec 2.2), weights and compositing (Eq. 3)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from tsslam_ref import config
+from tsslam_ref.field import SceneField
+from tsslam_ref.geometry import pose_from_rotvec
+from tsslam_ref.render import (
+    RayBatch,
+    frame_rays,
+    pixel_directions,
+    rays_to_world,
+    render_image,
+    render_rays,
+    sample_along_rays,
+    sample_pixels,
+    sdf_to_weights,
+)
+
+INTRINSICS = (50.0, 55.0, 31.5, 23.5)  # fx, fy, cx, cy of a 64 x 48 image
+
+
+def test_pixel_directions_equal_inverse_intrinsics():
+    rows = torch.tensor([0, 23, 47, 10])
+    cols = torch.tensor([0, 31, 63, 50])
+    fx, fy, cx, cy = INTRINSICS
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    expected = np.linalg.solve(K, np.stack([cols.numpy(), rows.numpy(), np.ones(4)]).astype(float)).T
+    directions = pixel_directions(rows, cols, INTRINSICS)
+    assert directions.dtype == torch.float32
+    assert np.allclose(directions.numpy(), expected, atol=1e-6)
+    assert torch.all(directions[:, 2] == 1)
+
+
+def test_sample_pixels_unique_inside_edge_and_seeded():
+    rows, cols = sample_pixels(48, 64, 500, ignore_edge=5, generator=torch.Generator().manual_seed(1))
+    assert rows.dtype == torch.long and len(rows) == 500
+    assert rows.min() >= 5 and rows.max() < 43 and cols.min() >= 5 and cols.max() < 59
+    assert len(set(zip(rows.tolist(), cols.tolist()))) == 500
+    rows2, cols2 = sample_pixels(48, 64, 500, ignore_edge=5, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(rows, rows2) and torch.equal(cols, cols2)
+    with pytest.raises(ValueError, match="cannot sample"):
+        sample_pixels(10, 10, 101)
+
+
+def test_frame_rays_and_raybatch_helpers():
+    rgb = np.random.default_rng(0).random((48, 64, 3)).astype(np.float32)
+    depth = np.random.default_rng(1).random((48, 64)).astype(np.float32)
+    rows, cols = torch.tensor([1, 2, 3]), torch.tensor([4, 5, 6])
+    batch = frame_rays(rgb, depth, INTRINSICS, rows, cols, frame_id=7)
+    assert len(batch) == 3 and torch.all(batch.frame_ids == 7)
+    assert np.allclose(batch.rgb.numpy(), rgb[[1, 2, 3], [4, 5, 6]])
+    assert np.allclose(batch.depth.numpy(), depth[[1, 2, 3], [4, 5, 6]])
+    both = RayBatch.cat([batch, batch.subset(slice(0, 2))])
+    assert len(both) == 5 and torch.equal(both.rgb[3:], batch.rgb[:2])
+    assert len(both.to("cpu")) == 5
+    with pytest.raises(ValueError, match="depth"):
+        RayBatch(batch.directions_cam, batch.rgb, batch.depth[:2], batch.frame_ids)
+
+
+def test_rays_to_world_single_and_per_ray_poses_and_pose_gradient():
+    generator = torch.Generator().manual_seed(0)
+    directions = torch.randn(6, 3, generator=generator, dtype=torch.float64)
+    rotvec = torch.randn(6, 3, generator=generator, dtype=torch.float64)
+    trans = torch.randn(6, 3, generator=generator, dtype=torch.float64)
+    poses = pose_from_rotvec(rotvec, trans)
+    origins, world = rays_to_world(directions, poses)
+    for r in range(6):
+        assert torch.allclose(world[r], poses[r, :3, :3] @ directions[r])
+        assert torch.allclose(origins[r], trans[r])
+    origins1, world1 = rays_to_world(directions, poses[2])
+    assert torch.allclose(world1[2], world[2]) and torch.allclose(origins1, trans[2].expand(6, 3))
+    pose = poses[0].clone().requires_grad_(True)
+    rays_to_world(directions, pose)[1].sum().backward()
+    assert pose.grad is not None and pose.grad[:3, :3].abs().sum() > 0
+    with pytest.raises(ValueError, match="c2w"):
+        rays_to_world(directions, poses[:2])
+
+
+def test_samples_follow_coslam_layout():
+    cfg = dataclasses.replace(config.tum().render, perturb=False)  # 64 uniform + 21 guided
+    depth = torch.tensor([1.5, 0.0])
+    z = sample_along_rays(depth, cfg)
+    assert z.shape == (2, 85)
+    assert torch.all(z[:, 1:] >= z[:, :-1])
+    band = torch.linspace(1.25, 1.75, 21)
+    assert all(torch.isclose(z[0], value).any() for value in band)
+    # invalid depth: the 21 guided samples are spread over [near, far] as well
+    assert z[1].min() == 0 and z[1].max() == 5.0
+    assert (z[1] == 0).sum() == 2 and (z[1] == 5.0).sum() == 2
+    assert all(torch.isclose(z[1], torch.tensor(value)).any() for value in (0.25, 1.25, 3.75))
+
+
+def test_perturbed_samples_stay_sorted_within_midpoints_and_are_seeded():
+    cfg = config.tiny().render
+    depth = torch.rand(100) * 3
+    fixed = sample_along_rays(depth, dataclasses.replace(cfg, perturb=False))
+    z = sample_along_rays(depth, cfg, torch.Generator().manual_seed(4))
+    mids = 0.5 * (fixed[:, 1:] + fixed[:, :-1])
+    assert torch.all(z[:, 1:] >= z[:, :-1] - 1e-6)
+    assert torch.all(z[:, 1:-1] >= mids[:, :-1] - 1e-6) and torch.all(z[:, 1:-1] <= mids[:, 1:] + 1e-6)
+    assert torch.equal(z, sample_along_rays(depth, cfg, torch.Generator().manual_seed(4)))
+
+
+def _bell(s):
+    """Logistic density written independently: e^-s / (1 + e^-s)^2."""
+    return torch.exp(-s) / (1 + torch.exp(-s)) ** 2
+
+
+def test_weights_are_the_normalised_bell_when_nothing_is_cut():
+    sdf = torch.tensor([[0.3, 0.1, 0.0, -0.2, -0.5]], dtype=torch.float64)
+    z = torch.linspace(0.0, 0.4, 5, dtype=torch.float64).unsqueeze(0)
+    truncation = 10.0  # z_min + tr covers the whole ray
+    weights = sdf_to_weights(sdf, z, truncation)
+    bell = _bell(sdf / truncation)
+    assert torch.allclose(weights, bell / bell.sum(), atol=1e-9)
+    assert _bell(torch.tensor(0.0)) == 0.25 and bool((_bell(sdf) <= 0.25).all())
+    assert weights.argmax() == 2  # peak at s = 0
+
+
+def test_first_surface_cut_keeps_samples_before_the_first_crossing_plus_tr():
+    z = torch.linspace(0.0, 2.0, 21).unsqueeze(0)  # spacing 0.1
+    # two surfaces: crossing between z = 0.5 and 0.6, another between 1.5 and 1.6
+    metric = torch.where(z < 1.05, 0.55 - z, z - 1.55)
+    truncation = 0.25
+    weights = sdf_to_weights(metric / truncation, z, truncation)
+    kept = weights[0] > 0
+    assert torch.equal(kept, z[0] < 0.5 + truncation)  # z_min = 0.5 (sample before crossing)
+    assert torch.allclose(weights.sum(), torch.tensor(1.0))
+
+
+def test_no_sign_change_keeps_only_samples_within_tr_of_the_first():
+    z = torch.linspace(0.5, 3.0, 26).unsqueeze(0)
+    sdf = torch.full_like(z, 0.8)
+    weights = sdf_to_weights(sdf, z, 0.3)
+    assert torch.equal(weights[0] > 0, z[0] < 0.5 + 0.3)
+    assert torch.allclose(weights.sum(), torch.tensor(1.0))
+
+
+@pytest.mark.parametrize("truncation", [0.05, 0.1])
+def test_planar_sdf_renders_the_plane_depth_within_one_sample_spacing(truncation):
+    """World plane n . x = c seen by a tilted camera: rendered depth = analytic ray-plane depth."""
+    cfg = dataclasses.replace(config.tiny().render, truncation=truncation)
+    normal = torch.tensor([0.1, -0.2, -1.0], dtype=torch.float64)
+    normal = normal / normal.norm()
+    offset = -2.0  # plane n . x = offset
+
+    def planar_field(points):
+        metric = offset - points @ normal  # positive on the camera side
+        return torch.full_like(points, 0.5), metric / truncation
+
+    pose = pose_from_rotvec(torch.tensor([0.05, -0.1, 0.02], dtype=torch.float64), torch.tensor([0.1, 0.2, -0.3], dtype=torch.float64))
+    rows, cols = sample_pixels(48, 64, 200, generator=torch.Generator().manual_seed(0))
+    origins, directions = rays_to_world(pixel_directions(rows, cols, INTRINSICS).double(), pose)
+    true_depth = (offset - origins @ normal) / (directions @ normal)
+    assert bool((true_depth > 0.5).all() and (true_depth < cfg.far - 0.5).all())
+    out = render_rays(planar_field, origins, directions, true_depth, cfg, torch.Generator().manual_seed(1))
+    spacing = 2 * cfg.range_d / (cfg.n_range_d - 1)
+    assert (out["depth"] - true_depth).abs().max() < spacing
+    # weights sum to 1 up to the 1e-8 guard (visible when every sample is far from s = 0)
+    assert torch.allclose(out["weights"].sum(-1), torch.ones(200, dtype=torch.float64), atol=1e-2)
+    assert torch.allclose(out["rgb"], 0.5 * out["weights"].sum(-1, keepdim=True).expand(200, 3))
+
+
+def test_chunked_image_render_equals_unchunked():
+    cfg = config.tiny()
+    field = SceneField(cfg.field, [[-1.0, 1.0], [-1.0, 1.0], [0.0, 3.0]], generator=torch.Generator().manual_seed(0))
+    pose = pose_from_rotvec(torch.tensor([0.0, 0.1, 0.0]), torch.tensor([0.0, 0.0, -0.5]))
+    depth = torch.rand(12, 16) * 2 + 0.5
+    small = (12.0, 12.0, 7.5, 5.5)
+    one = render_image(field, pose, small, cfg.render, depth=depth, chunk=10_000)
+    many = render_image(field, pose, small, cfg.render, depth=depth, chunk=7)
+    assert one["rgb"].shape == (12, 16, 3) and one["depth"].shape == (12, 16)
+    assert torch.allclose(one["rgb"], many["rgb"], atol=1e-6)
+    assert torch.allclose(one["depth"], many["depth"], atol=1e-6)
+    with pytest.raises(ValueError, match="image size"):
+        render_image(field, pose, small, cfg.render)

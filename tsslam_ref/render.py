@@ -1,0 +1,347 @@
+"""Rays, samples along rays and SDF volume rendering (Co-SLAM's ``render_rays``).
+
+TS-SLAM §III-A (``sec:rep_secene``): Eq. (2) (``eq:cal_ray``) places the samples of pixel (u, v)
+at x_i = t + d_i R K^-1 [u, v, 1]^T, and Eq. (3) renders colour and depth as weighted means
+
+    c_hat = sum_i w_i c_i / sum_j w_j,     d_hat = sum_i w_i d_i / sum_j w_j,
+    w_i   = sigmoid(s_i / tr) * sigmoid(-s_i / tr)
+
+with two Co-SLAM details kept (shared/spec/coslam.md sections 2.2-2.4): s_i is the *normalised*
+SDF (so in metric terms the logistic scale is tr^2, "double scaling"), and every weight beyond
+z_min + tr is cut, where z_min is the sample just before the first sign change of s.
+
+Layer 1 (math and map): takes a callable ``field_fn(points) -> (rgb, sdf)``, never the field class.
+Taught in notebooks/04_rendering_and_losses.ipynb.
+
+Glossary
+
+| symbol | variable | shape | frame | unit |
+|---|---|---|---|---|
+| K^-1 [u, v, 1] | ``directions_cam`` | (R, 3) | camera (OpenCV, z = 1) | - |
+| t, R d | ``origins``, ``directions`` | (R, 3) | world | m, - |
+| d_i | ``z_vals`` | (R, S) | camera depth | m |
+| s_i | ``sdf`` | (R, S) | - | truncation units |
+| w_i | ``weights`` | (R, S) | - | - |
+| tr | ``truncation`` | scalar | - | m |
+
+Pixel convention: pixel (row, col) is centred at image coordinates (u, v) = (col, row), OpenCV's
+convention for calibrated intrinsics (Co-SLAM also uses the integer indices, without +0.5).
+Sources: Co-SLAM @3bb904e ``model/scene_rep.py`` (``render_rays``), ``model/utils.py``
+(``sdf2weights``), ``datasets/utils.py`` (ray directions).  Deviations: docs/map.md.
+"""
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Callable, Dict, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from .config import RenderConfig
+
+# Guard added to the weight sum before normalising (Co-SLAM sdf2weights); prevents 0/0 on rays
+# whose every sample was cut.
+WEIGHT_SUM_EPS = 1e-8
+
+FieldFn = Callable[[torch.Tensor], Tuple[torch.Tensor, torch.Tensor]]
+
+
+@dataclass
+class RayBatch:
+    """Rays in the camera frame plus their targets.
+
+    Attributes:
+        directions_cam: (R, 3) OpenCV camera-frame directions with z = 1 (ray parameter = depth).
+        rgb: (R, 3) target colours in [0, 1].
+        depth: (R,) target depth in metres, 0 = invalid.
+        frame_ids: (R,) long, caller-defined ids (keyframe slot, frame index, ...).
+    """
+
+    directions_cam: torch.Tensor
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    frame_ids: torch.Tensor
+
+    def __post_init__(self):
+        n_rays = self.directions_cam.shape[0]
+        if self.directions_cam.shape != (n_rays, 3):
+            raise ValueError(f"RayBatch.directions_cam must be (R, 3), got {tuple(self.directions_cam.shape)}")
+        for name, shape in (("rgb", (n_rays, 3)), ("depth", (n_rays,)), ("frame_ids", (n_rays,))):
+            if tuple(getattr(self, name).shape) != shape:
+                raise ValueError(f"RayBatch.{name} must be {shape}, got {tuple(getattr(self, name).shape)}")
+
+    def __len__(self) -> int:
+        return self.directions_cam.shape[0]
+
+    def to(self, device) -> "RayBatch":
+        return RayBatch(*(getattr(self, f.name).to(device) for f in dataclasses.fields(self)))
+
+    def subset(self, index) -> "RayBatch":
+        """Rays at ``index`` (a slice, boolean mask or long tensor)."""
+        return RayBatch(*(getattr(self, f.name)[index] for f in dataclasses.fields(self)))
+
+    @staticmethod
+    def cat(batches: Sequence["RayBatch"]) -> "RayBatch":
+        if len(batches) == 0:
+            raise ValueError("RayBatch.cat needs at least one batch")
+        return RayBatch(
+            *(torch.cat([getattr(b, f.name) for b in batches]) for f in dataclasses.fields(RayBatch))
+        )
+
+
+def _intrinsic_values(intrinsics) -> Tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) from an object with those attributes or a 4-sequence."""
+    if all(hasattr(intrinsics, name) for name in ("fx", "fy", "cx", "cy")):
+        return float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cx), float(intrinsics.cy)
+    values = tuple(float(v) for v in intrinsics)
+    if len(values) != 4:
+        raise ValueError(f"intrinsics must have fx, fy, cx, cy; got {intrinsics!r}")
+    return values
+
+
+def pixel_directions(rows: torch.Tensor, cols: torch.Tensor, intrinsics) -> torch.Tensor:
+    """Camera-frame ray directions K^-1 [u, v, 1]^T of pixels, OpenCV axes, z = 1.
+
+        d = ((col - cx) / fx, (row - cy) / fy, 1)
+
+    Args:
+        rows, cols: (R,) pixel indices (any numeric dtype); the centre of pixel (row, col) is at
+            (u, v) = (col, row) (OpenCV).  Intrinsics are used as given (not floored).
+        intrinsics: ``tsslam_ref.data.Intrinsics`` or any object with ``fx fy cx cy``, or a tuple.
+
+    Returns:
+        (R, 3) float32 directions (float64 if ``rows`` is float64).
+
+    Differs from: Co-SLAM uses OpenGL axes (y up, z backwards) and floors fx, fy, cx, cy.
+    """
+    fx, fy, cx, cy = _intrinsic_values(intrinsics)
+    dtype = rows.dtype if rows.is_floating_point() else torch.float32
+    u = cols.to(dtype)
+    v = rows.to(dtype)
+    return torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)  # (R, 3)
+
+
+def sample_pixels(
+    height: int, width: int, n: int, ignore_edge: int = 0, generator: Optional[torch.Generator] = None
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """n pixels drawn uniformly without replacement, ``ignore_edge`` px excluded on every side.
+
+    Returns:
+        (rows (n,), cols (n,)) long tensors on the generator's device (CPU without one).
+    """
+    inner_h, inner_w = height - 2 * ignore_edge, width - 2 * ignore_edge
+    if inner_h <= 0 or inner_w <= 0:
+        raise ValueError(f"ignore_edge={ignore_edge} leaves no pixels in a {height}x{width} image")
+    if n > inner_h * inner_w or n < 0:
+        raise ValueError(f"cannot sample {n} pixels from {inner_h * inner_w} available ({height}x{width}, edge {ignore_edge})")
+    device = generator.device if generator is not None else None
+    flat = torch.randperm(inner_h * inner_w, generator=generator, device=device)[:n]
+    return flat // inner_w + ignore_edge, flat % inner_w + ignore_edge
+
+
+def _as_tensor(array, device=None, dtype=torch.float32) -> torch.Tensor:
+    if isinstance(array, np.ndarray):
+        array = torch.from_numpy(np.ascontiguousarray(array))
+    return array.to(device=device, dtype=dtype)
+
+
+def frame_rays(rgb, depth, intrinsics, rows, cols, frame_id: int = 0, device=None) -> RayBatch:
+    """RayBatch of the pixels (rows, cols) of one RGB-D frame.
+
+    Args:
+        rgb: (H, W, 3) colours in [0, 1] (numpy or torch).
+        depth: (H, W) depth in metres, 0 = invalid.
+        intrinsics: see :func:`pixel_directions`.
+        rows, cols: (R,) long pixel indices.
+        frame_id: stored in every ray's ``frame_ids``.
+        device: where the batch lives (default: that of ``rgb`` if a tensor, else CPU).
+    """
+    if device is None:
+        device = rgb.device if isinstance(rgb, torch.Tensor) else "cpu"
+    rgb_t = _as_tensor(rgb, device)
+    depth_t = _as_tensor(depth, device)
+    if rgb_t.dim() != 3 or rgb_t.shape[-1] != 3 or depth_t.shape != rgb_t.shape[:2]:
+        raise ValueError(f"frame_rays expects rgb (H, W, 3) and depth (H, W), got {tuple(rgb_t.shape)} and {tuple(depth_t.shape)}")
+    rows = torch.as_tensor(rows, device=device).long()
+    cols = torch.as_tensor(cols, device=device).long()
+    return RayBatch(
+        directions_cam=pixel_directions(rows, cols, intrinsics),
+        rgb=rgb_t[rows, cols],
+        depth=depth_t[rows, cols],
+        frame_ids=torch.full_like(rows, int(frame_id)),
+    )
+
+
+def rays_to_world(directions_cam: torch.Tensor, c2w: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """World rays o = t_wc, d = R_wc d_cam; differentiable in ``c2w``.
+
+    Args:
+        directions_cam: (R, 3) camera-frame directions.
+        c2w: (4, 4) one camera-to-world pose, or (R, 4, 4) one per ray.
+
+    Returns:
+        origins (R, 3) and directions (R, 3) in the world frame, in the promoted dtype.
+    """
+    dtype = torch.promote_types(directions_cam.dtype, c2w.dtype)
+    directions_cam = directions_cam.to(dtype)
+    c2w = c2w.to(dtype)
+    if c2w.shape == (4, 4):
+        directions = directions_cam @ c2w[:3, :3].T  # (R, 3)
+        origins = c2w[:3, 3].expand_as(directions)
+    elif c2w.dim() == 3 and c2w.shape[1:] == (4, 4) and c2w.shape[0] == directions_cam.shape[0]:
+        directions = torch.einsum("rij,rj->ri", c2w[:, :3, :3], directions_cam)  # (R, 3)
+        origins = c2w[:, :3, 3]
+    else:
+        raise ValueError(f"c2w must be (4, 4) or (R, 4, 4) with R = {directions_cam.shape[0]}, got {tuple(c2w.shape)}")
+    return origins, directions
+
+
+def sample_along_rays(
+    target_depth: torch.Tensor, cfg: RenderConfig, generator: Optional[torch.Generator] = None
+) -> torch.Tensor:
+    """Depths of the S = n_range_d + n_samples samples of each ray, sorted (spec section 2.2).
+
+    n_range_d samples evenly in [D - range_d, D + range_d] (in [near, far] where D <= 0), plus
+    n_samples evenly in [near, far]; sorted; with ``cfg.perturb`` each sample is redrawn
+    uniformly between the midpoints to its neighbours (the ends use their own value).
+
+    Args:
+        target_depth: (R,) sensor depth in metres (0 = invalid).
+
+    Returns:
+        z_vals (R, S) in metres, same dtype and device as ``target_depth``.
+    """
+    dtype, device = target_depth.dtype, target_depth.device
+    n_rays = target_depth.shape[0]
+    depth = target_depth.unsqueeze(-1)  # (R, 1)
+    band = torch.linspace(-cfg.range_d, cfg.range_d, cfg.n_range_d, dtype=dtype, device=device)
+    uniform = torch.linspace(cfg.near, cfg.far, cfg.n_range_d, dtype=dtype, device=device)
+    z_guided = torch.where(depth > 0, depth + band, uniform)  # (R, n_range_d)
+    t = torch.linspace(0.0, 1.0, cfg.n_samples, dtype=dtype, device=device)
+    z_uniform = (cfg.near * (1.0 - t) + cfg.far * t).expand(n_rays, -1)  # (R, n_samples)
+    z_vals, _ = torch.sort(torch.cat([z_uniform, z_guided], dim=-1), dim=-1)  # (R, S)
+    if cfg.perturb:
+        mids = 0.5 * (z_vals[:, 1:] + z_vals[:, :-1])
+        upper = torch.cat([mids, z_vals[:, -1:]], dim=-1)
+        lower = torch.cat([z_vals[:, :1], mids], dim=-1)
+        rand_device = generator.device if generator is not None else device
+        jitter = torch.rand(z_vals.shape, generator=generator, device=rand_device, dtype=dtype).to(device)
+        z_vals = lower + (upper - lower) * jitter
+    return z_vals
+
+
+def sdf_to_weights(sdf: torch.Tensor, z_vals: torch.Tensor, truncation: float) -> torch.Tensor:
+    """Rendering weights of Eq. (3) with Co-SLAM's first-surface cut and normalisation.
+
+        w_i = sigmoid(s_i / tr) sigmoid(-s_i / tr)               (bell, max 1/4 at s = 0)
+        z_min = z_k, k = first i with s_i s_{i+1} < 0            (k = 0 if there is none)
+        w_i <- w_i [z_i < z_min + tr];   w_i <- w_i / (sum_j w_j + 1e-8)
+
+    Args:
+        sdf: (R, S) normalised SDF (metric = s * tr).
+        z_vals: (R, S) sorted sample depths in metres.
+        truncation: tr in metres.
+
+    Returns:
+        (R, S) weights; each row sums to 1 unless every weight underflowed.
+
+    Differs from: the paper's formula reads s as metric; with Co-SLAM's normalised s this is a
+    double scaling (metric logistic scale tr^2), kept on purpose (spec section 2.3).
+    """
+    weights = torch.sigmoid(sdf / truncation) * torch.sigmoid(-sdf / truncation)  # (R, S)
+    sign_change = (sdf[:, 1:] * sdf[:, :-1] < 0).to(sdf.dtype)  # (R, S - 1)
+    first = torch.argmax(sign_change, dim=-1, keepdim=True)  # (R, 1), 0 when no sign change
+    z_min = torch.gather(z_vals, 1, first)  # (R, 1)
+    weights = weights * (z_vals < z_min + truncation).to(weights.dtype)
+    return weights / (weights.sum(dim=-1, keepdim=True) + WEIGHT_SUM_EPS)
+
+
+def render_rays(
+    field_fn: FieldFn,
+    origins: torch.Tensor,
+    directions: torch.Tensor,
+    target_depth: torch.Tensor,
+    cfg: RenderConfig,
+    generator: Optional[torch.Generator] = None,
+) -> Dict[str, torch.Tensor]:
+    """Sample, query the field and composite (Eq. 2-3).
+
+    Args:
+        field_fn: points (N, 3) world -> (rgb (N, 3) in [0, 1], normalised sdf (N,)).
+        origins, directions: (R, 3) world rays; ``directions`` have camera z = 1.
+        target_depth: (R,) sensor depth (m) guiding the samples; 0 = invalid.
+        cfg: RenderConfig (sample counts, range_d, near, far, truncation, perturb).
+
+    Returns:
+        dict rgb (R, 3), depth (R,), sdf (R, S), z_vals (R, S), weights (R, S).
+    """
+    n_rays = origins.shape[0]
+    z_vals = sample_along_rays(target_depth.to(origins.dtype), cfg, generator)  # (R, S)
+    points = origins.unsqueeze(1) + directions.unsqueeze(1) * z_vals.unsqueeze(-1)  # (R, S, 3)
+    rgb, sdf = field_fn(points.reshape(-1, 3))
+    rgb = rgb.reshape(n_rays, -1, 3)  # (R, S, 3)
+    sdf = sdf.reshape(n_rays, -1)  # (R, S)
+    z_vals = z_vals.to(sdf.dtype)
+    weights = sdf_to_weights(sdf, z_vals, cfg.truncation)
+    return {
+        "rgb": (weights.unsqueeze(-1) * rgb).sum(dim=1),
+        "depth": (weights * z_vals).sum(dim=1),
+        "sdf": sdf,
+        "z_vals": z_vals,
+        "weights": weights,
+    }
+
+
+def render_image(
+    field_fn: FieldFn,
+    c2w: torch.Tensor,
+    intrinsics,
+    cfg: RenderConfig,
+    depth: Optional[torch.Tensor] = None,
+    chunk: Optional[int] = None,
+    height: Optional[int] = None,
+    width: Optional[int] = None,
+) -> Dict[str, torch.Tensor]:
+    """Render a full image without gradients, ``chunk`` rays at a time, with no jitter.
+
+    Args:
+        c2w: (4, 4) camera-to-world pose (OpenCV axes).
+        intrinsics: with ``width``/``height`` attributes, or pass ``height``/``width`` or ``depth``.
+        depth: optional (H, W) sensor depth guiding the samples (as in training); without it
+            only the uniform samples in [near, far] are used (plus n_range_d more in [near, far]).
+        chunk: rays per chunk (default ``cfg.chunk``).
+
+    Returns:
+        dict rgb (H, W, 3), depth (H, W) on ``c2w``'s device.
+    """
+    if depth is not None:
+        height, width = depth.shape
+    else:
+        height = height if height is not None else getattr(intrinsics, "height", None)
+        width = width if width is not None else getattr(intrinsics, "width", None)
+        if height is None or width is None:
+            raise ValueError("render_image needs the image size: intrinsics.width/height, height/width or depth")
+    chunk = chunk or cfg.chunk
+    still_cfg = dataclasses.replace(cfg, perturb=False)
+    device = c2w.device
+    rows, cols = torch.meshgrid(
+        torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij"
+    )
+    directions_cam = pixel_directions(rows.reshape(-1), cols.reshape(-1), intrinsics).to(c2w.dtype)
+    target = (
+        torch.as_tensor(depth, device=device).reshape(-1).to(c2w.dtype)
+        if depth is not None
+        else torch.zeros(height * width, device=device, dtype=c2w.dtype)
+    )
+    rgb_parts, depth_parts = [], []
+    with torch.no_grad():
+        for start in range(0, height * width, chunk):
+            stop = start + chunk
+            origins, directions = rays_to_world(directions_cam[start:stop], c2w)
+            out = render_rays(field_fn, origins, directions, target[start:stop], still_cfg)
+            rgb_parts.append(out["rgb"])
+            depth_parts.append(out["depth"])
+    return {
+        "rgb": torch.cat(rgb_parts).reshape(height, width, 3),
+        "depth": torch.cat(depth_parts).reshape(height, width),
+    }
