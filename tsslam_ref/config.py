@@ -61,8 +61,9 @@ class FieldConfig:
     bound: Optional[List[List[float]]] = None
     """Scene box [[xmin,xmax],[ymin,ymax],[zmin,zmax]] in metres; None = estimated from the first
     frames' depth (ours; Co-SLAM needs it in every scene YAML)."""
-    bound_margin: float = 0.5
-    """Margin (m) added on every side when the bound is estimated from depth (ours)."""
+    bound_margin: float = 1.0
+    """Margin (m) added on every side when the bound is estimated from frame 0's depth (ours: later
+    frames see beyond frame 0, so the margin is generous)."""
     n_levels: int = 16
     """Hash-grid levels (Co-SLAM, fixed in code)."""
     n_features_per_level: int = 2
@@ -222,7 +223,10 @@ class LocalBAConfig:
     window: int = 6
     """M: control points in the sliding window (ours; the paper does not state M)."""
     fit_iters: int = 50
-    """Curve-approximation iterations for a new control point (ours)."""
+    """Curve-approximation (Levenberg-Marquardt) iterations for a new control point (ours)."""
+    fit_controls: int = 3
+    """Newest control points fitted in the curve approximation, over the poses of as many
+    intervals (ours; the paper fits only the new one, which is unstable, see local_ba.py)."""
     refine_iters: int = 10
     """Control-point refinement iterations with the map frozen (ours)."""
     joint_iters: int = 10
@@ -353,6 +357,7 @@ def tum_cpu() -> Config:
     cfg.render.n_range_d = 11
     cfg.tracking.n_rays = 512
     cfg.tracking.iters = 20
+    cfg.tracking.lr_rot = cfg.tracking.lr_trans = 3e-3  # half the rays of Co-SLAM: smaller, steadier steps
     cfg.tracking.best = True
     cfg.tracking.ignore_edge = 5
     cfg.mapping.first_iters = 200

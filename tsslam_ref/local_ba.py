@@ -40,7 +40,7 @@ from . import spline as spline_module
 from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, joint_optimization
 from .config import Config
 from .dynamics import trajectory_dynamics_loss
-from .geometry import make_pose
+from .geometry import make_pose, so3_exp, so3_log
 from .render import RayBatch
 
 
@@ -125,46 +125,88 @@ def extrapolate_control_point(track: SplineTrack) -> Tuple[torch.Tensor, torch.T
     return r_last @ r_prev.transpose(-1, -2) @ r_last, 2.0 * t_last - t_prev
 
 
+def constant_velocity_control_points(track: SplineTrack, times: np.ndarray, poses: torch.Tensor
+                                     ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Four control points whose spline is the least-squares constant-velocity fit of the poses.
+
+    With P_k = c + v dt (k - 1) and R_k = R_first Exp((k - 1) w dt) the paper-convention spline
+    is exactly p(t) = c + v (t - t_first), R(t) = R_first Exp(w (t - t_first)) (spline.md 3.2), so
+    fitting the line (c, v) and the body rate w to the first interval's poses is a linear,
+    well-conditioned problem, whereas four free points fitted to one segment's noisy poses swing
+    far off (a cubic extrapolated from a fraction of a second of data).
+
+    Args:
+        times: (K,) float64 s, the first interval's frames (the first is frame 0).
+        poses: (K, 4, 4) their camera-to-world poses.
+    """
+    first_time = track.knot_time(2)
+    elapsed = torch.as_tensor(np.asarray(times, dtype=np.float64) - first_time)  # (K,)
+    positions = poses[:, :3, 3].double()  # (K, 3)
+    design = torch.stack([torch.ones_like(elapsed), elapsed], dim=-1)  # (K, 2)
+    if len(times) >= 2:
+        solution = torch.linalg.lstsq(design, positions).solution  # (2, 3): c, v
+    else:
+        solution = torch.stack([positions[0], torch.zeros_like(positions[0])])
+    offset, velocity = solution[0], solution[1]
+    first_rotation = poses[0, :3, :3].double()
+    rotvecs = so3_log(first_rotation.transpose(-1, -2).unsqueeze(0) @ poses[:, :3, :3].double())  # (K, 3) body
+    weight = elapsed.square().sum()
+    rate = (elapsed[:, None] * rotvecs).sum(0) / weight if float(weight) > 0 else torch.zeros(3, dtype=torch.float64)
+    k = torch.arange(4, dtype=torch.float64)[:, None] - 1.0  # (4, 1)
+    translations = offset + velocity * track.dt * k  # (4, 3)
+    rotations = first_rotation @ so3_exp(rate * track.dt * k)  # (4, 3, 3)
+    return rotations.to(poses.dtype), translations.to(poses.dtype)
+
+
 def curve_approximation(track: SplineTrack, times: np.ndarray, poses: torch.Tensor, cfg: Config,
                         fit: bool = True) -> SplineTrack:
-    """Add the control point(s) of the next interval, Eq. (11).
+    """Add the control point of the next interval, Eq. (11).
 
     Args:
         track: the trajectory so far (``intervals_done`` intervals mapped).
-        times: (K,) float64 timestamps of the frames in the new interval.
-        poses: (K, 4, 4) their tracked camera-to-world poses.
-        cfg: run config (``local_ba.fit_iters``).
+        times: (K,) float64 timestamps of the frames to fit: those of the new interval and of the
+            ``local_ba.fit_controls - 1`` intervals before it (:func:`fit_time_range`).
+        poses: (K, 4, 4) their camera-to-world poses (tracked, or spline-refined for older frames).
+        cfg: run config (``local_ba.fit_iters``, ``local_ba.fit_controls``).
         fit: False only extrapolates (the "w/o LBA" ablation).
 
     Returns:
         The track with 4 control points (first interval) or one more.
+
+    Differs from the paper: Eq. (11) moves only the new control point Phi_{i+1}.  Its weight in
+    the newest interval is B_3(u) = u^3/6 <= 1/6, so every misfit of that interval is pushed, six
+    times larger, into Phi_{i+1}, which then dominates the next interval: the error grows about
+    7x per interval (found while writing notebooks/06).  We place Phi_{i+1} by extrapolating the
+    control polygon and then fit the ``fit_controls`` newest points (default 3, all with weight
+    >= 1/6 somewhere in the fitted span) to the poses of the last ``fit_controls`` intervals, the
+    older points fixed.  The first interval is a constant-velocity fit
+    (:func:`constant_velocity_control_points`).
     """
     poses = poses.detach()
     if track.n_ctrl == 0:
-        # First interval: all four control points, each started from the pose at the time it
-        # dominates (spline.initial_control_points_from_poses) and then fitted.
         if len(times) == 0:
             raise ValueError("the first spline interval holds no frame")
-        if not fit:
-            rotations = poses[0, :3, :3].expand(4, 3, 3).clone()
-            translations = poses[0, :3, 3].expand(4, 3).clone()
-        else:
-            rotations, translations = spline_module.fit_control_points(
-                np.asarray(times, dtype=np.float64), poses, track.dt, track.t0, 4,
-                iters=cfg.local_ba.fit_iters, convention=track.convention)
+        rotations, translations = constant_velocity_control_points(track, times, poses)
     else:
         new_rotation, new_translation = extrapolate_control_point(track)
         rotations = torch.cat([track.rotations, new_rotation.unsqueeze(0)], dim=0)
         translations = torch.cat([track.translations, new_translation.unsqueeze(0)], dim=0)
         if fit and len(times) > 0:
             fixed = torch.ones(rotations.shape[0], dtype=torch.bool)
-            fixed[-1] = False
+            fixed[-cfg.local_ba.fit_controls:] = False
+            fixed[:N_ANCHOR_CONTROLS] = True
             rotations, translations = spline_module.fit_control_points(
                 np.asarray(times, dtype=np.float64), poses, track.dt, track.t0, rotations.shape[0],
                 init_rotations=rotations, init_translations=translations, fixed=fixed,
                 iters=cfg.local_ba.fit_iters, convention=track.convention)
     return SplineTrack(track.dt, track.t0, rotations.detach().to(poses.dtype), translations.detach().to(poses.dtype),
                        track.intervals_done, track.convention)
+
+
+def fit_time_range(track: SplineTrack, n: int, cfg: Config) -> Tuple[float, float]:
+    """[start, end) of the frames :func:`curve_approximation` fits when mapping interval ``n``."""
+    start, end = track.interval(n)
+    return max(track.interval(0)[0], start - (cfg.local_ba.fit_controls - 1) * track.dt), end
 
 
 def window_dynamics(poses: SplinePoses, time_range: Tuple[float, float], cfg: Config,

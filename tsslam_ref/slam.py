@@ -163,7 +163,8 @@ def initial_state(sequence, cfg: Config, device: torch.device) -> SLAMState:
         if bound.shape != (3, 2) or np.any(bound[:, 1] <= bound[:, 0]):
             raise ValueError(f"field.bound must be [[xmin,xmax],[ymin,ymax],[zmin,zmax]] with min < max, got {cfg.field.bound}")
     else:
-        bound = estimate_bound([first], torch.as_tensor(first_pose[None]), cfg.field.bound_margin)
+        bound = estimate_bound([first], torch.as_tensor(first_pose[None]), cfg.field.bound_margin,
+                               max_depth=min(cfg.data.depth_trunc, cfg.render.far))
     field_model = SceneField(cfg.field, torch.as_tensor(bound, dtype=dtype)).to(device=device, dtype=dtype)
     optimizer = make_map_optimizer(field_model, cfg.mapping)
     n_frames = len(sequence)
@@ -274,7 +275,9 @@ def tsslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
     window = cfg.local_ba.window
     if cfg.local_ba.use_spline:
         start = time.perf_counter()
-        track = local_ba.curve_approximation(track, times[in_interval], state.tracked_poses[in_interval], cfg,
+        fit_start, fit_end = local_ba.fit_time_range(track, n, cfg)
+        fit_frames = np.nonzero((times >= fit_start) & (times < fit_end))[0]
+        track = local_ba.curve_approximation(track, times[fit_frames], state.tracked_poses[fit_frames], cfg,
                                              fit=cfg.local_ba.enabled)
         state.timings.add("lba_init", time.perf_counter() - start, cfg.local_ba.fit_iters if cfg.local_ba.enabled else 0)
         window_range = track.window_time_range(window)

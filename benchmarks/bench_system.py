@@ -1,0 +1,147 @@
+"""System benchmark: TS-SLAM vs the Co-SLAM baseline (same code, same preset) and the ablations.
+
+Prints, in the form of the paper's tables:
+
+* accuracy: ATE RMSE and RPE RMSE (cm, RPE over 1 frame) per method, mean over seeds, and the
+  ratio of TS-SLAM to the baseline measured in the same run (paper Tables I-III);
+* runtime: ms per iteration x iterations per call for tracking, local-BA init / others and global
+  BA, and the "FPS" both as wall-clock frames per second of the sequential loop and as the paper's
+  theoretical throughput 1000 / (tracking ms x iterations) (paper Table IV);
+* with ``--ablations``: w/o B-S., w/o DR and a dt sweep (paper Table V).
+
+    python benchmarks/bench_system.py                              # bundled TUM slice, tum-cpu
+    python benchmarks/bench_system.py --data DIR --config synthetic-cpu --seeds 0 1 2 --json out.json
+    python benchmarks/bench_system.py --ablations --dts 0.15 0.25 0.35
+
+Every number comes from runs made by this script; nothing is hard-coded.
+"""
+
+import argparse
+import json
+import time
+from typing import Dict, List
+
+import numpy as np
+import torch
+
+from tsslam_ref import config, data, eval as evaluation, slam
+
+
+def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
+    """One SLAM run -> metrics in cm plus the runtime table (or the failure message)."""
+    torch.manual_seed(cfg.seed)
+    start = time.perf_counter()
+    try:
+        result = slam.run_slam(sequence, cfg, device=torch.device(cfg.device if cfg.device != "auto" else "cpu"))
+    except slam.TrackingFailure as failure:
+        return {"failed": str(failure)}
+    wall = time.perf_counter() - start
+    metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
+    runtime = result.state.timings.table()
+    row = {
+        "ate_cm": 100 * metrics["ate_rmse_m"],
+        "rpe_cm": 100 * metrics["rpe_trans_rmse_m"],
+        "rpe_deg": metrics["rpe_rot_rmse_deg"],
+        "wall_fps": len(sequence) / wall,
+        "runtime": runtime,
+    }
+    if "tracking" in runtime:
+        tracking = runtime["tracking"]
+        row["theoretical_fps"] = 1000.0 / (tracking["ms_per_iteration"] * tracking["iterations_per_call"])
+    return row
+
+
+def mean_rows(rows: List[Dict]) -> Dict[str, float]:
+    good = [row for row in rows if "failed" not in row]
+    if not good:
+        return {"failed": rows[0]["failed"]}
+    keys = ("ate_cm", "rpe_cm", "rpe_deg", "wall_fps", "theoretical_fps")
+    summary = {key: float(np.mean([row[key] for row in good])) for key in keys}
+    summary.update({key + "_std": float(np.std([row[key] for row in good])) for key in ("ate_cm", "rpe_cm")})
+    summary["runs"] = len(good)
+    summary["failed_runs"] = len(rows) - len(good)
+    return summary
+
+
+def runtime_line(name: str, runtime: Dict[str, Dict[str, float]]) -> str:
+    def cell(stage):
+        if stage not in runtime:
+            return "-"
+        entry = runtime[stage]
+        return f"{entry['ms_per_iteration']:.0f} x {entry['iterations_per_call']:.0f}"
+
+    return (f"| {name} | {cell('tracking')} | {cell('lba_init')} | {cell('lba_others')} | {cell('global_ba')} "
+            f"| {cell('first_frame_mapping')} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM slice)")
+    parser.add_argument("--config", default="tum-cpu")
+    parser.add_argument("--frames", default=None, help="START:STOP[:STEP]")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--ablations", action="store_true", help="also run w/o B-S., w/o DR and the dt sweep")
+    parser.add_argument("--dts", type=float, nargs="+", default=[], help="dt values for the sweep (s)")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--json", default=None, help="write every row to this JSON file")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    base = config.apply_overrides(config.load(args.config), args.overrides)
+    base.data.path = args.data
+    if args.frames:
+        from tsslam_ref.run import parse_frames
+
+        base.data.frame_start, base.data.frame_stop, base.data.frame_step = parse_frames(args.frames)
+    sequence = data.load_from_config(base.data)
+    variants = {"Co-SLAM (baseline)": ["method=coslam"], "TS-SLAM": ["method=tsslam"]}
+    if args.ablations:
+        variants["w/o B-S."] = ["method=tsslam", "local_ba.use_spline=false"]
+        variants["w/o DR"] = ["method=tsslam", "local_ba.use_dynamics=false"]
+        variants["w/o LBA"] = ["method=tsslam", "local_ba.enabled=false"]
+    for dt in args.dts:
+        variants[f"TS-SLAM dt={dt:g} s"] = ["method=tsslam", f"spline.dt={dt}"]
+
+    print(f"sequence {sequence.name}: {len(sequence)} frames, {sequence.intrinsics.width}x{sequence.intrinsics.height}, "
+          f"preset {base.name}, seeds {args.seeds}, {args.threads} threads")
+    results = {}
+    for name, overrides in variants.items():
+        rows = []
+        for seed in args.seeds:
+            cfg = config.apply_overrides(base, overrides + [f"seed={seed}"])
+            row = run_once(sequence, cfg)
+            rows.append(row)
+            summary = "failed: " + row["failed"] if "failed" in row else (
+                f"ATE {row['ate_cm']:.2f} cm, RPE {row['rpe_cm']:.3f} cm / {row['rpe_deg']:.3f} deg, {row['wall_fps']:.2f} frames/s")
+            print(f"  {name:22s} seed {seed}: {summary}", flush=True)
+        results[name] = {"rows": rows, "mean": mean_rows(rows)}
+
+    print("\n| method | ATE RMSE (cm) | RPE RMSE (cm) | RPE (deg) | runs |")
+    print("|---|---|---|---|---|")
+    for name, result in results.items():
+        mean = result["mean"]
+        if "failed" in mean:
+            print(f"| {name} | fails | fails | fails | 0 |")
+            continue
+        print(f"| {name} | {mean['ate_cm']:.2f} +- {mean['ate_cm_std']:.2f} | {mean['rpe_cm']:.3f} +- {mean['rpe_cm_std']:.3f} "
+              f"| {mean['rpe_deg']:.3f} | {mean['runs']} |")
+    baseline, ours = results["Co-SLAM (baseline)"]["mean"], results["TS-SLAM"]["mean"]
+    if "failed" not in baseline and "failed" not in ours:
+        print(f"\nTS-SLAM / baseline: ATE x{ours['ate_cm'] / baseline['ate_cm']:.2f}, "
+              f"RPE x{ours['rpe_cm'] / baseline['rpe_cm']:.2f} (paper: RPE -78.5 % on TUM, -40.5 % on ScanNet)")
+
+    print("\n| method | tracking ms x it | LBA init ms x it | LBA others ms x it | GBA ms x it | first frame ms x it | wall FPS | theoretical FPS |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, result in results.items():
+        good = [row for row in result["rows"] if "failed" not in row]
+        if good:
+            line = runtime_line(name, good[0]["runtime"])
+            print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")
+    if args.json:
+        with open(args.json, "w") as stream:
+            json.dump(results, stream, indent=2)
+
+
+if __name__ == "__main__":
+    main()

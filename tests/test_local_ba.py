@@ -1,0 +1,95 @@
+"""Local BA (local_ba.py): curve approximation (Eq. 11), the window, the constant-velocity start.
+
+Oracles: the ground-truth path of the synthetic generator and exact constant-velocity motions
+(spline.md 3.2: affine control points reproduce them exactly).
+"""
+
+import copy
+
+import numpy as np
+import torch
+
+from tsslam_ref import config, local_ba, spline
+from tsslam_ref.geometry import make_pose, so3_exp
+from tsslam_ref.synthetic import builtin_trajectory
+
+TIMES = 0.5 + np.arange(90) / 30.0
+
+
+def grow(poses: torch.Tensor, cfg: config.Config, n_intervals: int = 9):
+    """Curve approximation alone, interval after interval; max position error after each."""
+    truth = torch.as_tensor(builtin_trajectory(TIMES), dtype=poses.dtype)
+    track = local_ba.SplineTrack.empty(float(TIMES[0]), cfg.spline.dt, poses)
+    errors = []
+    for n in range(n_intervals):
+        start, end = local_ba.fit_time_range(track, n, cfg)
+        inside = np.nonzero((TIMES >= start) & (TIMES < end))[0]
+        track = local_ba.curve_approximation(track, TIMES[inside], poses[inside], cfg)
+        track.intervals_done = n + 1
+        covered = track.covers(TIMES)
+        errors.append(float((track.poses(TIMES[covered])[:, :3, 3] - truth[covered, :3, 3]).norm(dim=-1).max()))
+    return track, np.array(errors)
+
+
+def noisy_truth(sigma: float, seed: int = 0) -> torch.Tensor:
+    poses = torch.as_tensor(builtin_trajectory(TIMES))
+    noise = torch.randn(len(TIMES), 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    poses[:, :3, 3] += sigma * noise
+    return poses
+
+
+def test_eq11_curve_approximation_stays_at_the_noise_level():
+    cfg = config.tiny()
+    for sigma in (0.0, 0.001, 0.01):
+        track, errors = grow(noisy_truth(sigma), cfg)
+        assert track.n_ctrl == 4 + 8
+        assert errors.max() < 3.5 * sigma + 0.002, (sigma, errors)  # bounded: no growth with the intervals
+
+
+def test_eq11_single_point_fit_as_written_in_the_paper_amplifies_errors():
+    """Why local_ba fits three points: moving only the new one (weight <= 1/6) diverges."""
+    cfg = copy.deepcopy(config.tiny())
+    cfg.local_ba.fit_controls = 1
+    _, errors = grow(noisy_truth(0.001), cfg, n_intervals=6)
+    assert errors[-1] > 10 * errors[1], errors
+
+
+def test_first_interval_constant_velocity_fit_is_exact_for_constant_velocity_motion():
+    dt, first = 0.25, 10.0
+    times = first + np.arange(8) / 30.0
+    velocity = torch.tensor([0.3, -0.1, 0.05], dtype=torch.float64)
+    rate = torch.tensor([0.2, 0.4, -0.3], dtype=torch.float64)
+    start = make_pose(so3_exp(torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)), torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64))
+    elapsed = torch.as_tensor(times - first)
+    poses = make_pose(start[:3, :3] @ so3_exp(elapsed[:, None] * rate), start[:3, 3] + elapsed[:, None] * velocity)
+    track = local_ba.SplineTrack.empty(first, dt, poses)
+    rotations, translations = local_ba.constant_velocity_control_points(track, times, poses)
+    sample = spline.evaluate(rotations, translations, times, dt, track.t0, derivatives=2)
+    assert torch.allclose(make_pose(sample.rotation, sample.translation), poses, atol=1e-10)
+    assert torch.allclose(sample.velocity_world, velocity.expand(8, 3), atol=1e-10)
+    assert torch.allclose(sample.omega_body, rate.expand(8, 3), atol=1e-10)
+    assert float(sample.acceleration_world.abs().max()) < 1e-10
+
+
+def test_extrapolated_control_point_continues_the_polygon():
+    rotations = so3_exp(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.1], [0.0, 0.0, 0.2]], dtype=torch.float64))
+    translations = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.5, 0.0]], dtype=torch.float64)
+    track = local_ba.SplineTrack(0.2, 0.0, rotations, translations)
+    rotation, translation = local_ba.extrapolate_control_point(track)
+    assert torch.allclose(rotation, so3_exp(torch.tensor([0.0, 0.0, 0.3], dtype=torch.float64)), atol=1e-12)
+    assert torch.allclose(translation, torch.tensor([3.0, 1.0, 0.0], dtype=torch.float64))
+
+
+def test_window_time_range_is_where_the_window_acts():
+    """Control points outside the window shape no time after the window range starts... and the
+    window's points shape no time before it (local support)."""
+    generator = torch.Generator().manual_seed(0)
+    n_ctrl, dt = 12, 0.3
+    track = local_ba.SplineTrack(dt, 0.0, so3_exp(0.2 * torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64)),
+                                 torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64))
+    window = track.window_controls(5)
+    start, end = track.window_time_range(5)
+    assert window == list(range(7, 12)) and np.isclose(start, 6 * dt) and np.isclose(end, track.domain()[1])
+    before = spline.active_control_indices(np.array([start - 1e-3]), n_ctrl, dt, 0.0).reshape(-1).tolist()
+    after = spline.active_control_indices(np.array([start + 1e-3]), n_ctrl, dt, 0.0).reshape(-1).tolist()
+    assert set(before).isdisjoint(window) and set(after) & set(window)

@@ -1,0 +1,127 @@
+"""End-to-end: the SLAM loop (slam.py) and the command line (run.py) on small sequences.
+
+Oracles: the ground truth of a synthetic sequence rendered from the analytic room and of the real TUM
+frames (motion capture), the spline's own definition for TS-SLAM outputs, and file round trips.
+Sizes are tiny (64x48 images, the `tiny` preset) so the whole file runs in a few minutes on 2 cores;
+the figures reached at the CPU presets are in the README and the issue notes.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tsslam_ref import config, data, eval as evaluation, run, slam, synthetic
+
+
+@pytest.fixture(scope="module")
+def synthetic_sequence(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("synthetic") / "room"
+    synthetic.synthesize(folder, n_frames=24, width=64, height=48, fps=30.0, seed=0, clean_depth=True, mesh_voxel=0.1)
+    return folder
+
+
+def small_config(method: str) -> config.Config:
+    cfg = config.tiny()
+    cfg.method = method
+    cfg.spline.dt = 0.2
+    cfg.local_ba.window = 4
+    cfg.tracking.iters = 8
+    cfg.tracking.lr_rot = cfg.tracking.lr_trans = 3e-3
+    cfg.tracking.ignore_edge = 2
+    return cfg
+
+
+@pytest.mark.parametrize("method", ["coslam", "tsslam"])
+def test_slam_tracks_a_synthetic_sequence(synthetic_sequence, method):
+    cfg = small_config(method)
+    sequence = data.load_sequence(synthetic_sequence)
+    result = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+    assert result.poses.shape == (len(sequence), 4, 4) and np.isfinite(result.poses).all()
+    metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
+    assert metrics["n_matched"] == len(sequence)
+    # The camera moves ~6 cm in 0.8 s; a lost tracker ends decimetres away.
+    assert metrics["ate_rmse_m"] < 0.03, metrics
+    if method == "coslam":
+        assert np.allclose(result.poses[0], sequence.gt_poses[0], atol=1e-5)  # frame 0 anchors the map
+    else:
+        track = result.state.spline
+        assert track.covers(sequence.timestamps).all()
+        spline_poses = track.poses(sequence.timestamps).double().numpy()
+        assert np.allclose(result.poses, spline_poses, atol=1e-6)  # outputs are the spline's poses
+
+
+def test_without_local_ba_the_run_stops_with_a_clear_message(synthetic_sequence):
+    """Paper Table V: without local BA TS-SLAM fails; ours must say so (no NaN, no hang)."""
+    cfg = small_config("tsslam")
+    cfg.local_ba.enabled = False
+    sequence = data.load_sequence(synthetic_sequence)
+    with pytest.raises(slam.TrackingFailure, match="local BA is switched off"):
+        slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+
+
+def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequence, tmp_path, capsys):
+    out = tmp_path / "run"
+    arguments = ["--data", str(synthetic_sequence), "--config", "tiny", "--out", str(out), "--quiet", "--frames", "0:12",
+                 "--set", "spline.dt=0.2", "--set", "local_ba.window=4", "--set", "tracking.ignore_edge=2",
+                 "--checkpoint-every", "6", "--export-rate", "50"]
+    assert run.main(arguments) == 0
+    times, poses = data.read_tum_trajectory(out / "trajectory.txt")
+    sequence = data.load_sequence(synthetic_sequence, frame_stop=12)
+    assert np.array_equal(np.round(times, 6), np.round(sequence.timestamps, 6))  # one line per frame, own stamps
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "runtime", "accuracy_m"):
+        assert key in metrics
+    saved = config.load(str(out / "config.json"))
+    assert saved.method == "tsslam" and saved.spline.dt == 0.2 and saved.data.frame_stop == 12
+    for name in ("mesh.ply", "trajectory.png", "errors.png", "checkpoint.pt", "trajectory_50hz.txt"):
+        assert (out / name).exists(), name
+    exported = np.loadtxt(out / "trajectory_50hz.txt")
+    assert exported.shape[1] == 14 and np.allclose(np.diff(exported[:, 0]), 0.02)
+    before = (out / "trajectory.txt").read_text()
+    assert run.main(arguments) == 2  # refuses to overwrite
+    assert "not empty" in capsys.readouterr().err
+    assert (out / "trajectory.txt").read_text() == before
+    # resume from the checkpoint written after frame 6 reproduces the uninterrupted run
+    state = run.load_checkpoint(out / "checkpoint.pt")
+    assert state.done == 12
+
+
+def test_resume_from_a_checkpoint_gives_the_same_trajectory(synthetic_sequence, tmp_path):
+    cfg = small_config("coslam")
+    sequence = data.load_sequence(synthetic_sequence, frame_stop=10)
+    checkpoints = {}
+
+    def keep(state):
+        if state.done == 5:
+            run.save_checkpoint(state, tmp_path / "checkpoint.pt")
+
+    full = slam.run_slam(sequence, cfg, device=torch.device("cpu"), on_frame=keep)
+    state = run.load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state.done == 5
+    resumed = slam.run_slam(sequence, cfg, device=torch.device("cpu"), state=state)
+    assert np.allclose(resumed.poses, full.poses, atol=1e-6)
+
+
+def test_run_cli_rejects_bad_arguments(tmp_path, capsys):
+    assert run.main(["--data", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert run.main(["--frames", "5:2", "--out", str(tmp_path / "o")]) == 2
+    assert "--frames" in capsys.readouterr().err
+    assert run.main(["--set", "tracking.nope=1", "--out", str(tmp_path / "o")]) == 2
+    assert "unknown key" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_coslam_baseline_tracks_the_real_tum_frames(shared_data):
+    """Real data: 30 frames of TUM fr3/teddy at 160x120 against motion-capture ground truth."""
+    cfg = config.tum_cpu()
+    cfg.method = "coslam"
+    cfg.mapping.first_iters = 100
+    cfg.tracking.iters = 10
+    cfg.mapping.iters = 10
+    sequence = data.load_sequence(shared_data / "tum_fr3_teddy_120", resize_width=160, frame_stop=30)
+    result = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+    metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
+    assert metrics["ate_rmse_m"] < 0.05, metrics
