@@ -119,3 +119,18 @@ def test_opengl_opencv_flip_is_an_involution_that_flips_y_and_z():
     assert np.allclose(cv[:3, 0], pose[:3, 0]) and np.allclose(cv[:3, 1:3], -pose[:3, 1:3])
     assert np.allclose(cv[:3, 3], pose[:3, 3])
     assert np.allclose(geometry.opencv_to_opengl_pose(cv), pose)
+
+
+def test_orthonormalize_projects_onto_so3_and_keeps_rotations():
+    from tsslam_ref.geometry import orthonormalize, so3_exp
+
+    generator = torch.Generator().manual_seed(0)
+    rotations = so3_exp(torch.randn(5, 3, generator=generator, dtype=torch.float64))
+    assert torch.allclose(orthonormalize(rotations), rotations, atol=1e-12)
+    noisy = rotations + 0.05 * torch.randn(5, 3, 3, generator=generator, dtype=torch.float64)
+    projected = orthonormalize(noisy)
+    assert torch.allclose(projected.transpose(-1, -2) @ projected, torch.eye(3, dtype=torch.float64).expand(5, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(projected), torch.ones(5, dtype=torch.float64))
+    # nearest in Frobenius norm: no other rotation close by is nearer
+    for candidate in (so3_exp(0.01 * torch.randn(5, 3, generator=generator, dtype=torch.float64)) @ projected,):
+        assert torch.all((candidate - noisy).norm(dim=(1, 2)) >= (projected - noisy).norm(dim=(1, 2)) - 1e-12)

@@ -160,3 +160,14 @@ def test_spline_poses_are_local_and_fall_back_outside_the_domain():
                               slot_times=times, fallback_poses=fallback, lr_rot=1e-3, lr_trans=1e-3)
     grad = torch.autograd.grad(fixed_model.poses()[1].sum(), [fixed_model.translation_delta])[0]
     assert float(grad[:5].abs().max()) == 0.0 and float(grad[5:].abs().max()) > 0.0
+
+
+def test_constant_velocity_init_stays_on_so3_over_many_frames():
+    """float32 drift must not compound: 200 predictions in a row stay orthonormal."""
+    step = make_pose(so3_exp(torch.tensor([0.01, 0.02, -0.015])), torch.tensor([0.01, 0.0, 0.005]))
+    poses = [torch.eye(4), step.clone()]
+    for _ in range(200):
+        poses.append(constant_velocity_init(poses[-1], poses[-2]))
+    rotation = poses[-1][:3, :3]
+    assert torch.allclose(rotation.T @ rotation, torch.eye(3), atol=1e-5)
+    assert torch.allclose(poses[-1], torch.linalg.matrix_power(step, 201), atol=1e-3)

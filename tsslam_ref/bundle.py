@@ -31,7 +31,7 @@ import torch
 
 from . import spline as spline_module
 from .config import Config
-from .geometry import make_pose, so3_exp
+from .geometry import make_pose, orthonormalize, so3_exp
 from .losses import render_loss
 from .render import RayBatch
 
@@ -60,7 +60,7 @@ class PoseIncrement(torch.nn.Module):
     def __init__(self, base_pose: torch.Tensor):
         super().__init__()
         base_pose = base_pose.detach()
-        self.register_buffer("base_rotation", base_pose[..., :3, :3].clone())
+        self.register_buffer("base_rotation", orthonormalize(base_pose[..., :3, :3]))
         self.rotation_delta = torch.nn.Parameter(torch.zeros_like(base_pose[..., :3, 3]))
         self.translation = torch.nn.Parameter(base_pose[..., :3, 3].clone())
 

@@ -76,6 +76,20 @@ def so3_log(rotation: torch.Tensor) -> torch.Tensor:
     return rotation_matrix_to_axis_angle(flat).reshape(*batch, 3)
 
 
+def orthonormalize(rotation: torch.Tensor) -> torch.Tensor:
+    """Nearest rotation matrix (Frobenius norm) to each (..., 3, 3) matrix: U diag(1, 1, det) V^T.
+
+    Products of float32 rotations drift off SO(3) (about 1e-7 per product); a recursion such as
+    the constant-velocity prediction T_{t-1} T_{t-2}^-1 T_{t-1} doubles that drift every frame
+    unless the result is projected back.
+    """
+    U, _, Vh = torch.linalg.svd(rotation)
+    sign = torch.sign(torch.linalg.det(U @ Vh))
+    correction = torch.ones_like(rotation[..., 0])
+    correction = torch.cat([correction[..., :2], sign.unsqueeze(-1)], dim=-1)  # (..., 3)
+    return U @ (correction.unsqueeze(-1) * Vh)
+
+
 def skew(vector: torch.Tensor) -> torch.Tensor:
     """Hat operator [w]x with [w]x v = w x v.  (..., 3) -> (..., 3, 3)."""
     x, y, z = vector.unbind(-1)

@@ -264,6 +264,11 @@ def tsslam_start(state: SLAMState) -> None:
     state.spline = local_ba.SplineTrack.empty(float(state.timestamps[0]), state.cfg.spline.dt, state.tracked_poses)
 
 
+def _check_finite(track: "local_ba.SplineTrack", stage: str, frame: FrameTensors) -> None:
+    if not (torch.isfinite(track.rotations).all() and torch.isfinite(track.translations).all()):
+        raise TrackingFailure(f"the control points became non-finite in {stage} at frame {frame.index} (t = {frame.timestamp:.3f} s)")
+
+
 def tsslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
     """The mapping step of interval ``state.spline.intervals_done``: local BA, then global BA."""
     cfg = state.cfg
@@ -280,6 +285,7 @@ def tsslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
         track = local_ba.curve_approximation(track, times[fit_frames], state.tracked_poses[fit_frames], cfg,
                                              fit=cfg.local_ba.enabled)
         state.timings.add("lba_init", time.perf_counter() - start, cfg.local_ba.fit_iters if cfg.local_ba.enabled else 0)
+        _check_finite(track, "the curve approximation", frame)
         window_range = track.window_time_range(window)
         if cfg.local_ba.enabled:
             start = time.perf_counter()
@@ -287,7 +293,9 @@ def tsslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
             if frames:
                 track, _ = local_ba.refine_window(state.field, track, times[frames], [state.frame_rays[j] for j in frames],
                                                   cfg, state.generator)
+            _check_finite(track, "local BA refinement", frame)
             track, _ = local_ba.joint_window(state.field, state.map_optimizer, track, state.keyframes, cfg, state.generator)
+            _check_finite(track, "local BA joint refinement", frame)
             state.timings.add("lba_others", time.perf_counter() - start, cfg.local_ba.refine_iters + cfg.local_ba.joint_iters)
         window_controls = set(track.window_controls(window)) if cfg.local_ba.enabled else set()
         free = [k for k in range(local_ba.N_ANCHOR_CONTROLS, track.n_ctrl) if k not in window_controls]
@@ -303,6 +311,7 @@ def tsslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
         )
         state.timings.add("global_ba", time.perf_counter() - start, cfg.mapping.iters)
         track = local_ba.SplineTrack(track.dt, track.t0, rotations, translations, n, track.convention)
+        _check_finite(track, "global BA", frame)
         check_spline_follows_tracking(state, track, times[in_interval], in_interval)
         covered = np.nonzero(track.covers(times))[0]
         if len(covered) > 0:

@@ -26,7 +26,7 @@ import torch
 
 from .config import Config
 from .bundle import PoseIncrement, frozen
-from .geometry import invert_pose
+from .geometry import invert_pose, make_pose, orthonormalize
 from .losses import render_loss
 from .render import RayBatch
 
@@ -40,11 +40,13 @@ def constant_velocity_init(previous: torch.Tensor, before_previous: Optional[tor
 
     Returns:
         (4, 4) predicted camera-to-world pose of frame t.  The relative motion is applied in the
-        world frame, exactly as Co-SLAM does.
+        world frame, exactly as Co-SLAM does; the rotation is projected back onto SO(3) (without
+        it the float32 drift doubles every frame and the poses blow up after ~20 frames).
     """
     if before_previous is None:
         return previous.clone()
-    return previous @ invert_pose(before_previous) @ previous
+    predicted = previous @ invert_pose(before_previous) @ previous
+    return make_pose(orthonormalize(predicted[:3, :3]), predicted[:3, 3])
 
 
 @dataclass
