@@ -184,6 +184,16 @@ class SplinePoses(torch.nn.Module):
         return spline_poses
 
 
+def with_slot(rays: RayBatch, slot: int) -> RayBatch:
+    """The same rays with every ``frame_ids`` set to ``slot`` (the pose they are rendered with)."""
+    return RayBatch(rays.directions_cam, rays.rgb, rays.depth, torch.full_like(rays.frame_ids, slot))
+
+
+def slotted(batches: Sequence[RayBatch]) -> RayBatch:
+    """Concatenate ray batches, batch k relabelled to slot k."""
+    return RayBatch.cat([with_slot(rays, slot) for slot, rays in enumerate(batches)])
+
+
 class KeyframeDatabase:
     """Camera-frame rays of every keyframe (Co-SLAM keeps ``n_pixels`` = 5 % of each one's pixels).
 
@@ -209,12 +219,7 @@ class KeyframeDatabase:
     def rays(self, slots: Optional[Sequence[int]] = None) -> RayBatch:
         """Rays of ``slots`` (default all) with ``frame_ids`` = position in ``slots``."""
         slots = range(len(self._rays)) if slots is None else slots
-        batches = []
-        for position, slot in enumerate(slots):
-            rays = self._rays[slot]
-            batches.append(RayBatch(rays.directions_cam, rays.rgb, rays.depth,
-                                    torch.full_like(rays.frame_ids, position)))
-        return RayBatch.cat(batches)
+        return slotted([self._rays[slot] for slot in slots])
 
 
 @dataclass

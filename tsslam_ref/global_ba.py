@@ -24,7 +24,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, joint_optimization
+from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, joint_optimization, with_slot
 from .config import Config
 from .dynamics import trajectory_dynamics_loss
 from .render import RayBatch
@@ -33,10 +33,6 @@ from .render import RayBatch
 def current_frame_share(cfg: Config, n_keyframes: int, n_available: int) -> int:
     """Current-frame rays per iteration: max(n_rays // n_kf, min_pixels_cur) (Co-SLAM 5.4)."""
     return min(n_available, max(cfg.mapping.n_rays // max(n_keyframes, 1), cfg.mapping.min_pixels_cur))
-
-
-def _with_slot(rays: RayBatch, slot: int) -> RayBatch:
-    return RayBatch(rays.directions_cam, rays.rgb, rays.depth, torch.full_like(rays.frame_ids, slot))
 
 
 def coslam_global_ba(
@@ -67,7 +63,7 @@ def coslam_global_ba(
         fixed[n_kf] = not cfg.mapping.optim_cur
     poses = DiscretePoses(initial, fixed, cfg.mapping.lr_rot, cfg.mapping.lr_trans)
     sources = [(keyframes.rays(), cfg.mapping.n_rays),
-               (_with_slot(current_rays, n_kf), current_frame_share(cfg, n_kf, len(current_rays)))]
+               (with_slot(current_rays, n_kf), current_frame_share(cfg, n_kf, len(current_rays)))]
     stats = joint_optimization(field_model, map_optimizer, sources, poses, cfg, cfg.mapping.iters, generator,
                                pose_accum_step=cfg.mapping.pose_accum_step)
     result = poses.poses().detach()
@@ -116,7 +112,7 @@ def tsslam_global_ba(
     if dynamics_range is not None and dynamics_range[1] > dynamics_range[0] and len(free_controls) > 0:
         extra = lambda: trajectory_dynamics_loss(poses.trajectory(), dynamics_range[0], dynamics_range[1], cfg.dynamics, generator)
     sources = [(keyframes.rays(), cfg.mapping.n_rays),
-               (_with_slot(current_rays, n_kf), current_frame_share(cfg, n_kf, len(current_rays)))]
+               (with_slot(current_rays, n_kf), current_frame_share(cfg, n_kf, len(current_rays)))]
     stats = joint_optimization(field_model, map_optimizer, sources, poses, cfg, cfg.mapping.iters, generator,
                                extra_loss=extra, pose_accum_step=cfg.mapping.pose_accum_step)
     rotations, translations = poses.control_points()

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from . import spline as spline_module
-from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, joint_optimization
+from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, joint_optimization, slotted
 from .config import Config
 from .dynamics import trajectory_dynamics_loss
 from .geometry import make_pose, so3_exp, so3_log
@@ -230,8 +230,7 @@ def refine_window(field_model: torch.nn.Module, track: SplineTrack, frame_times:
     fallback = track.poses(frame_times)
     poses = SplinePoses(track.rotations, track.translations, window, track.dt, track.t0, track.convention,
                         frame_times, fallback, cfg.local_ba.lr_rot, cfg.local_ba.lr_trans)
-    pool = RayBatch.cat([RayBatch(r.directions_cam, r.rgb, r.depth, torch.full_like(r.frame_ids, slot))
-                         for slot, r in enumerate(frame_rays)])
+    pool = slotted(frame_rays)
     stats = joint_optimization(field_model, None, [(pool, cfg.local_ba.n_rays)], poses, cfg, cfg.local_ba.refine_iters,
                                generator, extra_loss=window_dynamics(poses, time_range, cfg, generator),
                                optimise_map=False, pose_accum_step=1)
@@ -275,8 +274,7 @@ def refine_discrete_window(field_model: torch.nn.Module, map_optimizer: torch.op
     """
     fixed = torch.zeros(len(frame_rays), dtype=torch.bool)
     model = DiscretePoses(poses, fixed, cfg.local_ba.lr_rot, cfg.local_ba.lr_trans)
-    pool = RayBatch.cat([RayBatch(r.directions_cam, r.rgb, r.depth, torch.full_like(r.frame_ids, slot))
-                         for slot, r in enumerate(frame_rays)])
+    pool = slotted(frame_rays)
     joint_optimization(field_model, None, [(pool, cfg.local_ba.n_rays)], model, cfg, cfg.local_ba.refine_iters,
                        generator, optimise_map=False, pose_accum_step=1)
     keyframe_slots = [slot for slot, is_kf in enumerate(keyframe_mask) if is_kf]
