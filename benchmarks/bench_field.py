@@ -21,6 +21,7 @@ import torch
 from tsslam_ref import config
 from tsslam_ref.field import SceneField
 from tsslam_ref.mapping import make_map_optimizer
+from tsslam_ref.slam import tune_cpu_allocator
 
 BOX = [[-3.5, 3.0], [-3.0, 3.0], [-3.0, 3.0]]  # TUM fr1_desk (Co-SLAM), 6.5 m
 
@@ -67,8 +68,10 @@ def main(argv=None):
     parser.add_argument("--no-reference", action="store_true", help="skip the reference path")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    allocator = tune_cpu_allocator()
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
-    print(f"torch {torch.__version__}, {args.threads} threads, float32, box 6.5 m, medians of {args.repeats}")
+    print(f"torch {torch.__version__}, {args.threads} threads, float32, box 6.5 m, medians of {args.repeats}, "
+          f"glibc allocator tuned: {allocator}")
     print(f"{'device':6} {'preset':14} {'log2T':>5} {'samples':>7} {'rays':>5} {'fast ms':>9} {'(min)':>7} "
           f"{'ref ms':>9} {'ref/fast':>8} {'peak MiB':>9}")
     for device in devices:

@@ -87,6 +87,7 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="write every row to this JSON file")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    slam.tune_cpu_allocator()
 
     base = config.apply_overrides(config.load(args.config), args.overrides)
     base.data.path = args.data

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from tsslam_ref import config
-from tsslam_ref.field import HashGridEncoding, OneBlobEncoding, SceneField, finest_resolution, gather_rows
+from tsslam_ref.field import HashGridEncoding, OneBlobEncoding, SceneField, finest_resolution, trilinear_lookup
 
 
 # ---------------------------------------------------------------- OneBlob
@@ -28,7 +28,7 @@ def _oneblob_direct(x: float, n_bins: int = 16):
 
 def test_oneblob_matches_numerical_integral_of_quartic_kernel():
     encoding = OneBlobEncoding(16)
-    xs = [0.0, 0.013, 0.3, 0.5, 0.77, 0.99]
+    xs = [0.0, 0.013, 0.03125, 0.06, 0.3, 0.5, 0.77, 0.95, 0.97, 0.99, 1 - 1e-9]
     codes = encoding(torch.tensor([[x, x, x] for x in xs], dtype=torch.float64))
     for row, x in zip(codes, xs):
         assert torch.allclose(row[:16], _oneblob_direct(x), atol=1e-6)
@@ -131,11 +131,16 @@ def test_fast_and_reference_paths_agree_in_values_and_gradients():
     assert torch.allclose(x_fast, x_ref, atol=1e-3, rtol=1e-4)
 
 
-def test_gather_gradcheck_float64():
-    table = torch.randn(7, 2, dtype=torch.float64, requires_grad=True)
-    index = torch.tensor([0, 3, 3, 6, 1, 3])
-    assert torch.autograd.gradcheck(lambda t: gather_rows(t, index), (table,))
-    assert torch.autograd.gradgradcheck(lambda t: gather_rows(t, index) ** 2, (table,))
+def test_trilinear_lookup_gradcheck_float64():
+    """The hand-written backward of the fused lookup vs finite differences, table and fractions."""
+    generator = torch.Generator().manual_seed(0)
+    table = torch.randn(7, 2, dtype=torch.float64, generator=generator, requires_grad=True)
+    index = torch.randint(0, 7, (8, 2, 5), generator=generator)  # repeated rows on purpose
+    fraction = torch.rand(2, 5, 3, dtype=torch.float64, generator=generator, requires_grad=True)
+    assert torch.autograd.gradcheck(trilinear_lookup, (table, index, fraction))
+    # each input alone (the other a constant): the backward skips the unused branch
+    assert torch.autograd.gradcheck(lambda t: trilinear_lookup(t, index, fraction.detach()), (table,))
+    assert torch.autograd.gradcheck(lambda f: trilinear_lookup(table.detach(), index, f), (fraction,))
 
 
 def test_fast_encoding_gradcheck_on_tiny_grid():

@@ -83,7 +83,7 @@ class FieldConfig:
     hidden_dim_color: int = 32
     """Hidden width of the colour MLP (Co-SLAM)."""
     fast_gather: bool = True
-    """Use the custom gather/scatter_add autograd function for table reads (ours, see
+    """Use the fused corner lookup with its hand-written backward (``field._TrilinearLookup``, see
     shared/spec/cpu-budget.md); False uses the plain reference path."""
 
 

@@ -72,6 +72,10 @@ class OneBlobEncoding(nn.Module):
     Coordinates are first wrapped to [0, 1) (x - floor(x)), so the code has period 1 for every x,
     also outside the box.  The outputs of one coordinate sum to 1.  No parameters.
     Output layout is dim-major: (x bins, y bins, z bins).
+
+    Evaluated with one CDF instead of three: with d = b - x in (-1, 1], r = round(d) and
+    e = d - r in [-1/2, 1/2], the kernel's support (|u| <= 1/n_bins <= 1/2) gives
+    G(b) = F(e) + r + 1, and the constant cancels in out_k.
     """
 
     def __init__(self, n_bins: int = 16):
@@ -96,8 +100,9 @@ class OneBlobEncoding(nn.Module):
         edges = torch.arange(self.n_bins + 1, device=points_unit.device, dtype=points_unit.dtype)
         edges = edges / self.n_bins  # (n_bins + 1,)
         wrapped = points_unit - torch.floor(points_unit).detach()  # in [0, 1): exact period 1
-        offset = edges - wrapped.unsqueeze(-1)  # (N, 3, n_bins + 1)
-        cdf = self.kernel_cdf(offset) + self.kernel_cdf(offset - 1.0) + self.kernel_cdf(offset + 1.0)
+        offset = edges - wrapped.unsqueeze(-1)  # (N, 3, n_bins + 1), d = b - x in (-1, 1]
+        nearest_period = torch.round(offset).detach()  # r
+        cdf = self.kernel_cdf(offset - nearest_period) + nearest_period  # G(b) - 1
         codes = cdf[..., 1:] - cdf[..., :-1]  # (N, 3, n_bins)
         return codes.reshape(points_unit.shape[0], self.out_dim)
 
@@ -106,35 +111,83 @@ class OneBlobEncoding(nn.Module):
 # Hash grid
 
 
-class _TableGather(torch.autograd.Function):
-    """rows = table[index] whose backward is one ``scatter_add_`` into a zero table.
+def corner_weights(fraction: torch.Tensor) -> torch.Tensor:
+    """Trilinear weights of the 8 cell corners, (..., 3) fractions -> (8, ...), corner order
+    ``CORNER_OFFSETS``: w_c = prod_axis (f if offset = 1 else 1 - f)."""
+    fx, fy, fz = fraction.unbind(-1)
+    wx, wy, wz = (1.0 - fx, fx), (1.0 - fy, fy), (1.0 - fz, fz)
+    return torch.stack([wx[dx] * wy[dy] * wz[dz] for dx, dy, dz in CORNER_OFFSETS])
 
-    The default backward of ``F.embedding`` / advanced indexing is the slowest op of the whole
-    field on CPU (shared/spec/cpu-budget.md); this one writes all gradient rows in one pass.
-    Written in the ``setup_context`` style so that it also works under ``torch.func``.
+
+class _TrilinearLookup(torch.autograd.Function):
+    """features = sum_c w_c(fraction) * table[index_c], with a hand-written backward.
+
+    Shapes: table (T, F), index (8, L, N) long (global rows, corner-major), fraction (L, N, 3)
+    -> features (L, N, F).
+
+    Why a custom Function (shared/spec/cpu-budget.md): the hash grid is memory-bound, every pass
+    over the (8, L, N, F) corner rows costs ~20 ms at 1024 rays on two cores, and autograd's own
+    graph of this sum makes ~10 such passes plus the slow default backward of indexing.  Here:
+
+        d table      = scatter_add over index of  w_c * g                  (one flat pass)
+        d fraction_x = sum_c (d w_c / d f_x) <table[index_c], g>,  d w_c / d f_x = +-w_c^(y) w_c^(z)
+
+    and the same for y, z.  The table gradient is skipped when the map is frozen (tracking), the
+    fraction gradient when the points are constants (mapping with fixed poses).  Tested against the
+    plain reference path and finite differences (tests/test_field.py).  Once differentiable.
     """
 
     @staticmethod
-    def forward(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-        return table.index_select(0, index)
+    def forward(table: torch.Tensor, index: torch.Tensor, fraction: torch.Tensor) -> torch.Tensor:
+        rows = table.index_select(0, index.view(-1)).view(*index.shape, table.shape[1])  # (8, L, N, F)
+        rows = rows.to(fraction.dtype)
+        weights = corner_weights(fraction).unsqueeze(-1)  # (8, L, N, 1)
+        features = weights[0] * rows[0]
+        for c in range(1, 8):
+            features.addcmul_(weights[c], rows[c])
+        return features, rows
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        table, index = inputs
-        ctx.save_for_backward(index)
-        ctx.table_shape = table.shape
+        table, index, fraction = inputs
+        _, rows = output
+        ctx.mark_non_differentiable(rows)
+        ctx.set_materialize_grads(False)  # no zero-filled (8, L, N, F) gradient for ``rows``
+        ctx.table_shape, ctx.table_dtype = table.shape, table.dtype
+        ctx.save_for_backward(index, fraction, rows)
 
     @staticmethod
-    def backward(ctx, grad_rows: torch.Tensor):
-        (index,) = ctx.saved_tensors
-        grad_table = grad_rows.new_zeros(ctx.table_shape)
-        grad_table.scatter_add_(0, index.unsqueeze(-1).expand_as(grad_rows), grad_rows)
-        return grad_table, None
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_features: torch.Tensor, _grad_rows):
+        index, fraction, rows = ctx.saved_tensors
+        grad_table = grad_fraction = None
+        if grad_features is None:  # the features were not used
+            return grad_table, None, grad_fraction
+        weights = corner_weights(fraction)  # (8, L, N)
+        if ctx.needs_input_grad[0]:
+            # one 1-D scatter per feature column: faster on CPU than a (M, F) scatter whose
+            # inner dimension is only F = 2 wide
+            flat_index = index.view(-1)
+            grad_table = grad_features.new_zeros(ctx.table_shape, dtype=ctx.table_dtype)
+            for feature in range(ctx.table_shape[1]):
+                grad_rows = (weights * grad_features[..., feature]).to(ctx.table_dtype)  # (8, L, N)
+                grad_table[:, feature].scatter_add_(0, flat_index, grad_rows.view(-1))
+        if ctx.needs_input_grad[2]:
+            grad_weights = sum(rows[..., f] * grad_features[..., f] for f in range(rows.shape[-1]))
+            grad_weights = grad_weights.view(2, 2, 2, *fraction.shape[:-1])
+            fx, fy, fz = fraction.unbind(-1)
+            wx, wy, wz = torch.stack((1.0 - fx, fx)), torch.stack((1.0 - fy, fy)), torch.stack((1.0 - fz, fz))
+            # grad_weights[dx, dy, dz]: d loss / d w_c; difference along one axis, weighted by the others
+            grad_x = ((grad_weights[1] - grad_weights[0]) * wy[:, None] * wz[None, :]).sum((0, 1))
+            grad_y = ((grad_weights[:, 1] - grad_weights[:, 0]) * wx[:, None] * wz[None, :]).sum((0, 1))
+            grad_z = ((grad_weights[:, :, 1] - grad_weights[:, :, 0]) * wx[:, None] * wy[None, :]).sum((0, 1))
+            grad_fraction = torch.stack((grad_x, grad_y, grad_z), dim=-1)
+        return grad_table, None, grad_fraction
 
 
-def gather_rows(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """Fast differentiable ``table[index]`` for a (T, F) table and (M,) long index -> (M, F)."""
-    return _TableGather.apply(table, index)
+def trilinear_lookup(table: torch.Tensor, index: torch.Tensor, fraction: torch.Tensor) -> torch.Tensor:
+    """(T, F) table, (8, L, N) corner rows, (L, N, 3) fractions -> (L, N, F) interpolated features."""
+    return _TrilinearLookup.apply(table, index, fraction)[0]
 
 
 class HashGridEncoding(nn.Module):
@@ -152,7 +205,7 @@ class HashGridEncoding(nn.Module):
     (sum_l size_l, n_features) with ``level_offsets``.
 
     Two paths give the same numbers: the fast one (all levels at once, corner-major, custom
-    gather with a ``scatter_add_`` backward) and a plain reference one (a loop over levels and
+    trilinear lookup with a hand-written backward, ``_TrilinearLookup``) and a plain reference one (a loop over levels and
     corners with ordinary indexing).  ``fast_gather`` picks one.
     """
 
@@ -239,13 +292,17 @@ class HashGridEncoding(nn.Module):
             resolution = self.resolutions[:n_dense].view(-1, 1)  # (Ld, 1)
             size = self.sizes[:n_dense].view(-1, 1)
             base = i0[:n_dense] + (j0[:n_dense] + k0[:n_dense] * resolution) * resolution  # (Ld, N)
+            offsets = self.offsets[:n_dense].view(-1, 1)
             inside = bool(base.min() >= 0) and bool((base + 1 + resolution + resolution**2 < size).all())
+            if inside:
+                base = base + offsets  # fold the level offsets in once
             for c, (dx, dy, dz) in enumerate(CORNER_OFFSETS):
-                corner_index = base + (dx + (dy + dz * resolution) * resolution)
-                if not inside:  # points outside the box: emulate tcnn's uint32 wrap
-                    corner_index = (corner_index & UINT32_MASK) % size
-                index[c, :n_dense] = corner_index + self.offsets[:n_dense].view(-1, 1)
-        # Hashed levels: (i * 1 xor j * 2654435761 xor k * 805459861) mod 2^T.
+                corner_step = dx + (dy + dz * resolution) * resolution  # (Ld, 1)
+                if inside:
+                    torch.add(base, corner_step, out=index[c, :n_dense])
+                else:  # points outside the box: emulate tcnn's uint32 wrap
+                    index[c, :n_dense] = ((base + corner_step) & UINT32_MASK) % size + offsets
+        # Hashed levels: (i * 1 xor j * 2654435761 xor k * 805459861) mod 2^T, written in place.
         if n_dense < self.n_levels:
             hash_mask = 2**self.log2_hashmap_size - 1
             terms = []
@@ -253,20 +310,13 @@ class HashGridEncoding(nn.Module):
                 scaled = coordinate * prime if prime != 1 else coordinate
                 terms.append((scaled, scaled + prime))
             hashed_offsets = self.offsets[n_dense:].view(-1, 1)
+            xy_hashes = {(dx, dy): terms[0][dx] ^ terms[1][dy] for dx in (0, 1) for dy in (0, 1)}
             for c, (dx, dy, dz) in enumerate(CORNER_OFFSETS):
-                hashed = (terms[0][dx] ^ terms[1][dy] ^ terms[2][dz]) & hash_mask
-                index[c, n_dense:] = hashed + hashed_offsets
+                hashed = index[c, n_dense:]  # (Lh, N), contiguous
+                torch.bitwise_xor(xy_hashes[dx, dy], terms[2][dz], out=hashed)
+                hashed.bitwise_and_(hash_mask).add_(hashed_offsets)
 
-        rows = gather_rows(self.table, index.view(-1)).to(points_unit.dtype)  # (8 * L * N, F)
-        # unbind, not rows[c]: the backward of 8 selects would zero-fill 8 full-size buffers.
-        corner_rows = rows.view(8, self.n_levels, n_points, self.n_features).unbind(0)  # 8 x (L, N, F)
-
-        fx, fy, fz = fraction.unsqueeze(-1).unbind(-2)  # (L, N, 1) each
-        wx, wy, wz = (1.0 - fx, fx), (1.0 - fy, fy), (1.0 - fz, fz)
-        features = None
-        for c, (dx, dy, dz) in enumerate(CORNER_OFFSETS):
-            term = (wx[dx] * wy[dy] * wz[dz]) * corner_rows[c]  # (L, N, F)
-            features = term if features is None else features + term
+        features = trilinear_lookup(self.table, index, fraction)  # (L, N, F)
         return features.permute(1, 0, 2).reshape(n_points, self.out_dim)  # (N, L * F)
 
     # -- reference path -----------------------------------------------------------------------

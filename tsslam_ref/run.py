@@ -235,6 +235,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"resuming at frame {state.done} of {len(sequence)}")
 
     device = slam.resolve_device(cfg.device)
+    slam.tune_cpu_allocator()
     progress = None
     if not args.quiet:
         from tqdm import tqdm

@@ -25,6 +25,7 @@ Layer 4 (system): orchestrates; holds only small state dataclasses.
 Taught in notebooks/09_full_system.ipynb.
 """
 
+import ctypes
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional
@@ -56,6 +57,26 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda was asked for but torch.cuda.is_available() is False")
     return device
+
+
+def tune_cpu_allocator() -> bool:
+    """Keep freed buffers in the process instead of returning them to the OS (glibc only).
+
+    The map's iterations allocate and free the same ~50 MB buffers again and again; with glibc's
+    defaults each is a fresh mmap that page-faults on first touch (shared/spec/cpu-budget.md:
+    20-40 % of an iteration).  Raising the mmap and trim thresholds (``mallopt``, the same as the
+    ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` / ``MALLOC_TOP_PAD_`` environment
+    variables) avoids that.  Process-wide, so only the command-line entry points call it.
+    Returns False (and changes nothing) where glibc is not available.
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # glibc malloc.h
+    ok = mallopt(m_mmap_threshold, 1 << 30) and mallopt(m_trim_threshold, 1 << 30)
+    return bool(ok and mallopt(m_top_pad, 1 << 28))
 
 
 @dataclass
