@@ -45,8 +45,10 @@ from .render import RayBatch
 
 
 N_ANCHOR_CONTROLS = 3
-"""Global BA never moves the oldest three control points: they fix frame 0's pose (its spline pose
-is (P_0 + 4 P_1 + P_2)/6 in position), the gauge Co-SLAM fixes by holding keyframe 0."""
+"""No stage after the first interval's fit moves the oldest three control points (local BA's window
+and global BA leave them out): they fix frame 0's pose (its spline pose is (P_0 + 4 P_1 + P_2)/6 in
+position), the gauge Co-SLAM fixes by holding keyframe 0.  The first interval's fit makes that pose
+frame 0's own (:func:`constant_velocity_control_points`)."""
 
 
 @dataclass
@@ -97,13 +99,13 @@ class SplineTrack:
         return (times >= start) & (times < end) if self.n_ctrl >= 4 else np.zeros(times.shape, dtype=bool)
 
     def window_controls(self, window: int) -> List[int]:
-        """Indices of the ``window`` newest control points."""
-        return list(range(max(0, self.n_ctrl - window), self.n_ctrl))
+        """Indices of the ``window`` newest control points, never the ``N_ANCHOR_CONTROLS`` oldest."""
+        return list(range(max(N_ANCHOR_CONTROLS, self.n_ctrl - window), self.n_ctrl))
 
     def window_time_range(self, window: int) -> Tuple[float, float]:
         """Times shaped by the window's control points, clipped to the domain: [t_{N-M-1}, t_{N-1})."""
         start, end = self.domain()
-        first = max(0, self.n_ctrl - window)
+        first = max(N_ANCHOR_CONTROLS, self.n_ctrl - window)
         return max(start, self.knot_time(first - 1)), end
 
     def poses(self, times: np.ndarray) -> torch.Tensor:
@@ -131,9 +133,11 @@ def constant_velocity_control_points(track: SplineTrack, times: np.ndarray, pose
 
     With P_k = c + v dt (k - 1) and R_k = R_first Exp((k - 1) w dt) the paper-convention spline
     is exactly p(t) = c + v (t - t_first), R(t) = R_first Exp(w (t - t_first)) (spline.md 3.2), so
-    fitting the line (c, v) and the body rate w to the first interval's poses is a linear,
+    fitting the velocity v and the body rate w to the first interval's poses is a linear,
     well-conditioned problem, whereas four free points fitted to one segment's noisy poses swing
-    far off (a cubic extrapolated from a fraction of a second of data).
+    far off (a cubic extrapolated from a fraction of a second of data).  The line starts at the
+    first pose (c = p_first, R_first its rotation): the spline then passes exactly through frame
+    0's pose, which anchors the map as in Co-SLAM, and the anchors keep it there.
 
     Args:
         times: (K,) float64 s, the first interval's frames (the first is frame 0).
@@ -142,16 +146,15 @@ def constant_velocity_control_points(track: SplineTrack, times: np.ndarray, pose
     first_time = track.knot_time(2)
     elapsed = torch.as_tensor(np.asarray(times, dtype=np.float64) - first_time)  # (K,)
     positions = poses[:, :3, 3].double()  # (K, 3)
-    design = torch.stack([torch.ones_like(elapsed), elapsed], dim=-1)  # (K, 2)
-    if len(times) >= 2:
-        solution = torch.linalg.lstsq(design, positions).solution  # (2, 3): c, v
-    else:
-        solution = torch.stack([positions[0], torch.zeros_like(positions[0])])
-    offset, velocity = solution[0], solution[1]
+    offset = positions[0]  # c: the line starts at the first pose
     first_rotation = poses[0, :3, :3].double()
     rotvecs = so3_log(first_rotation.transpose(-1, -2).unsqueeze(0) @ poses[:, :3, :3].double())  # (K, 3) body
-    weight = elapsed.square().sum()
-    rate = (elapsed[:, None] * rotvecs).sum(0) / weight if float(weight) > 0 else torch.zeros(3, dtype=torch.float64)
+    weight = elapsed.square().sum()  # least squares through the origin: x = sum(e y) / sum(e^2)
+    if float(weight) > 0:
+        velocity = (elapsed[:, None] * (positions - offset)).sum(0) / weight
+        rate = (elapsed[:, None] * rotvecs).sum(0) / weight
+    else:
+        velocity = rate = torch.zeros(3, dtype=torch.float64)
     k = torch.arange(4, dtype=torch.float64)[:, None] - 1.0  # (4, 1)
     translations = offset + velocity * track.dt * k  # (4, 3)
     rotations = first_rotation @ so3_exp(rate * track.dt * k)  # (4, 3, 3)
