@@ -18,6 +18,8 @@ Every number comes from runs made by this script; nothing is hard-coded.
 
 import argparse
 import json
+import os
+import tempfile
 import time
 from typing import Dict, List
 
@@ -49,6 +51,15 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
         tracking = runtime["tracking"]
         row["theoretical_fps"] = 1000.0 / (tracking["ms_per_iteration"] * tracking["iterations_per_call"])
     return row
+
+
+def write_json_atomic(path: str, payload) -> None:
+    """Write ``payload`` as JSON through a temporary file in the same folder and ``os.replace``."""
+    directory = os.path.dirname(os.path.abspath(path))
+    handle, temporary = tempfile.mkstemp(dir=directory, suffix=".tmp")
+    with os.fdopen(handle, "w") as stream:
+        json.dump(payload, stream, indent=2)
+    os.replace(temporary, path)
 
 
 def mean_rows(rows: List[Dict]) -> Dict[str, float]:
@@ -83,9 +94,14 @@ def main() -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     parser.add_argument("--ablations", action="store_true", help="also run w/o B-S., w/o DR and the dt sweep")
     parser.add_argument("--dts", type=float, nargs="+", default=[], help="dt values for the sweep (s)")
+    parser.add_argument("--ablation-seeds", type=int, nargs="+", default=None,
+                        help="seeds for the ablation and dt-sweep rows (default: the first of --seeds)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--json", default=None, help="write every row to this JSON file")
+    parser.add_argument("--overwrite", action="store_true", help="allow replacing an existing --json file")
     args = parser.parse_args()
+    if args.json and os.path.exists(args.json) and not args.overwrite:
+        parser.error(f"--json {args.json} exists; pass --overwrite to replace it")
     torch.set_num_threads(args.threads)
     slam.tune_cpu_allocator()
 
@@ -106,17 +122,21 @@ def main() -> None:
 
     print(f"sequence {sequence.name}: {len(sequence)} frames, {sequence.intrinsics.width}x{sequence.intrinsics.height}, "
           f"preset {base.name}, seeds {args.seeds}, {args.threads} threads")
+    main_variants = ("Co-SLAM (baseline)", "TS-SLAM")
+    ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else args.seeds[:1]
     results = {}
     for name, overrides in variants.items():
         rows = []
-        for seed in args.seeds:
+        for seed in (args.seeds if name in main_variants else ablation_seeds):
             cfg = config.apply_overrides(base, overrides + [f"seed={seed}"])
             row = run_once(sequence, cfg)
             rows.append(row)
             summary = "failed: " + row["failed"] if "failed" in row else (
                 f"ATE {row['ate_cm']:.2f} cm, RPE {row['rpe_cm']:.3f} cm / {row['rpe_deg']:.3f} deg, {row['wall_fps']:.2f} frames/s")
             print(f"  {name:22s} seed {seed}: {summary}", flush=True)
-        results[name] = {"rows": rows, "mean": mean_rows(rows)}
+            results[name] = {"rows": rows, "mean": mean_rows(rows)}
+            if args.json:  # after every run, so that an interrupted benchmark keeps what it measured
+                write_json_atomic(args.json, results)
 
     print("\n| method | ATE RMSE (cm) | RPE RMSE (cm) | RPE (deg) | runs |")
     print("|---|---|---|---|---|")
@@ -139,9 +159,6 @@ def main() -> None:
         if good:
             line = runtime_line(name, good[0]["runtime"])
             print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")
-    if args.json:
-        with open(args.json, "w") as stream:
-            json.dump(results, stream, indent=2)
 
 
 if __name__ == "__main__":
