@@ -272,6 +272,9 @@ class Config:
     """cpu | cuda | auto."""
     dtype: str = "float32"
     """Map and rendering precision."""
+    parallel: bool = False
+    """Track and map in two threads (parallel.py; not deterministic).  False: the sequential,
+    deterministic loop."""
     data: DataConfig = _field(default_factory=DataConfig)
     field: FieldConfig = _field(default_factory=FieldConfig)
     render: RenderConfig = _field(default_factory=RenderConfig)

@@ -72,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=None, help="random seed (default from the config: 0)")
     parser.add_argument("--device", default=None, choices=["cpu", "cuda", "auto"], help="compute device (default auto)")
     parser.add_argument("--frames", default=None, help="START:STOP[:STEP] frame selection")
+    parser.add_argument("--parallel", action="store_true",
+                        help="track and map in two threads (not deterministic; default: the sequential loop)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="config override, e.g. --set tracking.iters=20 (repeatable)")
     parser.add_argument("--export-rate", type=float, default=None, metavar="HZ",
@@ -95,6 +97,8 @@ def resolve_config(args) -> config_module.Config:
         cfg.device = args.device
     if args.data:
         cfg.data.path = args.data
+    if args.parallel:
+        cfg.parallel = True
     if args.dataset:
         cfg.data.dataset = "tum" if args.dataset == "synthetic" else args.dataset
     frames = parse_frames(args.frames)

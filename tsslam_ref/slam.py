@@ -25,6 +25,7 @@ Layer 4 (system): orchestrates; holds only small state dataclasses.
 Taught in notebooks/09_full_system.ipynb.
 """
 
+import contextlib
 import ctypes
 import time
 from dataclasses import dataclass, field
@@ -222,28 +223,35 @@ def first_frame_mapping(state: SLAMState, frame: FrameTensors) -> None:
     state.frame_rays[0] = frame.sampled_rays(cfg.tracking.n_rays, state.generator, ignore_edge=cfg.tracking.ignore_edge)
 
 
-def track(state: SLAMState, frame: FrameTensors) -> None:
-    """Track frame ``frame.index`` from a constant-velocity prediction; store the estimate."""
+def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneField] = None, lock=None) -> None:
+    """Track frame ``frame.index`` from a constant-velocity prediction; store the estimate.
+
+    ``field_model`` (default ``state.field``) is the map tracked against; ``lock`` (parallel mode,
+    parallel.py) guards the reads and writes of ``state``, not the optimisation."""
     cfg = state.cfg
     i = frame.index
-    before = state.tracked_poses[i - 2] if (i >= 2 and cfg.tracking.const_speed) else None
-    init = constant_velocity_init(state.tracked_poses[i - 1], before)
+    lock = lock if lock is not None else contextlib.nullcontext()
+    with lock:
+        before = state.tracked_poses[i - 2].clone() if (i >= 2 and cfg.tracking.const_speed) else None
+        init = constant_velocity_init(state.tracked_poses[i - 1].clone(), before)
+        reference = [entry["tracking_loss"] for entry in state.log[:5]]
     rays = frame.sampled_rays(cfg.tracking.n_rays, state.generator, ignore_edge=cfg.tracking.ignore_edge)
     start = time.perf_counter()
-    result = track_frame(state.field, rays, init, cfg, generator=state.generator)
+    result = track_frame(field_model if field_model is not None else state.field, rays, init, cfg,
+                         generator=state.generator)
     state.timings.add("tracking", time.perf_counter() - start, len(result.losses))
     best_loss = result.losses[result.best_iteration] if result.losses else float("nan")
     if not (torch.all(torch.isfinite(result.pose)) and np.isfinite(best_loss)):
         raise TrackingFailure(f"tracking produced a non-finite pose or loss at frame {i} (t = {frame.timestamp:.3f} s)")
-    reference = [entry["tracking_loss"] for entry in state.log[:5]]
     if len(reference) == 5 and best_loss > cfg.tracking.max_loss_ratio * float(np.median(reference)):
         raise TrackingFailure(
             f"tracking diverged at frame {i} (t = {frame.timestamp:.3f} s): loss {best_loss:.4g} is more than "
             f"{cfg.tracking.max_loss_ratio:g} x the median {np.median(reference):.4g} of the first tracked frames"
         )
-    state.tracked_poses[i] = result.pose
-    state.frame_rays[i] = rays
-    state.log.append({"frame": i, "tracking_loss": best_loss})
+    with lock:
+        state.tracked_poses[i] = result.pose
+        state.frame_rays[i] = rays
+        state.log.append({"frame": i, "tracking_loss": best_loss})
 
 
 def coslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
@@ -262,9 +270,14 @@ def coslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
 
 def coslam_step(state: SLAMState, frame: FrameTensors) -> None:
     """One frame of the Co-SLAM baseline schedule (after frame 0)."""
+    track(state, frame)
+    coslam_after_tracking(state, frame)
+
+
+def coslam_after_tracking(state: SLAMState, frame: FrameTensors) -> None:
+    """The mapping side of a Co-SLAM frame: global BA every ``map_every``, keyframes, pose_relative."""
     cfg = state.cfg
     i = frame.index
-    track(state, frame)
     if i % cfg.mapping.map_every == 0:
         coslam_mapping(state, frame)
     if i % cfg.mapping.keyframe_every == 0:
@@ -383,8 +396,13 @@ def check_spline_follows_tracking(state: SLAMState, track: "local_ba.SplineTrack
 
 def tsslam_step(state: SLAMState, frame: FrameTensors) -> None:
     """One frame of TS-SLAM: track; every completed dt-interval, map; keyframe every 5 frames."""
-    cfg = state.cfg
     track(state, frame)
+    tsslam_after_tracking(state, frame)
+
+
+def tsslam_after_tracking(state: SLAMState, frame: FrameTensors) -> None:
+    """The mapping side of a TS-SLAM frame: local + global BA per completed interval, keyframes."""
+    cfg = state.cfg
     while frame.timestamp >= state.spline.interval(state.spline.intervals_done)[1]:
         tsslam_mapping(state, frame)
     if frame.index % cfg.mapping.keyframe_every == 0:
@@ -496,6 +514,11 @@ def run_slam(
     start = time.perf_counter()
     start_frame = state.done
     for i in range(state.done, len(sequence)):
+        if i > 0 and cfg.parallel:
+            from .parallel import run_tracking_and_mapping  # the optional two-thread schedule
+
+            run_tracking_and_mapping(sequence, state, device, dtype, on_frame)
+            break
         frame = frame_to_device(sequence[i], device, dtype)
         if i == 0:
             first_frame_mapping(state, frame)
