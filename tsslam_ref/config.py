@@ -211,7 +211,8 @@ class DynamicsConfig:
     n_samples: int = 32
     """K: times sampled uniformly in the window (ours; the paper does not state K)."""
     barrier_limit: float = 0.95
-    """Ratio ||a||/a_max beyond which the log barrier is continued linearly (ours, see dynamics.py)."""
+    """Ratio ||a||/a_max beyond which the log barrier is continued by its second-order
+    Taylor expansion (ours, see dynamics.py)."""
 
 
 @dataclass
