@@ -19,14 +19,15 @@ Every number comes from runs made by this script; nothing is hard-coded.
 import argparse
 import json
 import os
-import tempfile
 import time
+from pathlib import Path
 from typing import Dict, List
 
 import numpy as np
 import torch
 
 from tsslam_ref import config, data, eval as evaluation, slam
+from tsslam_ref.run import atomic_write_text
 
 
 def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
@@ -51,15 +52,6 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
         tracking = runtime["tracking"]
         row["theoretical_fps"] = 1000.0 / (tracking["ms_per_iteration"] * tracking["iterations_per_call"])
     return row
-
-
-def write_json_atomic(path: str, payload) -> None:
-    """Write ``payload`` as JSON through a temporary file in the same folder and ``os.replace``."""
-    directory = os.path.dirname(os.path.abspath(path))
-    handle, temporary = tempfile.mkstemp(dir=directory, suffix=".tmp")
-    with os.fdopen(handle, "w") as stream:
-        json.dump(payload, stream, indent=2)
-    os.replace(temporary, path)
 
 
 def mean_rows(rows: List[Dict]) -> Dict[str, float]:
@@ -136,7 +128,7 @@ def main() -> None:
             print(f"  {name:22s} seed {seed}: {summary}", flush=True)
             results[name] = {"rows": rows, "mean": mean_rows(rows)}
             if args.json:  # after every run, so that an interrupted benchmark keeps what it measured
-                write_json_atomic(args.json, results)
+                atomic_write_text(Path(args.json), json.dumps(results, indent=2))
 
     print("\n| method | ATE RMSE (cm) | RPE RMSE (cm) | RPE (deg) | runs |")
     print("|---|---|---|---|---|")

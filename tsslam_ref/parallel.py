@@ -9,13 +9,14 @@ module is the optional concurrent schedule.
 How the two threads share the state (``slam.SLAMState``):
 
 * The main thread tracks frame ``i`` (``slam.track``) against a *snapshot* of the map, a copy the
-  mapping thread publishes after each of its jobs; the map being optimised is never read while it
-  changes.  Tracking may run at most ``lag`` frames ahead of mapping (Co-SLAM: ``map_every``;
+  mapping thread publishes after each job that optimised the map; the map being optimised is
+  never read while it changes.  Tracking may run at most ``lag`` frames ahead of mapping (Co-SLAM: ``map_every``;
   TS-SLAM: the frames of one ``dt`` interval), then it waits.
 * The mapping thread runs, frame after frame, what the sequential loop does after tracking
   (``coslam_after_tracking`` / ``tsslam_after_tracking``) on a *view* of the state: its own copy of
   the pose table and of the recent-frame rays.  It commits the poses of the frames it has seen, the
-  spline and the rays it dropped back under the lock, then publishes a new map snapshot.
+  spline and the rays it dropped back under the lock, then publishes a new map snapshot if the
+  job changed the map.
 * One ``threading.Lock`` guards every read and write of shared state; no optimisation runs while
   holding it.  An exception in either thread stops both and is raised in the caller.
 
@@ -47,6 +48,12 @@ def tracking_lag(state: "slam.SLAMState") -> int:
         return max(1, cfg.mapping.map_every)
     spacing = float(np.median(np.diff(state.timestamps))) if len(state.timestamps) > 1 else cfg.spline.dt
     return max(1, int(math.ceil(cfg.spline.dt / max(spacing, 1e-9))))
+
+
+def global_ba_calls(state: "slam.SLAMState") -> int:
+    """Global BA runs so far: every mapping step of either method ends with one, and only mapping
+    steps change the map, so a new count means a new map to publish."""
+    return state.timings.calls.get("global_ba", 0)
 
 
 def mapping_view(state: "slam.SLAMState", frame_index: int) -> "slam.SLAMState":
@@ -93,11 +100,14 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
             try:
                 with lock:
                     view = mapping_view(state, frame.index)
+                    map_updates = global_ba_calls(state)
                 after_tracking(view, frame)  # the slow part, outside the lock
-                field_copy = copy.deepcopy(state.field)
+                # A new snapshot only when this job optimised the map (most frames only keyframe).
+                field_copy = copy.deepcopy(state.field) if global_ba_calls(state) != map_updates else None
                 with lock:
                     commit(state, view, frame.index)
-                    snapshot["field"] = field_copy
+                    if field_copy is not None:
+                        snapshot["field"] = field_copy
                     if on_frame is not None:
                         on_frame(state)
                     progress.notify_all()

@@ -107,7 +107,8 @@ def resolve_config(args) -> config_module.Config:
     return config_module.apply_overrides(cfg, args.overrides)
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
     handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     with os.fdopen(handle, "w") as stream:
         stream.write(text)
@@ -261,7 +262,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if progress is not None:
             progress.close()
         print(f"error: the run failed: {failure}", file=sys.stderr)
-        _atomic_write_text(out / "metrics.json", json.dumps({"failed": True, "reason": str(failure)}, indent=2))
+        atomic_write_text(out / "metrics.json", json.dumps({"failed": True, "reason": str(failure)}, indent=2))
         return 3
     if progress is not None:
         progress.close()
@@ -286,7 +287,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             from .slam import export_continuous
 
             export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
-    _atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
+    atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
     if checkpoint_path.exists() and not args.checkpoint_every:
         checkpoint_path.unlink()
