@@ -3,8 +3,10 @@
 For each preset (tum-cpu, synthetic-cpu, and the full tum / synthetic sample counts) and each ray
 count (256, 1024, 4096) it times one map iteration on random points inside a 6.5 m box (the TUM
 fr1_desk box size) with samples per ray = n_samples + n_range_d of the preset, on CPU and on CUDA
-when available.  It prints the median and minimum milliseconds, the peak memory, and the ratio
-fast path / reference path (FieldConfig.fast_gather) measured in the same run.
+when available.  It prints the median and minimum milliseconds of the default path (the compiled
+CPU kernel where it builds, ``hash_kernel.py``; the PyTorch fast path on CUDA), the peak memory,
+and, measured in the same run, the PyTorch fast path (``field.compiled_kernel=false``) and the
+plain reference path (``field.fast_gather=false``) with their ratios to the default.
 
 Target (cpu-budget.md): 1024 rays x 43 samples, table 2^16, 2 threads, float32, under 100 ms.
 
@@ -18,7 +20,7 @@ import time
 
 import torch
 
-from tsslam_ref import config
+from tsslam_ref import config, hash_kernel
 from tsslam_ref.field import SceneField
 from tsslam_ref.mapping import make_map_optimizer
 from tsslam_ref.slam import tune_cpu_allocator
@@ -72,8 +74,10 @@ def main(argv=None):
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
     print(f"torch {torch.__version__}, {args.threads} threads, float32, box 6.5 m, medians of {args.repeats}, "
           f"glibc allocator tuned: {allocator}")
-    print(f"{'device':6} {'preset':14} {'log2T':>5} {'samples':>7} {'rays':>5} {'fast ms':>9} {'(min)':>7} "
-          f"{'ref ms':>9} {'ref/fast':>8} {'peak MiB':>9}")
+    print(f"compiled CPU kernel: {'yes' if hash_kernel.available() else 'no (' + str(hash_kernel.load_error()) + ')'}")
+    print(f"{'device':6} {'preset':14} {'log2T':>5} {'samples':>7} {'rays':>5} {'default ms':>10} {'(min)':>7} "
+          f"{'torch ms':>9} {'torch/def':>9} {'ref ms':>9} {'ref/def':>8} {'peak MiB':>9}")
+    paths = {"default": (True, True), "torch": (True, False), "reference": (False, False)}  # fast_gather, compiled
     for device in devices:
         for preset in args.presets:
             cfg = config.load(preset)
@@ -82,17 +86,23 @@ def main(argv=None):
             for n_rays in args.rays:
                 points = (torch.rand(n_rays * samples, 3, generator=generator) * 6.0 - 3.0).to(device)
                 row = {}
-                for fast in ([True] if args.no_reference else [True, False]):
-                    cfg.field.fast_gather = fast
+                for path, (fast_gather, compiled) in paths.items():
+                    if args.no_reference and path != "default":
+                        continue
+                    if path == "torch" and (device.type != "cpu" or not hash_kernel.available()):
+                        continue  # the default already is the PyTorch fast path
+                    cfg.field.fast_gather, cfg.field.compiled_kernel = fast_gather, compiled
                     field = SceneField(cfg.field, BOX, generator=torch.Generator().manual_seed(0)).to(device)
                     optimizer = make_map_optimizer(field, cfg.mapping)
-                    row[fast] = time_iterations(field, optimizer, points, args.repeats, device)
-                    if fast:
+                    row[path] = time_iterations(field, optimizer, points, args.repeats, device)
+                    if path == "default":
                         peak = peak_memory_mb(field, optimizer, points, device)
-                fast_ms, fast_min = row[True]
-                ref_ms = row[False][0] if False in row else float("nan")
+                default_ms, default_min = row["default"]
+                torch_ms = row.get("torch", (float("nan"),))[0]
+                ref_ms = row.get("reference", (float("nan"),))[0]
                 print(f"{device.type:6} {preset:14} {cfg.field.log2_hashmap_size:>5} {samples:>7} {n_rays:>5} "
-                      f"{fast_ms:>9.1f} {fast_min:>7.1f} {ref_ms:>9.1f} {ref_ms / fast_ms:>8.2f} {peak:>9.0f}")
+                      f"{default_ms:>10.1f} {default_min:>7.1f} {torch_ms:>9.1f} {torch_ms / default_ms:>9.2f} "
+                      f"{ref_ms:>9.1f} {ref_ms / default_ms:>8.2f} {peak:>9.0f}")
     print("peak MiB on CPU is the process max RSS so far (includes earlier rows).")
 
 

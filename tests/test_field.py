@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from tsslam_ref import config
+from tsslam_ref import config, hash_kernel
 from tsslam_ref.field import HashGridEncoding, OneBlobEncoding, SceneField, finest_resolution, trilinear_lookup
 
 
@@ -103,14 +103,25 @@ def test_trilinear_interpolation_reproduces_a_linear_function():
             # vertex v sits at x_n = (v - 0.5) / scale
             grid.table[rows] = ((vertex.double() - 0.5) / grid.level_scales[level]) @ coefficients
     points = torch.rand(300, 3, dtype=torch.float64) * 0.9 + 0.05
-    for fast in (True, False):
-        grid.fast_gather = fast
+    for path in ("compiled", "torch", "reference"):
+        if path == "compiled" and not hash_kernel.available():
+            continue  # covered by the compiled-kernel tests, which say why they skip
+        _use_path(grid, path)
         features = grid(points).view(300, 3, 2)
         for level in range(3):
             assert torch.allclose(features[:, level], points @ coefficients, atol=1e-10)
 
 
-def test_fast_and_reference_paths_agree_in_values_and_gradients():
+def _use_path(grid: HashGridEncoding, path: str) -> None:
+    """Point ``grid`` at one of its three encoding paths."""
+    grid.fast_gather = path != "reference"
+    grid.compiled = path == "compiled"
+
+
+@pytest.mark.parametrize("path", ["compiled", "torch"])
+def test_fast_paths_agree_with_the_reference_in_values_and_gradients(path, request):
+    if path == "compiled":
+        request.getfixturevalue("compiled_kernel")
     torch.manual_seed(3)
     grid = HashGridEncoding(120, log2_hashmap_size=12)
     with torch.no_grad():
@@ -118,8 +129,9 @@ def test_fast_and_reference_paths_agree_in_values_and_gradients():
     points = torch.rand(2000, 3) * 1.4 - 0.2  # includes points outside the box
     upstream = torch.randn(2000, grid.out_dim)
     results = []
-    for fast in (True, False):
-        grid.fast_gather = fast
+    for which in (path, "reference"):
+        _use_path(grid, which)
+        assert grid.uses_compiled_kernel(points) == (which == "compiled")
         grid.table.grad = None
         x = points.clone().requires_grad_(True)
         out = grid(x)
@@ -129,6 +141,46 @@ def test_fast_and_reference_paths_agree_in_values_and_gradients():
     assert torch.allclose(v_fast, v_ref, atol=1e-5)
     assert torch.allclose(g_fast, g_ref, atol=1e-4)
     assert torch.allclose(x_fast, x_ref, atol=1e-3, rtol=1e-4)
+
+
+def test_compiled_kernel_gradcheck_and_skipped_gradients(compiled_kernel):
+    """The kernel's hand-written backward vs finite differences (float64), table and points, on a
+    grid with a dense and a hashed level; each gradient alone when the other input is constant."""
+    grid = HashGridEncoding(6, n_levels=2, base_resolution=4, log2_hashmap_size=7).double()
+    assert grid.level_dense == [True, False]
+    points = torch.rand(5, 3, dtype=torch.float64) * 1.2 - 0.1
+    table = grid.table.detach().clone().normal_().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda t: torch.func.functional_call(grid, {"table": t}, (points,)), (table,)
+    )
+    x = points.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(grid._encode_compiled, (x,))
+    both = points.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda p, t: torch.func.functional_call(grid, {"table": t}, (p,)), (both, table)
+    )
+
+
+def test_compiled_kernel_is_deterministic_across_thread_counts(compiled_kernel):
+    """Each level's table gradient is summed by one thread in point order, each point's gradient by
+    one thread: bit-identical results with 1 and 2 threads (the seed alone fixes a run)."""
+    torch.manual_seed(5)
+    grid = HashGridEncoding(200, log2_hashmap_size=10)  # small table: many points share rows
+    points = torch.rand(30000, 3)
+    upstream = torch.randn(30000, grid.out_dim)
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for n_threads in (1, 2):
+            torch.set_num_threads(n_threads)
+            grid.table.grad = None
+            x = points.clone().requires_grad_(True)
+            (grid._encode_compiled(x) * upstream).sum().backward()
+            results.append((grid.table.grad.clone(), x.grad.clone()))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(results[0][0], results[1][0])
+    assert torch.equal(results[0][1], results[1][1])
 
 
 def test_trilinear_lookup_gradcheck_float64():
@@ -145,7 +197,7 @@ def test_trilinear_lookup_gradcheck_float64():
 
 def test_fast_encoding_gradcheck_on_tiny_grid():
     """Gradients of the fast path w.r.t. the table and the points vs finite differences (float64)."""
-    grid = HashGridEncoding(6, n_levels=2, base_resolution=4, log2_hashmap_size=7).double()
+    grid = HashGridEncoding(6, n_levels=2, base_resolution=4, log2_hashmap_size=7, compiled=False).double()
     assert grid.level_dense == [True, False]
     points = torch.rand(5, 3, dtype=torch.float64) * 0.8 + 0.1
     table = grid.table.detach().clone().normal_().requires_grad_(True)

@@ -85,6 +85,10 @@ class FieldConfig:
     fast_gather: bool = True
     """Use the fused corner lookup with its hand-written backward (``field._TrilinearLookup``, see
     shared/spec/cpu-budget.md); False uses the plain reference path."""
+    compiled_kernel: bool = True
+    """On the CPU, let the fast path use the compiled hash-grid kernel (``hash_kernel.py``, built
+    with the local C++ compiler on first use; falls back to the PyTorch fast path with a warning
+    when it cannot be built).  Results agree to rounding, not bit for bit (ours)."""
 
 
 @dataclass

@@ -38,6 +38,7 @@ from typing import List, Optional
 import torch
 from torch import nn
 
+from . import hash_kernel
 from .config import FieldConfig, MappingConfig
 
 # tiny-cuda-nn's spatial hash primes (grid.h); the x prime is 1.
@@ -204,9 +205,12 @@ class HashGridEncoding(nn.Module):
     and trilinear interpolation of the 8 corners.  All levels live in one ``table`` parameter
     (sum_l size_l, n_features) with ``level_offsets``.
 
-    Two paths give the same numbers: the fast one (all levels at once, corner-major, custom
-    trilinear lookup with a hand-written backward, ``_TrilinearLookup``) and a plain reference one (a loop over levels and
-    corners with ordinary indexing).  ``fast_gather`` picks one.
+    Three paths give the same numbers to rounding: the compiled CPU kernel
+    (``hash_kernel.py``, ``csrc/hash_grid.cpp``: hash, gather and interpolation in one pass per
+    point), the PyTorch fast one (all levels at once, corner-major, custom trilinear lookup with a
+    hand-written backward, ``_TrilinearLookup``) and a plain reference one (a loop over levels and
+    corners with ordinary indexing).  ``fast_gather`` picks between the fast ones and the
+    reference; ``compiled`` lets the fast path use the kernel for CPU tensors when it builds.
     """
 
     def __init__(
@@ -218,6 +222,7 @@ class HashGridEncoding(nn.Module):
         log2_hashmap_size: int = 16,
         fast_gather: bool = True,
         generator: Optional[torch.Generator] = None,
+        compiled: bool = True,
     ):
         super().__init__()
         if res_max < 1:
@@ -230,6 +235,7 @@ class HashGridEncoding(nn.Module):
         self.base_resolution = base_resolution
         self.log2_hashmap_size = log2_hashmap_size
         self.fast_gather = fast_gather
+        self.compiled = compiled
         self.per_level_scale = 2.0 ** (math.log2(res_max / base_resolution) / (n_levels - 1))
 
         scales, resolutions, sizes, dense = [], [], [], []
@@ -272,9 +278,23 @@ class HashGridEncoding(nn.Module):
     def forward(self, points_unit: torch.Tensor) -> torch.Tensor:
         """(N, 3) coordinates in box units -> (N, n_levels * n_features), level-major."""
         _check_points(points_unit, "points_unit")
-        if self.fast_gather:
-            return self._encode_fast(points_unit)
-        return self._encode_reference(points_unit)
+        if not self.fast_gather:
+            return self._encode_reference(points_unit)
+        if self.uses_compiled_kernel(points_unit):
+            return self._encode_compiled(points_unit)
+        return self._encode_fast(points_unit)
+
+    def uses_compiled_kernel(self, points_unit: torch.Tensor) -> bool:
+        """Whether :meth:`forward` takes the compiled kernel for these points (CPU, table's dtype)."""
+        return (self.compiled and self.fast_gather and points_unit.device.type == "cpu"
+                and points_unit.dtype == self.table.dtype and hash_kernel.available())
+
+    # -- compiled path ------------------------------------------------------------------------
+
+    def _encode_compiled(self, points_unit: torch.Tensor) -> torch.Tensor:
+        features = hash_kernel.hash_grid_lookup(points_unit, self.table, self.scales, self.resolutions, self.sizes,
+                                                self.offsets, self.n_dense_levels)  # (L, N, F)
+        return features.permute(1, 0, 2).reshape(points_unit.shape[0], self.out_dim)  # (N, L * F)
 
     # -- fast path ----------------------------------------------------------------------------
 
@@ -397,6 +417,7 @@ class SceneField(nn.Module):
             log2_hashmap_size=cfg.log2_hashmap_size,
             fast_gather=cfg.fast_gather,
             generator=generator,
+            compiled=cfg.compiled_kernel,
         )
         self.geometry_mlp = _bias_free_mlp(
             self.grid.out_dim + self.oneblob.out_dim, cfg.hidden_dim, 1 + cfg.geo_feat_dim, generator

@@ -1,0 +1,280 @@
+// Multi-resolution hash-grid lookup on the CPU: hash + gather + trilinear interpolation in one pass.
+//
+// The compiled twin of HashGridEncoding._encode_fast in tsslam_ref/field.py (TS-SLAM Sec. III-A,
+// Co-SLAM's parametric encoding V(x); tiny-cuda-nn grid.h level geometry, spec coslam.md 1.3).
+// Built on first use by tsslam_ref/hash_kernel.py with torch.utils.cpp_extension; tested against
+// the PyTorch paths and finite differences in tests/test_field.py.
+//
+// For level l with scale s_l, R_l vertices per axis, table rows [offset_l, offset_l + size_l):
+//
+//     p        = x_n * s_l + 0.5,  corner = floor(p),  f = p - corner
+//     row(c)   = offset_l + (i + j R + k R^2 mod 2^32) mod size_l            dense levels
+//                offset_l + ((i * 1) ^ (j * 2654435761) ^ (k * 805459861)) mod size_l   hashed
+//     out[l]   = sum_c w_c(f) table[row(c)],   w_c = prod_axis (f or 1 - f),  corner order dx, dy, dz
+//
+// Backward:
+//     d table[row(c)]  += w_c * g[l]                   (one thread owns each level: no races, and the
+//                                                       sum runs in point order: deterministic)
+//     d x_n            += s_l * sum_c (d w_c / d f) <table[row(c)], g[l]>   (one thread per point,
+//                                                       levels in order)
+//
+// Features and their gradients are level-major, (L, N, F), so that each level's loop reads and
+// writes contiguous memory; the loops over points run level by level inside blocks of points.
+//
+// Nothing is stored between forward and backward but the inputs: the rows and weights are
+// recomputed, which is cheaper on two cores than writing and re-reading an (8, L, N) index.
+// Compile with -fopenmp (at::parallel_for runs on OpenMP threads; without it every loop is serial)
+// and -ffp-contract=off (every product and sum rounds as the PyTorch path does).
+
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include <cmath>
+#include <algorithm>
+#include <cstdint>
+#include <vector>
+
+namespace {
+
+constexpr uint32_t kPrimeY = 2654435761u;
+constexpr uint32_t kPrimeZ = 805459861u;
+
+// Level geometry, copied once per call into plain arrays.
+struct Levels {
+  std::vector<double> scale;
+  std::vector<int64_t> resolution, size, offset;
+  std::vector<bool> dense, power_of_two;
+  int64_t count = 0;
+};
+
+Levels read_levels(const at::Tensor& scales, const at::Tensor& resolutions, const at::Tensor& sizes,
+                   const at::Tensor& offsets, int64_t n_dense) {
+  TORCH_CHECK(scales.dim() == 1 && resolutions.dim() == 1 && sizes.dim() == 1 && offsets.dim() == 1,
+              "hash_grid: level tensors must be 1-D");
+  Levels levels;
+  levels.count = scales.size(0);
+  TORCH_CHECK(resolutions.size(0) == levels.count && sizes.size(0) == levels.count && offsets.size(0) == levels.count,
+              "hash_grid: level tensors must have the same length");
+  auto scale = scales.to(at::kDouble).contiguous();
+  auto resolution = resolutions.to(at::kLong).contiguous();
+  auto size = sizes.to(at::kLong).contiguous();
+  auto offset = offsets.to(at::kLong).contiguous();
+  for (int64_t l = 0; l < levels.count; ++l) {
+    levels.scale.push_back(scale.data_ptr<double>()[l]);
+    levels.resolution.push_back(resolution.data_ptr<int64_t>()[l]);
+    levels.size.push_back(size.data_ptr<int64_t>()[l]);
+    levels.offset.push_back(offset.data_ptr<int64_t>()[l]);
+    levels.dense.push_back(l < n_dense);
+    const int64_t level_size = levels.size.back();
+    TORCH_CHECK(level_size > 0 && level_size <= (int64_t(1) << 32), "hash_grid: level size out of range");
+    levels.power_of_two.push_back((level_size & (level_size - 1)) == 0);
+  }
+  return levels;
+}
+
+// The 8 corner rows and trilinear weights of one point on one level, corner order dx, dy, dz.
+template <typename scalar_t>
+struct Cell {
+  int64_t row[8];
+  scalar_t weight[8];
+  scalar_t fraction[3];
+};
+
+template <typename scalar_t>
+inline void locate(const scalar_t* point, const Levels& levels, int64_t l, Cell<scalar_t>& cell) {
+  const scalar_t scale = static_cast<scalar_t>(levels.scale[l]);
+  const scalar_t half = static_cast<scalar_t>(0.5);
+  uint32_t corner[3];
+  for (int axis = 0; axis < 3; ++axis) {
+    const scalar_t position = point[axis] * scale + half;
+    const scalar_t floored = std::floor(position);
+    cell.fraction[axis] = position - floored;
+    corner[axis] = static_cast<uint32_t>(static_cast<int64_t>(floored));  // two's complement wrap
+  }
+  const int64_t offset = levels.offset[l];
+  const uint64_t size = static_cast<uint64_t>(levels.size[l]);
+  const bool dense = levels.dense[l], power_of_two = levels.power_of_two[l];
+  const uint32_t resolution = static_cast<uint32_t>(levels.resolution[l]);
+  const scalar_t one = static_cast<scalar_t>(1);
+  const scalar_t wx[2] = {one - cell.fraction[0], cell.fraction[0]};
+  const scalar_t wy[2] = {one - cell.fraction[1], cell.fraction[1]};
+  const scalar_t wz[2] = {one - cell.fraction[2], cell.fraction[2]};
+  int c = 0;
+  for (uint32_t dx = 0; dx < 2; ++dx) {
+    for (uint32_t dy = 0; dy < 2; ++dy) {
+      const scalar_t wxy = wx[dx] * wy[dy];
+      for (uint32_t dz = 0; dz < 2; ++dz, ++c) {
+        const uint32_t i = corner[0] + dx, j = corner[1] + dy, k = corner[2] + dz;
+        const uint64_t local = dense ? i + (j + k * resolution) * resolution : i ^ (j * kPrimeY) ^ (k * kPrimeZ);
+        // mod size: a mask for the 2^T hashed tables, a division only for a dense index past the
+        // table (points outside the box); divisions would dominate the loop otherwise
+        const uint64_t wrapped = power_of_two ? (local & (size - 1)) : (local < size ? local : local % size);
+        cell.row[c] = offset + static_cast<int64_t>(wrapped);
+        cell.weight[c] = wxy * wz[dz];
+      }
+    }
+  }
+}
+
+void check_inputs(const at::Tensor& points, const at::Tensor& table) {
+  TORCH_CHECK(points.device().is_cpu() && table.device().is_cpu(), "hash_grid: CPU tensors only");
+  TORCH_CHECK(points.dim() == 2 && points.size(1) == 3, "hash_grid: points must be (N, 3), got ", points.sizes());
+  TORCH_CHECK(table.dim() == 2, "hash_grid: table must be (T, F), got ", table.sizes());
+  TORCH_CHECK(points.scalar_type() == table.scalar_type(), "hash_grid: points and table must share a dtype");
+}
+
+// Points per block of the point loops.  Inside a block the loops run level by level, so the
+// random reads and writes of one level stay in one table of at most 2^T rows (512 KiB at T = 16,
+// float32, F = 2), which fits the core's L2 cache, instead of hopping over all L tables per point.
+constexpr int64_t kBlock = 2048;
+
+// Runs body(begin, end) over blocks of at most kBlock points, blocks split among threads.
+template <typename Body>
+void for_point_blocks(int64_t n_points, const Body& body) {
+  const int64_t n_blocks = (n_points + kBlock - 1) / kBlock;
+  at::parallel_for(0, n_blocks, 1, [&](int64_t first, int64_t last) {
+    for (int64_t block = first; block < last; ++block) {
+      body(block * kBlock, std::min(n_points, (block + 1) * kBlock));
+    }
+  });
+}
+
+void check_grad(const at::Tensor& grad_features, int64_t n_levels, int64_t n_points, int64_t n_features) {
+  TORCH_CHECK(grad_features.dim() == 3 && grad_features.size(0) == n_levels && grad_features.size(1) == n_points &&
+                  grad_features.size(2) == n_features,
+              "hash_grid: grad_features must be (L, N, F)");
+}
+
+}  // namespace
+
+// (N, 3) points in box units, (T, F) table -> (L, N, F) features.
+at::Tensor hash_grid_forward(const at::Tensor& points_in, const at::Tensor& table_in, const at::Tensor& scales,
+                             const at::Tensor& resolutions, const at::Tensor& sizes, const at::Tensor& offsets,
+                             int64_t n_dense) {
+  check_inputs(points_in, table_in);
+  const auto points = points_in.contiguous();
+  const auto table = table_in.contiguous();
+  const Levels levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
+  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = levels.count;
+  auto features = at::empty({n_levels, n_points, n_features}, points.options());
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_forward", [&] {
+    const scalar_t* point_data = points.data_ptr<scalar_t>();
+    const scalar_t* table_data = table.data_ptr<scalar_t>();
+    scalar_t* out = features.data_ptr<scalar_t>();
+    for_point_blocks(n_points, [&](int64_t begin, int64_t end) {
+      Cell<scalar_t> cell;
+      for (int64_t l = 0; l < n_levels; ++l) {
+        for (int64_t n = begin; n < end; ++n) {
+          locate(point_data + 3 * n, levels, l, cell);
+          scalar_t* target = out + (l * n_points + n) * n_features;
+          for (int64_t f = 0; f < n_features; ++f) {
+            scalar_t sum = cell.weight[0] * table_data[cell.row[0] * n_features + f];
+            for (int c = 1; c < 8; ++c) sum = sum + cell.weight[c] * table_data[cell.row[c] * n_features + f];
+            target[f] = sum;
+          }
+        }
+      }
+    });
+  });
+  return features;
+}
+
+// d loss / d table, (T, F), from (L, N, F) output gradients.  Levels are split among threads in an
+// interleaved order (dense, cache-friendly levels and hashed ones mixed), each level summed by one
+// thread in point order.
+at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at::Tensor& points_in,
+                                    const at::Tensor& table, const at::Tensor& scales, const at::Tensor& resolutions,
+                                    const at::Tensor& sizes, const at::Tensor& offsets, int64_t n_dense) {
+  check_inputs(points_in, table);
+  const auto points = points_in.contiguous();
+  const auto grad_features = grad_features_in.contiguous();
+  const Levels levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
+  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = levels.count;
+  check_grad(grad_features, n_levels, n_points, n_features);
+  auto grad_table = at::zeros(table.sizes(), table.options());
+  std::vector<int64_t> level_order;
+  for (int64_t l = 0; l < n_levels; l += 2) level_order.push_back(l);
+  for (int64_t l = 1; l < n_levels; l += 2) level_order.push_back(l);
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_backward_table", [&] {
+    const scalar_t* point_data = points.data_ptr<scalar_t>();
+    const scalar_t* grad_data = grad_features.data_ptr<scalar_t>();
+    scalar_t* grad_table_data = grad_table.data_ptr<scalar_t>();
+    at::parallel_for(0, n_levels, 1, [&](int64_t begin, int64_t end) {
+      Cell<scalar_t> cell;
+      for (int64_t position = begin; position < end; ++position) {
+        const int64_t l = level_order[position];
+        for (int64_t n = 0; n < n_points; ++n) {
+          locate(point_data + 3 * n, levels, l, cell);
+          const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
+          for (int c = 0; c < 8; ++c) {
+            scalar_t* row = grad_table_data + cell.row[c] * n_features;
+            for (int64_t f = 0; f < n_features; ++f) row[f] += cell.weight[c] * grad[f];
+          }
+        }
+      }
+    });
+  });
+  return grad_table;
+}
+
+// d loss / d points, (N, 3), from (L, N, F) output gradients (position = x_n * s_l + 0.5).
+at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const at::Tensor& points_in,
+                                     const at::Tensor& table_in, const at::Tensor& scales,
+                                     const at::Tensor& resolutions, const at::Tensor& sizes,
+                                     const at::Tensor& offsets, int64_t n_dense) {
+  check_inputs(points_in, table_in);
+  const auto points = points_in.contiguous();
+  const auto table = table_in.contiguous();
+  const auto grad_features = grad_features_in.contiguous();
+  const Levels levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
+  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = levels.count;
+  check_grad(grad_features, n_levels, n_points, n_features);
+  auto grad_points = at::zeros({n_points, 3}, points.options());
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_backward_points", [&] {
+    const scalar_t* point_data = points.data_ptr<scalar_t>();
+    const scalar_t* table_data = table.data_ptr<scalar_t>();
+    const scalar_t* grad_data = grad_features.data_ptr<scalar_t>();
+    scalar_t* grad_points_data = grad_points.data_ptr<scalar_t>();
+    const scalar_t one = static_cast<scalar_t>(1);
+    for_point_blocks(n_points, [&](int64_t begin, int64_t end) {
+      Cell<scalar_t> cell;
+      for (int64_t l = 0; l < n_levels; ++l) {  // levels in order: each point's sum is fixed
+        const scalar_t scale = static_cast<scalar_t>(levels.scale[l]);
+        for (int64_t n = begin; n < end; ++n) {
+          locate(point_data + 3 * n, levels, l, cell);
+          const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
+          scalar_t grad_weight[8];  // d loss / d w_c = <table[row(c)], g>
+          for (int c = 0; c < 8; ++c) {
+            scalar_t dot = 0;
+            for (int64_t f = 0; f < n_features; ++f) dot += table_data[cell.row[c] * n_features + f] * grad[f];
+            grad_weight[c] = dot;
+          }
+          const scalar_t wx[2] = {one - cell.fraction[0], cell.fraction[0]};
+          const scalar_t wy[2] = {one - cell.fraction[1], cell.fraction[1]};
+          const scalar_t wz[2] = {one - cell.fraction[2], cell.fraction[2]};
+          scalar_t gx = 0, gy = 0, gz = 0;
+          for (int a = 0; a < 2; ++a) {
+            for (int b = 0; b < 2; ++b) {
+              // corner index c = 4 dx + 2 dy + dz
+              gx += (grad_weight[4 + 2 * a + b] - grad_weight[2 * a + b]) * wy[a] * wz[b];
+              gy += (grad_weight[4 * a + 2 + b] - grad_weight[4 * a + b]) * wx[a] * wz[b];
+              gz += (grad_weight[4 * a + 2 * b + 1] - grad_weight[4 * a + 2 * b]) * wx[a] * wy[b];
+            }
+          }
+          scalar_t* total = grad_points_data + 3 * n;
+          total[0] += gx * scale;
+          total[1] += gy * scale;
+          total[2] += gz * scale;
+        }
+      }
+    });
+  });
+  return grad_points;
+}
+
+TORCH_LIBRARY(tsslam_hash_grid, m) {
+  m.def("forward", &hash_grid_forward);
+  m.def("backward_table", &hash_grid_backward_table);
+  m.def("backward_points", &hash_grid_backward_points);
+}

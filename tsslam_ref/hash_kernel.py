@@ -1,0 +1,111 @@
+"""The compiled CPU hash-grid lookup: build on first use, autograd wrapper, fallback.
+
+TS-SLAM §III-A keeps Co-SLAM's multi-resolution hash grid V(x).  On two CPU cores the PyTorch fast
+path (``field._TrilinearLookup``) is memory-bound: it writes and re-reads an (8, L, N) index and an
+(8, L, N, F) block of gathered rows, so most of a mapping iteration goes to moving memory
+(shared/spec/cpu-budget.md).  ``csrc/hash_grid.cpp`` does hash + gather + trilinear interpolation
+per point in one pass and recomputes the rows in the backward instead of storing them.  Same
+formulas, same corner order; the values agree with the PyTorch paths to rounding
+(tests/test_field.py).
+
+Built with ``torch.utils.cpp_extension`` (a C++ compiler with OpenMP and ninja are needed, all on
+the project's machines; no ``-march=native``, so a cached build runs on any x86-64) into ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) the
+first time a process asks for it: about a minute once, then a cached load.  Where the build fails
+the field falls back to the PyTorch fast path with one warning (:func:`available`).  CPU only: a
+CUDA field always uses the PyTorch path.
+
+Layer 1 (map): imports torch only.
+"""
+
+import os
+import threading
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+SOURCE = Path(__file__).parent / "csrc" / "hash_grid.cpp"
+_LOCK = threading.Lock()
+_STATE = {"loaded": None, "error": None}  # loaded: None = not tried, True / False after the try
+
+
+def available() -> bool:
+    """True when the compiled kernel is loaded (building it on the first call of the process).
+
+    Set ``TSSLAM_NO_COMPILED_KERNEL=1`` to skip it (the PyTorch fast path is then used)."""
+    if _STATE["loaded"] is not None:
+        return _STATE["loaded"]
+    with _LOCK:
+        if _STATE["loaded"] is None:
+            if os.environ.get("TSSLAM_NO_COMPILED_KERNEL", "") not in ("", "0"):
+                _STATE["loaded"], _STATE["error"] = False, "TSSLAM_NO_COMPILED_KERNEL is set"
+            else:
+                _STATE["loaded"] = _build()
+    return _STATE["loaded"]
+
+
+def load_error() -> Optional[str]:
+    """Why the kernel is not available (None when it is, or before :func:`available` ran)."""
+    return _STATE["error"]
+
+
+def _build() -> bool:
+    try:
+        from torch.utils import cpp_extension
+
+        cpp_extension.load(  # -fopenmp: at::parallel_for's threads; fp-contract off: no fused multiply-add
+            name="tsslam_hash_grid",
+            sources=[str(SOURCE)],
+            extra_cflags=["-O3", "-ffp-contract=off", "-fopenmp"],
+            extra_ldflags=["-fopenmp"],
+            is_python_module=False,
+            verbose=False,
+        )
+        return True
+    except Exception as error:  # no compiler, no ninja, a failed build: fall back, say why once
+        _STATE["error"] = f"{type(error).__name__}: {error}"
+        warnings.warn(
+            "tsslam_ref: the compiled hash-grid kernel could not be built, using the PyTorch path "
+            f"(slower, same results to rounding). Reason: {_STATE['error'][:500]}",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return False
+
+
+class _HashGridLookup(torch.autograd.Function):
+    """features (L, N, F) = V(points_unit) on the compiled kernel; hand-written backward.
+
+    Inputs: points_unit (N, 3), table (T, F), then the level geometry (scales (L,) float64,
+    resolutions, sizes, offsets (L,) long) and the number of dense levels.  The table gradient is
+    computed only when the map is optimised, the point gradient only when the points carry one
+    (tracking, BA)."""
+
+    @staticmethod
+    def forward(points_unit, table, scales, resolutions, sizes, offsets, n_dense):
+        return torch.ops.tsslam_hash_grid.forward(points_unit, table, scales, resolutions, sizes, offsets, n_dense)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        points_unit, table, scales, resolutions, sizes, offsets, n_dense = inputs
+        ctx.save_for_backward(points_unit, table)
+        ctx.levels = (scales, resolutions, sizes, offsets, n_dense)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_features):
+        points_unit, table = ctx.saved_tensors
+        grad_points = grad_table = None
+        grad_features = grad_features.contiguous()
+        if ctx.needs_input_grad[0]:
+            grad_points = torch.ops.tsslam_hash_grid.backward_points(grad_features, points_unit, table, *ctx.levels)
+        if ctx.needs_input_grad[1]:
+            grad_table = torch.ops.tsslam_hash_grid.backward_table(grad_features, points_unit, table, *ctx.levels)
+        return grad_points, grad_table, None, None, None, None, None
+
+
+def hash_grid_lookup(points_unit: torch.Tensor, table: torch.Tensor, scales: torch.Tensor, resolutions: torch.Tensor,
+                     sizes: torch.Tensor, offsets: torch.Tensor, n_dense: int) -> torch.Tensor:
+    """(N, 3) box-unit points, (T, F) table, level geometry -> (L, N, F) features (CPU, compiled)."""
+    return _HashGridLookup.apply(points_unit, table, scales, resolutions, sizes, offsets, int(n_dense))
