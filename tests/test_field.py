@@ -253,3 +253,32 @@ def test_parameter_groups_follow_coslam_adam_settings():
     assert decoder["lr"] == 0.01 and decoder["weight_decay"] == 1e-6
     assert grid["lr"] == 0.001 and grid["eps"] == 1e-15
     assert grid["params"][0] is field.grid.table
+
+
+def test_kernel_build_failure_falls_back_to_the_pytorch_path_with_one_warning(monkeypatch):
+    """A machine without a working compiler: one RuntimeWarning that says why, then the PyTorch
+    fast path gives the field's values (the reference path is the oracle)."""
+    from torch.utils import cpp_extension
+
+    def broken_build(*args, **kwargs):
+        raise OSError("no C++ compiler found (simulated)")
+
+    monkeypatch.setattr(cpp_extension, "load", broken_build)
+    monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
+    monkeypatch.delenv("TSSLAM_NO_COMPILED_KERNEL", raising=False)
+    with pytest.warns(RuntimeWarning, match="simulated"):
+        assert not hash_kernel.available()
+    assert "simulated" in hash_kernel.load_error()
+    grid = HashGridEncoding(60, log2_hashmap_size=10)
+    points = torch.rand(500, 3)
+    assert not grid.uses_compiled_kernel(points)
+    fallback = grid(points)
+    _use_path(grid, "reference")
+    assert torch.allclose(fallback, grid(points), atol=1e-6)
+
+
+def test_environment_switch_turns_the_kernel_off(monkeypatch):
+    monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
+    monkeypatch.setenv("TSSLAM_NO_COMPILED_KERNEL", "1")
+    assert not hash_kernel.available()
+    assert "TSSLAM_NO_COMPILED_KERNEL" in hash_kernel.load_error()
