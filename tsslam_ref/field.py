@@ -236,6 +236,8 @@ class HashGridEncoding(nn.Module):
         self.log2_hashmap_size = log2_hashmap_size
         self.fast_gather = fast_gather
         self.compiled = compiled
+        if compiled and fast_gather:
+            hash_kernel.available()  # build or load it now, not inside the first timed iteration
         self.per_level_scale = 2.0 ** (math.log2(res_max / base_resolution) / (n_levels - 1))
 
         scales, resolutions, sizes, dense = [], [], [], []
