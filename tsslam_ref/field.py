@@ -398,7 +398,8 @@ class SceneField(nn.Module):
     """Co-SLAM's field: OneBlob + hash grid -> geometry MLP (s, h) -> colour MLP (c).
 
     Args:
-        cfg: FieldConfig (levels, features, table size, voxel_sdf, MLP widths, fast_gather).
+        cfg: FieldConfig (levels, features, table size, voxel_sdf, MLP widths, fast_gather,
+            compiled_kernel).
         bound: (3, 2) scene box [[xmin, xmax], [ymin, ymax], [zmin, zmax]] in metres (world).
         generator: optional torch.Generator for the table and MLP initialisation.
     """
