@@ -9,8 +9,9 @@ formulas, same corner order; the values agree with the PyTorch paths to rounding
 (tests/test_field.py).
 
 Built with ``torch.utils.cpp_extension`` (a C++ compiler with OpenMP and ninja are needed, all on
-the project's machines; no ``-march=native``, so a cached build runs on any x86-64) into ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) the
-first time a process asks for it: about a minute once, then a cached load.  Where the build fails
+the project's machines; no ``-march=native``, so a cached build runs on any x86-64) into
+``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) the first time a process asks
+for it: about 30 s once, then a cached load.  Where the build fails
 the field falls back to the PyTorch fast path with one warning (:func:`available`).  CPU only: a
 CUDA field always uses the PyTorch path.
 

@@ -40,35 +40,36 @@ namespace {
 constexpr uint32_t kPrimeY = 2654435761u;
 constexpr uint32_t kPrimeZ = 805459861u;
 
-// Level geometry, copied once per call into plain arrays.
-struct Levels {
-  std::vector<double> scale;
-  std::vector<int64_t> resolution, size, offset;
-  std::vector<bool> dense, power_of_two;
-  int64_t count = 0;
+// One level's geometry, read once per call: the loops over points hold it in registers instead
+// of re-reading (and re-deriving) it for every point.
+struct Level {
+  double scale;
+  int64_t offset;      // first table row of the level
+  uint64_t size;       // rows of the level
+  uint32_t resolution;  // vertices per axis (dense index)
+  bool dense;
+  bool power_of_two;   // size = 2^k: "mod size" is a mask
 };
 
-Levels read_levels(const at::Tensor& scales, const at::Tensor& resolutions, const at::Tensor& sizes,
-                   const at::Tensor& offsets, int64_t n_dense) {
+std::vector<Level> read_levels(const at::Tensor& scales, const at::Tensor& resolutions, const at::Tensor& sizes,
+                               const at::Tensor& offsets, int64_t n_dense) {
   TORCH_CHECK(scales.dim() == 1 && resolutions.dim() == 1 && sizes.dim() == 1 && offsets.dim() == 1,
               "hash_grid: level tensors must be 1-D");
-  Levels levels;
-  levels.count = scales.size(0);
-  TORCH_CHECK(resolutions.size(0) == levels.count && sizes.size(0) == levels.count && offsets.size(0) == levels.count,
+  const int64_t count = scales.size(0);
+  TORCH_CHECK(resolutions.size(0) == count && sizes.size(0) == count && offsets.size(0) == count,
               "hash_grid: level tensors must have the same length");
-  auto scale = scales.to(at::kDouble).contiguous();
-  auto resolution = resolutions.to(at::kLong).contiguous();
-  auto size = sizes.to(at::kLong).contiguous();
-  auto offset = offsets.to(at::kLong).contiguous();
-  for (int64_t l = 0; l < levels.count; ++l) {
-    levels.scale.push_back(scale.data_ptr<double>()[l]);
-    levels.resolution.push_back(resolution.data_ptr<int64_t>()[l]);
-    levels.size.push_back(size.data_ptr<int64_t>()[l]);
-    levels.offset.push_back(offset.data_ptr<int64_t>()[l]);
-    levels.dense.push_back(l < n_dense);
-    const int64_t level_size = levels.size.back();
+  const auto scale = scales.to(at::kDouble).contiguous();
+  const auto resolution = resolutions.to(at::kLong).contiguous();
+  const auto size = sizes.to(at::kLong).contiguous();
+  const auto offset = offsets.to(at::kLong).contiguous();
+  std::vector<Level> levels;
+  for (int64_t l = 0; l < count; ++l) {
+    const int64_t level_size = size.data_ptr<int64_t>()[l];
     TORCH_CHECK(level_size > 0 && level_size <= (int64_t(1) << 32), "hash_grid: level size out of range");
-    levels.power_of_two.push_back((level_size & (level_size - 1)) == 0);
+    levels.push_back(Level{scale.data_ptr<double>()[l], offset.data_ptr<int64_t>()[l],
+                           static_cast<uint64_t>(level_size),
+                           static_cast<uint32_t>(resolution.data_ptr<int64_t>()[l]), l < n_dense,
+                           (level_size & (level_size - 1)) == 0});
   }
   return levels;
 }
@@ -82,8 +83,8 @@ struct Cell {
 };
 
 template <typename scalar_t>
-inline void locate(const scalar_t* point, const Levels& levels, int64_t l, Cell<scalar_t>& cell) {
-  const scalar_t scale = static_cast<scalar_t>(levels.scale[l]);
+inline void locate(const scalar_t* point, const Level& level, Cell<scalar_t>& cell) {
+  const scalar_t scale = static_cast<scalar_t>(level.scale);
   const scalar_t half = static_cast<scalar_t>(0.5);
   uint32_t corner[3];
   for (int axis = 0; axis < 3; ++axis) {
@@ -92,10 +93,7 @@ inline void locate(const scalar_t* point, const Levels& levels, int64_t l, Cell<
     cell.fraction[axis] = position - floored;
     corner[axis] = static_cast<uint32_t>(static_cast<int64_t>(floored));  // two's complement wrap
   }
-  const int64_t offset = levels.offset[l];
-  const uint64_t size = static_cast<uint64_t>(levels.size[l]);
-  const bool dense = levels.dense[l], power_of_two = levels.power_of_two[l];
-  const uint32_t resolution = static_cast<uint32_t>(levels.resolution[l]);
+  const uint32_t resolution = level.resolution;
   const scalar_t one = static_cast<scalar_t>(1);
   const scalar_t wx[2] = {one - cell.fraction[0], cell.fraction[0]};
   const scalar_t wy[2] = {one - cell.fraction[1], cell.fraction[1]};
@@ -106,11 +104,12 @@ inline void locate(const scalar_t* point, const Levels& levels, int64_t l, Cell<
       const scalar_t wxy = wx[dx] * wy[dy];
       for (uint32_t dz = 0; dz < 2; ++dz, ++c) {
         const uint32_t i = corner[0] + dx, j = corner[1] + dy, k = corner[2] + dz;
-        const uint64_t local = dense ? i + (j + k * resolution) * resolution : i ^ (j * kPrimeY) ^ (k * kPrimeZ);
+        const uint64_t local = level.dense ? i + (j + k * resolution) * resolution : i ^ (j * kPrimeY) ^ (k * kPrimeZ);
         // mod size: a mask for the 2^T hashed tables, a division only for a dense index past the
         // table (points outside the box); divisions would dominate the loop otherwise
-        const uint64_t wrapped = power_of_two ? (local & (size - 1)) : (local < size ? local : local % size);
-        cell.row[c] = offset + static_cast<int64_t>(wrapped);
+        const uint64_t wrapped =
+            level.power_of_two ? (local & (level.size - 1)) : (local < level.size ? local : local % level.size);
+        cell.row[c] = level.offset + static_cast<int64_t>(wrapped);
         cell.weight[c] = wxy * wz[dz];
       }
     }
@@ -155,8 +154,8 @@ at::Tensor hash_grid_forward(const at::Tensor& points_in, const at::Tensor& tabl
   check_inputs(points_in, table_in);
   const auto points = points_in.contiguous();
   const auto table = table_in.contiguous();
-  const Levels levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
-  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = levels.count;
+  const std::vector<Level> levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
+  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
   auto features = at::empty({n_levels, n_points, n_features}, points.options());
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_forward", [&] {
     const scalar_t* point_data = points.data_ptr<scalar_t>();
@@ -165,8 +164,9 @@ at::Tensor hash_grid_forward(const at::Tensor& points_in, const at::Tensor& tabl
     for_point_blocks(n_points, [&](int64_t begin, int64_t end) {
       Cell<scalar_t> cell;
       for (int64_t l = 0; l < n_levels; ++l) {
+        const Level level = levels[l];
         for (int64_t n = begin; n < end; ++n) {
-          locate(point_data + 3 * n, levels, l, cell);
+          locate(point_data + 3 * n, level, cell);
           scalar_t* target = out + (l * n_points + n) * n_features;
           for (int64_t f = 0; f < n_features; ++f) {
             scalar_t sum = cell.weight[0] * table_data[cell.row[0] * n_features + f];
@@ -189,8 +189,8 @@ at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at
   check_inputs(points_in, table);
   const auto points = points_in.contiguous();
   const auto grad_features = grad_features_in.contiguous();
-  const Levels levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
-  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = levels.count;
+  const std::vector<Level> levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
+  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
   check_grad(grad_features, n_levels, n_points, n_features);
   auto grad_table = at::zeros(table.sizes(), table.options());
   std::vector<int64_t> level_order;
@@ -204,8 +204,9 @@ at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at
       Cell<scalar_t> cell;
       for (int64_t position = begin; position < end; ++position) {
         const int64_t l = level_order[position];
+        const Level level = levels[l];
         for (int64_t n = 0; n < n_points; ++n) {
-          locate(point_data + 3 * n, levels, l, cell);
+          locate(point_data + 3 * n, level, cell);
           const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
           for (int c = 0; c < 8; ++c) {
             scalar_t* row = grad_table_data + cell.row[c] * n_features;
@@ -227,8 +228,8 @@ at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const a
   const auto points = points_in.contiguous();
   const auto table = table_in.contiguous();
   const auto grad_features = grad_features_in.contiguous();
-  const Levels levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
-  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = levels.count;
+  const std::vector<Level> levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
+  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
   check_grad(grad_features, n_levels, n_points, n_features);
   auto grad_points = at::zeros({n_points, 3}, points.options());
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_backward_points", [&] {
@@ -240,9 +241,10 @@ at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const a
     for_point_blocks(n_points, [&](int64_t begin, int64_t end) {
       Cell<scalar_t> cell;
       for (int64_t l = 0; l < n_levels; ++l) {  // levels in order: each point's sum is fixed
-        const scalar_t scale = static_cast<scalar_t>(levels.scale[l]);
+        const Level level = levels[l];
+        const scalar_t scale = static_cast<scalar_t>(level.scale);
         for (int64_t n = begin; n < end; ++n) {
-          locate(point_data + 3 * n, levels, l, cell);
+          locate(point_data + 3 * n, level, cell);
           const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
           scalar_t grad_weight[8];  // d loss / d w_c = <table[row(c)], g>
           for (int c = 0; c < 8; ++c) {
