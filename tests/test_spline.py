@@ -597,3 +597,19 @@ def test_eq11_fit_new_control_point_with_the_others_fixed():
     assert torch.allclose(fit_R[-1], R[-1], atol=1e-8) and torch.allclose(fit_P[-1], P[-1], atol=1e-8)
     with pytest.raises(ValueError, match="fixed"):
         spline.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n, fixed=fixed)
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_first_control_point_recovers_control_point_0_from_the_start_pose(convention):
+    """Oracle: a random spline's own control point 0, recovered from its start pose and points 1, 2."""
+    dt, t0, n = 0.25, 3.0, 6
+    R, P = random_spline(31, n_ctrl=n, max_angle=0.8)
+    t_min, _ = spline.valid_time_range(n, dt, t0, convention)
+    start = spline.evaluate(R, P, np.array([t_min]), dt, t0, convention=convention)
+    garbled_R, garbled_P = R.clone(), P.clone()
+    garbled_R[0], garbled_P[0] = R[3], P[3] + 5.0
+    rotation_0, translation_0 = spline.first_control_point(garbled_R, garbled_P, start.rotation[0], start.translation[0])
+    assert torch.allclose(rotation_0, R[0], atol=1e-10) and torch.allclose(translation_0, P[0], atol=1e-10)
+    with pytest.raises(ValueError, match="control points 1 and 2"):
+        spline.first_control_point(R[:2], P[:2], start.rotation[0], start.translation[0])
+

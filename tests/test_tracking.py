@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import config
+from tsslam_ref import config, spline
 from tsslam_ref.bundle import DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, joint_optimization
 from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
 from tsslam_ref.render import frame_rays, sample_pixels
@@ -160,6 +160,33 @@ def test_spline_poses_are_local_and_fall_back_outside_the_domain():
                               slot_times=times, fallback_poses=fallback, lr_rot=1e-3, lr_trans=1e-3)
     grad = torch.autograd.grad(fixed_model.poses()[1].sum(), [fixed_model.translation_delta])[0]
     assert float(grad[:5].abs().max()) == 0.0 and float(grad[5:].abs().max()) > 0.0
+
+
+def test_spline_poses_with_a_start_pose_keep_frame_0_while_points_1_and_2_move():
+    """The TS-SLAM gauge: with ``start_pose`` the curve's first pose stays put under Adam steps on a
+    loss that pulls every pose, although control points 1 and 2 move."""
+    n_ctrl, dt, t0 = 6, 0.25, 0.0
+    generator = torch.Generator().manual_seed(1)
+    rotations = so3_exp(0.1 * torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64))
+    translations = torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64)
+    times = np.linspace(0.5, 1.25, 7)  # the domain is [0.5, 1.25]; times[0] is the start
+    first = spline.evaluate(rotations, translations, times[:1], dt, t0)
+    start_pose = make_pose(first.rotation[0], first.translation[0])
+    model = SplinePoses(rotations, translations, free=range(1, n_ctrl), dt=dt, t0=t0, convention="paper",
+                        slot_times=times, fallback_poses=torch.eye(4, dtype=torch.float64).repeat(7, 1, 1),
+                        lr_rot=1e-2, lr_trans=1e-2, start_pose=start_pose)
+    optimizer = torch.optim.Adam(model.parameter_groups())
+    for _ in range(20):
+        optimizer.zero_grad()
+        model.poses()[:, :3, 3].sum().backward()  # pulls every position along -(1, 1, 1)
+        optimizer.step()
+    moved_rotations, moved_translations = model.control_points()
+    assert float((moved_translations[1:3] - translations[1:3]).norm()) > 0.1
+    assert torch.allclose(model.poses()[0], start_pose, atol=1e-10)
+    with pytest.raises(ValueError, match="control point 0"):
+        SplinePoses(rotations, translations, free=range(n_ctrl), dt=dt, t0=t0, convention="paper", slot_times=times,
+                    fallback_poses=torch.eye(4, dtype=torch.float64).repeat(7, 1, 1), lr_rot=1e-2, lr_trans=1e-2,
+                    start_pose=start_pose)
 
 
 def test_constant_velocity_init_stays_on_so3_over_many_frames():

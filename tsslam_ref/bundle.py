@@ -122,23 +122,31 @@ class SplinePoses(torch.nn.Module):
     s); slots whose time lies outside the spline's valid domain use ``fallback_poses[s]``
     (constant, e.g. the tracked pose of a frame the spline does not reach yet).
 
+    With ``start_pose`` given, control point 0 is not a parameter but follows control points 1
+    and 2 so that the curve keeps starting at that pose (:func:`spline.first_control_point`):
+    TS-SLAM's gauge, frame 0's pose held as Co-SLAM holds keyframe 0.
+
     Args:
         rotations: (N, 3, 3) control rotations; translations: (N, 3).
-        free: indices of the control points to optimise.
+        free: indices of the control points to optimise (not 0 when ``start_pose`` is given).
         dt, t0, convention: the spline's knot spacing, origin and index convention.
         slot_times: (P,) float64 seconds.
         fallback_poses: (P, 4, 4) used outside the domain.
         lr_rot, lr_trans: Adam learning rates for the increments.
+        start_pose: optional (4, 4) camera-to-world pose the curve must start at.
     """
 
     def __init__(self, rotations: torch.Tensor, translations: torch.Tensor, free: Sequence[int], dt: float,
                  t0: float, convention: str, slot_times: np.ndarray, fallback_poses: torch.Tensor,
-                 lr_rot: float, lr_trans: float):
+                 lr_rot: float, lr_trans: float, start_pose: Optional[torch.Tensor] = None):
         super().__init__()
         n_ctrl = rotations.shape[0]
+        if start_pose is not None and 0 in list(free):
+            raise ValueError("SplinePoses: control point 0 follows start_pose and cannot also be free")
         free_mask = torch.zeros(n_ctrl, dtype=torch.bool, device=rotations.device)
         free_mask[list(free)] = True
         self.register_buffer("free_mask", free_mask)
+        self.start_pose = None if start_pose is None else start_pose.detach().to(translations)
         self.register_buffer("rotations0", rotations.detach().clone())
         self.register_buffer("translations0", translations.detach().clone())
         self.rotation_delta = torch.nn.Parameter(torch.zeros_like(translations))
@@ -161,6 +169,11 @@ class SplinePoses(torch.nn.Module):
         mask = self.free_mask[:, None].to(self.rotation_delta.dtype)
         rotations = so3_exp(self.rotation_delta * mask) @ self.rotations0
         translations = self.translations0 + self.translation_delta * mask
+        if self.start_pose is not None and bool(self.free_mask[1:3].any()):
+            rotation_0, translation_0 = spline_module.first_control_point(
+                rotations, translations, self.start_pose[:3, :3], self.start_pose[:3, 3])
+            rotations = torch.cat([rotation_0.unsqueeze(0), rotations[1:]], dim=0)
+            translations = torch.cat([translation_0.unsqueeze(0), translations[1:]], dim=0)
         return rotations, translations
 
     def trajectory(self) -> "spline_module.BSplineTrajectory":

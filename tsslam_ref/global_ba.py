@@ -12,8 +12,9 @@ frame, the feature-smoothness term, one map step per iteration, pose steps every
   optimised iff ``optim_cur`` (with fewer than two keyframes only the map moves).  This is the
   Co-SLAM baseline and the "w/o B-S." ablation.
 * :func:`tsslam_global_ba` - the keyframes' poses are spline evaluations; only the control points
-  older than the sliding window move (the oldest ``n_anchor`` stay fixed to hold the gauge, as
-  Co-SLAM fixes keyframe 0); L_DR is sampled over the time outside the window.
+  older than the sliding window move (control point 0 follows control points 1 and 2 so that frame 0
+  keeps its pose, the gauge Co-SLAM fixes by holding keyframe 0); L_DR is sampled over the time
+  outside the window.
 
 Layer 3 (optimiser): uses bundle, dynamics; never tracking or local_ba.
 Taught in notebooks/07_global_ba.ipynb.
@@ -87,6 +88,7 @@ def tsslam_global_ba(
     cfg: Config,
     dynamics_range: Optional[Tuple[float, float]] = None,
     generator: Optional[torch.Generator] = None,
+    start_pose: Optional[torch.Tensor] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor, BAStats]:
     """TS-SLAM global BA over the map and the control points ``free_controls``.
 
@@ -99,6 +101,8 @@ def tsslam_global_ba(
             its time is inside the domain, else the given tracked pose; it is never a free pose).
         dynamics_range: (t_start, t_end) seconds where L_DR is sampled (outside the window), or
             None for no regulariser.
+        start_pose: (4, 4) frame 0's pose the curve must keep starting at (control point 0 then
+            follows points 1 and 2, :class:`bundle.SplinePoses`); None leaves point 0 as it is.
 
     Returns:
         ((N, 3, 3) rotations, (N, 3) translations, stats), detached.
@@ -107,7 +111,7 @@ def tsslam_global_ba(
     slot_times = np.asarray(list(keyframes.timestamps) + [current_time], dtype=np.float64)
     fallback = torch.cat([keyframe_fallback_poses, current_pose.unsqueeze(0)], dim=0)
     poses = SplinePoses(control_rotations, control_translations, free_controls, dt, t0, convention,
-                        slot_times, fallback, cfg.mapping.lr_rot, cfg.mapping.lr_trans)
+                        slot_times, fallback, cfg.mapping.lr_rot, cfg.mapping.lr_trans, start_pose)
     extra = None
     if dynamics_range is not None and dynamics_range[1] > dynamics_range[0] and len(free_controls) > 0:
         extra = lambda: trajectory_dynamics_loss(poses.trajectory(), dynamics_range[0], dynamics_range[1], cfg.dynamics, generator)

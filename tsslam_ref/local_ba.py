@@ -13,7 +13,9 @@ control-point interval) the mapping step runs, coarse to fine:
    reconstruction loss of rays of every frame inside the window plus the dynamics regulariser
    L_DR sampled uniformly inside the window (Eq. 10).
 3. **Joint refinement.**  The keyframes (every fifth frame) inside the window are optimised jointly
-   with the map: the window's control points and the map move together.
+   with the map: the window's control points and the map move together.  Off by default
+   (``local_ba.joint_iters = 0``, ours): it raised ATE on our synthetic sequences (docs/system.md,
+   "TS-SLAM's ATE on clean synthetic data"); ``local_ba.joint_iters=10`` runs it.
 
 Index convention: the paper's.  Control point k sits at t0 + k*dt; frame 0's time is the start of
 the first interval, t_first = t0 + 2*dt, so interval n is [t_first + n*dt, t_first + (n+1)*dt) and
@@ -30,6 +32,7 @@ Layer 3 (optimiser): uses spline, dynamics, bundle; never tracking or global_ba.
 Taught in notebooks/06_local_ba.ipynb.
 """
 
+import dataclasses
 from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple
 
@@ -44,11 +47,12 @@ from .geometry import make_pose, so3_exp, so3_log
 from .render import RayBatch
 
 
-N_ANCHOR_CONTROLS = 3
-"""No stage after the first interval's fit moves the oldest three control points (local BA's window
-and global BA leave them out): they fix frame 0's pose (its spline pose is (P_0 + 4 P_1 + P_2)/6 in
-position), the gauge Co-SLAM fixes by holding keyframe 0.  The first interval's fit makes that pose
-frame 0's own (:func:`constant_velocity_control_points`)."""
+N_ANCHOR_CONTROLS = 1
+"""Control point 0 is never a free parameter: it follows control points 1 and 2 so that the curve
+keeps starting at frame 0's pose (:attr:`SplineTrack.start_pose`, :func:`spline.first_control_point`),
+the gauge Co-SLAM fixes by holding keyframe 0.  Every other control point moves in local and global
+BA.  (An earlier version froze the three oldest points instead, which froze the whole first
+interval at its constant-velocity fit; docs/system.md, "TS-SLAM's ATE on clean synthetic data".)"""
 
 
 @dataclass
@@ -59,6 +63,8 @@ class SplineTrack:
         dt: knot spacing (s).  t0: time of control point 0 (s), = first frame time - 2 dt.
         rotations: (N, 3, 3) control rotations; translations: (N, 3) control translations (world).
         intervals_done: number of intervals whose mapping step has run.
+        start_pose: (4, 4) camera-to-world pose of frame 0 that the curve starts at (the gauge),
+            set by the first interval's fit; None before.
     """
 
     dt: float
@@ -67,6 +73,11 @@ class SplineTrack:
     translations: torch.Tensor
     intervals_done: int = 0
     convention: str = "paper"
+    start_pose: Optional[torch.Tensor] = None
+
+    def with_controls(self, rotations: torch.Tensor, translations: torch.Tensor) -> "SplineTrack":
+        """The same track with new (detached) control points."""
+        return dataclasses.replace(self, rotations=rotations.detach(), translations=translations.detach())
 
     @classmethod
     def empty(cls, first_time: float, dt: float, like: torch.Tensor) -> "SplineTrack":
@@ -137,7 +148,7 @@ def constant_velocity_control_points(track: SplineTrack, times: np.ndarray, pose
     well-conditioned problem, whereas four free points fitted to one segment's noisy poses swing
     far off (a cubic extrapolated from a fraction of a second of data).  The line starts at the
     first pose (c = p_first, R_first its rotation): the spline then passes exactly through frame
-    0's pose, which anchors the map as in Co-SLAM, and the anchors keep it there.
+    0's pose, which anchors the map as in Co-SLAM; :attr:`SplineTrack.start_pose` keeps it there.
 
     Args:
         times: (K,) float64 s, the first interval's frames (the first is frame 0).
@@ -186,10 +197,12 @@ def curve_approximation(track: SplineTrack, times: np.ndarray, poses: torch.Tens
     (:func:`constant_velocity_control_points`).
     """
     poses = poses.detach()
+    start_pose = track.start_pose
     if track.n_ctrl == 0:
         if len(times) == 0:
             raise ValueError("the first spline interval holds no frame")
         rotations, translations = constant_velocity_control_points(track, times, poses)
+        start_pose = poses[0].clone()
     else:
         new_rotation, new_translation = extrapolate_control_point(track)
         rotations = torch.cat([track.rotations, new_rotation.unsqueeze(0)], dim=0)
@@ -202,8 +215,21 @@ def curve_approximation(track: SplineTrack, times: np.ndarray, poses: torch.Tens
                 np.asarray(times, dtype=np.float64), poses, track.dt, track.t0, rotations.shape[0],
                 init_rotations=rotations, init_translations=translations, fixed=fixed,
                 iters=cfg.local_ba.fit_iters, convention=track.convention)
-    return SplineTrack(track.dt, track.t0, rotations.detach().to(poses.dtype), translations.detach().to(poses.dtype),
-                       track.intervals_done, track.convention)
+            rotations, translations = pin_start(rotations, translations, start_pose)
+    return dataclasses.replace(track, rotations=rotations.detach().to(poses.dtype),
+                               translations=translations.detach().to(poses.dtype), start_pose=start_pose)
+
+
+def pin_start(rotations: torch.Tensor, translations: torch.Tensor, start_pose: Optional[torch.Tensor]
+              ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Reset control point 0 so that the curve starts at ``start_pose`` again (after a fit that moved
+    control point 2).  (N, 3, 3), (N, 3) in and out; unchanged without a start pose."""
+    if start_pose is None or rotations.shape[0] < 3:
+        return rotations, translations
+    rotation_0, translation_0 = spline_module.first_control_point(rotations, translations, start_pose[:3, :3],
+                                                                  start_pose[:3, 3])
+    return (torch.cat([rotation_0.unsqueeze(0), rotations[1:]], dim=0),
+            torch.cat([translation_0.unsqueeze(0), translations[1:]], dim=0))
 
 
 def fit_time_range(track: SplineTrack, n: int, cfg: Config) -> Tuple[float, float]:
@@ -232,14 +258,12 @@ def refine_window(field_model: torch.nn.Module, track: SplineTrack, frame_times:
     time_range = track.window_time_range(cfg.local_ba.window)
     fallback = track.poses(frame_times)
     poses = SplinePoses(track.rotations, track.translations, window, track.dt, track.t0, track.convention,
-                        frame_times, fallback, cfg.local_ba.lr_rot, cfg.local_ba.lr_trans)
+                        frame_times, fallback, cfg.local_ba.lr_rot, cfg.local_ba.lr_trans, track.start_pose)
     pool = slotted(frame_rays)
     stats = joint_optimization(field_model, None, [(pool, cfg.local_ba.n_rays)], poses, cfg, cfg.local_ba.refine_iters,
                                generator, extra_loss=window_dynamics(poses, time_range, cfg, generator),
                                optimise_map=False, pose_accum_step=1)
-    rotations, translations = poses.control_points()
-    return SplineTrack(track.dt, track.t0, rotations.detach(), translations.detach(), track.intervals_done,
-                       track.convention), stats
+    return track.with_controls(*poses.control_points()), stats
 
 
 def joint_window(field_model: torch.nn.Module, map_optimizer: torch.optim.Optimizer, track: SplineTrack,
@@ -250,17 +274,15 @@ def joint_window(field_model: torch.nn.Module, map_optimizer: torch.optim.Optimi
     time_range = track.window_time_range(cfg.local_ba.window)
     kf_times = np.asarray(keyframes.timestamps, dtype=np.float64)
     slots = [s for s, t in enumerate(kf_times) if time_range[0] <= t < time_range[1]]
-    if not slots:
+    if not slots or cfg.local_ba.joint_iters <= 0:
         return track, None
     times = kf_times[slots]
     poses = SplinePoses(track.rotations, track.translations, window, track.dt, track.t0, track.convention,
-                        times, track.poses(times), cfg.local_ba.lr_rot, cfg.local_ba.lr_trans)
+                        times, track.poses(times), cfg.local_ba.lr_rot, cfg.local_ba.lr_trans, track.start_pose)
     stats = joint_optimization(field_model, map_optimizer, [(keyframes.rays(slots), cfg.local_ba.n_rays)], poses, cfg,
                                cfg.local_ba.joint_iters, generator,
                                extra_loss=window_dynamics(poses, time_range, cfg, generator), pose_accum_step=1)
-    rotations, translations = poses.control_points()
-    return SplineTrack(track.dt, track.t0, rotations.detach(), translations.detach(), track.intervals_done,
-                       track.convention), stats
+    return track.with_controls(*poses.control_points()), stats
 
 
 def refine_discrete_window(field_model: torch.nn.Module, map_optimizer: torch.optim.Optimizer, poses: torch.Tensor,
@@ -281,7 +303,7 @@ def refine_discrete_window(field_model: torch.nn.Module, map_optimizer: torch.op
     joint_optimization(field_model, None, [(pool, cfg.local_ba.n_rays)], model, cfg, cfg.local_ba.refine_iters,
                        generator, optimise_map=False, pose_accum_step=1)
     keyframe_slots = [slot for slot, is_kf in enumerate(keyframe_mask) if is_kf]
-    if keyframe_slots:
+    if keyframe_slots and cfg.local_ba.joint_iters > 0:
         kf_pool = RayBatch.cat([pool.subset(torch.nonzero(pool.frame_ids == slot).squeeze(1)) for slot in keyframe_slots])
         joint_optimization(field_model, map_optimizer, [(kf_pool, cfg.local_ba.n_rays)], model, cfg,
                            cfg.local_ba.joint_iters, generator, pose_accum_step=1)

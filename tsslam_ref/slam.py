@@ -341,10 +341,10 @@ def tsslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
             track.rotations, track.translations, free, track.dt, track.t0, track.convention,
             frame.all_rays(), frame.timestamp, state.tracked_poses[frame.index], cfg,
             dynamics_range=(domain_start, window_range[0]) if cfg.local_ba.use_dynamics else None,
-            generator=state.generator,
+            generator=state.generator, start_pose=track.start_pose,
         )
         state.timings.add("global_ba", time.perf_counter() - start, cfg.mapping.iters)
-        track = local_ba.SplineTrack(track.dt, track.t0, rotations, translations, n, track.convention)
+        track = track.with_controls(rotations, translations)
         _check_finite(track, "global BA", frame)
         check_spline_follows_tracking(state, track, times[in_interval], in_interval)
         covered = np.nonzero(track.covers(times))[0]

@@ -648,6 +648,48 @@ def fit_control_points(
     return rotations.to(out_dtype), translations.to(out_dtype)
 
 
+def first_control_point(
+    control_rotations: torch.Tensor,
+    control_translations: torch.Tensor,
+    start_rotation: torch.Tensor,
+    start_translation: torch.Tensor,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Control point 0 that makes the curve start at a given pose, from control points 1 and 2.
+
+    At the start of the domain (first segment, u = 0) the cumulative weights are
+    B̃(0) = (1, 5/6, 1/6, 0), so with d_j = Log(R_{j−1}ᵀ R_j)
+
+        t(t_min) = (t_0 + 4 t_1 + t_2) / 6,   R(t_min) = R_0 Exp(5/6 d_1) Exp(1/6 d_2).
+
+    Solving for control point 0 (R_0 = R_1 Exp(−d_1), so R_0 Exp(5/6 d_1) = R_1 Exp(−d_1 / 6)):
+
+        t_0 = 6 t_start − 4 t_1 − t_2,   R_0 = R_1 Exp(6 Log(R_1ᵀ R_start Exp(−d_2 / 6))).
+
+    Same formula for both index conventions (it is the first segment's start either way).  The
+    factor 6 needs |Log(R_1ᵀ R_start Exp(−d_2/6))| < π/6 (30°) to invert Exp; camera motion over a
+    knot interval is far below that.  Differentiable in control points 1 and 2, which is how
+    local and global BA keep frame 0's pose fixed while every other control point moves (the
+    gauge Co-SLAM fixes by holding keyframe 0).
+
+    Args:
+        control_rotations: (N, 3, 3), N >= 3 (only rows 1 and 2 are read).
+        control_translations: (N, 3).
+        start_rotation: (3, 3) and start_translation: (3,), the pose the curve must start at.
+
+    Returns:
+        R_0 (3, 3), t_0 (3,) in the control points' dtype.
+    """
+    if control_rotations.shape[0] < 3:
+        raise ValueError(f"first_control_point needs control points 1 and 2, got {control_rotations.shape[0]} points")
+    rotation_1, rotation_2 = control_rotations[1], control_rotations[2]
+    start_rotation = start_rotation.to(control_rotations)
+    d_2 = so3_log(rotation_1.transpose(-1, -2) @ rotation_2)  # (3,)
+    target = start_rotation @ so3_exp(-d_2 / 6.0)  # = R_1 Exp(-d_1 / 6)
+    rotation_0 = rotation_1 @ so3_exp(6.0 * so3_log(rotation_1.transpose(-1, -2) @ target))
+    translation_0 = 6.0 * start_translation.to(control_translations) - 4.0 * control_translations[1] - control_translations[2]
+    return rotation_0, translation_0
+
+
 if __name__ == "__main__":
     import sys
 
