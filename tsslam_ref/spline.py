@@ -666,10 +666,10 @@ def first_control_point(
         t_0 = 6 t_start − 4 t_1 − t_2,   R_0 = R_1 Exp(6 Log(R_1ᵀ R_start Exp(−d_2 / 6))).
 
     Same formula for both index conventions (it is the first segment's start either way).  The
-    factor 6 needs |Log(R_1ᵀ R_start Exp(−d_2/6))| < π/6 (30°) to invert Exp; camera motion over a
-    knot interval is far below that.  Differentiable in control points 1 and 2, which is how
-    local and global BA keep frame 0's pose fixed while every other control point moves (the
-    gauge Co-SLAM fixes by holding keyframe 0).
+    Log in it is −d_1/6, so the factor 6 inverts Exp while |d_1| < π, i.e. while control points 0
+    and 1 are less than 180° apart (a knot interval's rotation is far less).  Differentiable in
+    control points 1 and 2, which is how local and global BA keep frame 0's pose fixed while every
+    other control point moves (the gauge Co-SLAM fixes by holding keyframe 0).
 
     Args:
         control_rotations: (N, 3, 3), N >= 3 (only rows 1 and 2 are read).
