@@ -610,6 +610,9 @@ def test_first_control_point_recovers_control_point_0_from_the_start_pose(conven
     garbled_R[0], garbled_P[0] = R[3], P[3] + 5.0
     rotation_0, translation_0 = spline.first_control_point(garbled_R, garbled_P, start.rotation[0], start.translation[0])
     assert torch.allclose(rotation_0, R[0], atol=1e-10) and torch.allclose(translation_0, P[0], atol=1e-10)
+    pinned_R, pinned_P = spline.pin_first_control_point(garbled_R, garbled_P, make_pose(start.rotation[0], start.translation[0]))
+    assert torch.allclose(pinned_R, R, atol=1e-10) and torch.allclose(pinned_P, P, atol=1e-10)
+    assert spline.pin_first_control_point(garbled_R, garbled_P, None)[1] is garbled_P
     with pytest.raises(ValueError, match="control points 1 and 2"):
         spline.first_control_point(R[:2], P[:2], start.rotation[0], start.translation[0])
 

@@ -169,11 +169,8 @@ class SplinePoses(torch.nn.Module):
         mask = self.free_mask[:, None].to(self.rotation_delta.dtype)
         rotations = so3_exp(self.rotation_delta * mask) @ self.rotations0
         translations = self.translations0 + self.translation_delta * mask
-        if self.start_pose is not None and bool(self.free_mask[1:3].any()):
-            rotation_0, translation_0 = spline_module.first_control_point(
-                rotations, translations, self.start_pose[:3, :3], self.start_pose[:3, 3])
-            rotations = torch.cat([rotation_0.unsqueeze(0), rotations[1:]], dim=0)
-            translations = torch.cat([translation_0.unsqueeze(0), translations[1:]], dim=0)
+        if bool(self.free_mask[1:3].any()):  # point 0 only changes when point 1 or 2 can
+            rotations, translations = spline_module.pin_first_control_point(rotations, translations, self.start_pose)
         return rotations, translations
 
     def trajectory(self) -> "spline_module.BSplineTrajectory":

@@ -215,21 +215,9 @@ def curve_approximation(track: SplineTrack, times: np.ndarray, poses: torch.Tens
                 np.asarray(times, dtype=np.float64), poses, track.dt, track.t0, rotations.shape[0],
                 init_rotations=rotations, init_translations=translations, fixed=fixed,
                 iters=cfg.local_ba.fit_iters, convention=track.convention)
-            rotations, translations = pin_start(rotations, translations, start_pose)
+            rotations, translations = spline_module.pin_first_control_point(rotations, translations, start_pose)
     return dataclasses.replace(track, rotations=rotations.detach().to(poses.dtype),
                                translations=translations.detach().to(poses.dtype), start_pose=start_pose)
-
-
-def pin_start(rotations: torch.Tensor, translations: torch.Tensor, start_pose: Optional[torch.Tensor]
-              ) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Reset control point 0 so that the curve starts at ``start_pose`` again (after a fit that moved
-    control point 2).  (N, 3, 3), (N, 3) in and out; unchanged without a start pose."""
-    if start_pose is None or rotations.shape[0] < 3:
-        return rotations, translations
-    rotation_0, translation_0 = spline_module.first_control_point(rotations, translations, start_pose[:3, :3],
-                                                                  start_pose[:3, 3])
-    return (torch.cat([rotation_0.unsqueeze(0), rotations[1:]], dim=0),
-            torch.cat([translation_0.unsqueeze(0), translations[1:]], dim=0))
 
 
 def fit_time_range(track: SplineTrack, n: int, cfg: Config) -> Tuple[float, float]:
@@ -270,11 +258,13 @@ def joint_window(field_model: torch.nn.Module, map_optimizer: torch.optim.Optimi
                  keyframes: KeyframeDatabase, cfg: Config,
                  generator: Optional[torch.Generator] = None) -> Tuple[SplineTrack, Optional[BAStats]]:
     """Stage 3: the window's keyframes, jointly with the map (control points in the window move)."""
+    if cfg.local_ba.joint_iters <= 0:
+        return track, None
     window = track.window_controls(cfg.local_ba.window)
     time_range = track.window_time_range(cfg.local_ba.window)
     kf_times = np.asarray(keyframes.timestamps, dtype=np.float64)
     slots = [s for s, t in enumerate(kf_times) if time_range[0] <= t < time_range[1]]
-    if not slots or cfg.local_ba.joint_iters <= 0:
+    if not slots:
         return track, None
     times = kf_times[slots]
     poses = SplinePoses(track.rotations, track.translations, window, track.dt, track.t0, track.convention,

@@ -690,6 +690,27 @@ def first_control_point(
     return rotation_0, translation_0
 
 
+def pin_first_control_point(
+    control_rotations: torch.Tensor, control_translations: torch.Tensor, start_pose: Optional[torch.Tensor]
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The control points with point 0 replaced by :func:`first_control_point` for ``start_pose``.
+
+    Args:
+        control_rotations: (N, 3, 3); control_translations: (N, 3).
+        start_pose: (4, 4) camera-to-world pose the curve must start at, or None (nothing changes;
+            neither does anything with fewer than 3 points).
+
+    Returns:
+        (N, 3, 3), (N, 3), differentiable in control points 1 and 2.
+    """
+    if start_pose is None or control_rotations.shape[0] < 3:
+        return control_rotations, control_translations
+    rotation_0, translation_0 = first_control_point(control_rotations, control_translations,
+                                                    start_pose[:3, :3], start_pose[:3, 3])
+    return (torch.cat([rotation_0.unsqueeze(0), control_rotations[1:]], dim=0),
+            torch.cat([translation_0.unsqueeze(0), control_translations[1:]], dim=0))
+
+
 if __name__ == "__main__":
     import sys
 
