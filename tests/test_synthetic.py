@@ -203,3 +203,23 @@ def test_synthesize_along_real_motion_and_cli(tmp_path, shared_data, capsys):
                                np.linalg.inv(poses[0]) @ poses[2], atol=1e-6)
     assert data.main(["synthesize", "--out", str(out), "--frames", "2"]) == 2
     assert "not empty" in capsys.readouterr().err
+
+
+def test_synthesize_cli_start_offset(tmp_path, shared_data, capsys):
+    """--start S takes frame 0 at S seconds after the file's first pose (TUM-VI room1 from 20 s)."""
+    trajectory = shared_data / "trajectories" / "tum_vi_room1_groundtruth.txt"
+    first_stamp = float(np.loadtxt(trajectory, comments="#", max_rows=1)[0])  # independent of the reader
+    out = tmp_path / "room1"
+    status = data.main(["synthesize", "--out", str(out), "--trajectory", str(trajectory), "--start", "20",
+                        "--frames", "3", "--size", "24x16", "--mesh-voxel", "0.2"])
+    assert status == 0
+    sequence = data.load_sequence(out)
+    np.testing.assert_allclose(sequence.timestamps, np.round(first_stamp + 20.0 + np.arange(3) / 30.0, 6), atol=2e-6)
+    stamps, poses = synthetic.resample_trajectory(trajectory, 3, 30.0, start_time=first_stamp + 20.0)
+    np.testing.assert_allclose(np.linalg.inv(sequence.gt_poses[0]) @ sequence.gt_poses[2],
+                               np.linalg.inv(poses[0]) @ poses[2], atol=1e-6)
+    assert data.main(["synthesize", "--out", str(tmp_path / "x"), "--start", "2"]) == 2
+    assert "--start needs --trajectory" in capsys.readouterr().err
+    assert data.main(["synthesize", "--out", str(tmp_path / "y"), "--trajectory", str(trajectory),
+                      "--start", "-1"]) == 2
+    assert "--start must be >= 0" in capsys.readouterr().err

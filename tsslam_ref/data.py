@@ -227,6 +227,8 @@ def main(argv=None) -> int:
     synth.add_argument("--size", type=_parse_size, default=(160, 120))
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--fps", type=float, default=30.0)
+    synth.add_argument("--start", type=float, default=0.0,
+                       help="seconds after the trajectory's first pose at which frame 0 is taken (default 0)")
     synth.add_argument("--clean-depth", action="store_true")
     synth.add_argument("--mesh-voxel", type=float, default=0.03, help="marching-cubes voxel of gt_mesh.ply (m)")
     synth.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
@@ -244,11 +246,20 @@ def main(argv=None) -> int:
                 print(f"{key:>22}: {value}")
         return 0
     from tsslam_ref import synthetic  # lazy: the renderer needs torch
+    from tsslam_ref.datasets.tum_format import read_tum_trajectory
 
     try:
+        start_time = None
+        if args.start != 0.0:
+            if args.trajectory is None:
+                raise ValueError("--start needs --trajectory (the built-in path starts at 0 s)")
+            if not args.start >= 0.0:
+                raise ValueError(f"--start must be >= 0 seconds, got {args.start}")
+            start_time = float(np.min(read_tum_trajectory(args.trajectory)[0])) + args.start
         out = synthetic.synthesize(
             args.out, trajectory=args.trajectory, n_frames=args.frames, width=args.size[0], height=args.size[1],
             fps=args.fps, seed=args.seed, clean_depth=args.clean_depth, overwrite=args.force, mesh_voxel=args.mesh_voxel,
+            start_time=start_time,
         )
     except (ValueError, FileNotFoundError, FileExistsError) as error:
         print(f"error: {error}", file=sys.stderr)
