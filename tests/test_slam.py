@@ -52,6 +52,40 @@ def test_slam_tracks_a_synthetic_sequence(synthetic_sequence, method):
         assert np.allclose(result.poses, spline_poses, atol=1e-6)  # outputs are the spline's poses
 
 
+def test_tsslam_map_update_between_intervals_moves_only_the_map(synthetic_sequence, monkeypatch):
+    """mapping.tsslam_map_every: a global BA on every n-th frame on which no interval completes;
+    it must leave the spline and the poses of the frames it reaches as they were, move the map and
+    the poses of the newer keyframes / the current frame."""
+    cfg = small_config("tsslam")
+    cfg.mapping.tsslam_map_every = 5
+    sequence = data.load_sequence(synthetic_sequence)
+    seen = []
+    original = slam.tsslam_map_update
+
+    def checked(state, frame):
+        poses = state.tracked_poses.clone()
+        controls = (state.spline.rotations.clone(), state.spline.translations.clone())
+        weights = [p.detach().clone() for p in state.field.parameters()]
+        original(state, frame)
+        reached = np.flatnonzero(state.spline.covers(state.timestamps))
+        assert torch.equal(state.tracked_poses[reached], poses[reached]) and torch.equal(state.tracked_poses[0], poses[0])
+        assert torch.equal(state.spline.rotations, controls[0]) and torch.equal(state.spline.translations, controls[1])
+        assert any(not torch.equal(p, w) for p, w in zip(state.field.parameters(), weights))
+        assert not torch.equal(state.tracked_poses[frame.index], poses[frame.index])  # optim_cur
+        seen.append(frame.index)
+
+    monkeypatch.setattr(slam, "tsslam_map_update", checked)
+    result = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+    # the schedule, from the timestamps alone: interval k ends at t_0 + (k + 1) dt
+    elapsed = (np.asarray(sequence.timestamps) - sequence.timestamps[0]) / cfg.spline.dt
+    completes = np.floor(elapsed[1:] + 1e-9) > np.floor(elapsed[:-1] + 1e-9)
+    expected = [i for i in range(1, len(sequence)) if i % 5 == 0 and not completes[i - 1]]
+    assert seen == expected and len(expected) >= 2
+    assert result.state.timings.table()["map_update"]["calls"] == len(expected)
+    metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
+    assert metrics["ate_rmse_m"] < 0.03, metrics
+
+
 def test_without_local_ba_the_run_ends_cleanly(synthetic_sequence):
     """Paper Table V: without local BA TS-SLAM fails.  Ours either completes with finite poses (on
     this slow, smooth sequence the extrapolated control points can stay close) or stops with a
@@ -187,3 +221,12 @@ def test_the_parallel_flag_reaches_the_config_and_the_default_stays_sequential()
     parser = run.build_parser()
     assert run.resolve_config(parser.parse_args(["--config", "tiny", "--parallel"])).parallel is True
     assert run.resolve_config(parser.parse_args(["--config", "tiny"])).parallel is False
+
+
+def test_global_ba_names_a_held_mask_of_the_wrong_length():
+    from tsslam_ref import global_ba
+    from tsslam_ref.bundle import KeyframeDatabase
+
+    with pytest.raises(ValueError, match=r"one entry per keyframe plus the current frame \(1\), got 2"):
+        global_ba.coslam_global_ba(None, None, KeyframeDatabase(), torch.zeros(0, 4, 4), None, torch.eye(4),
+                                   config.tiny(), held=torch.tensor([True, False]))

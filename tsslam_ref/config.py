@@ -174,6 +174,12 @@ class MappingConfig:
     """Every n-th frame becomes a keyframe (Co-SLAM; paper Sec. III-D)."""
     map_every: int = 5
     """Global BA every n-th frame for the discrete-pose baseline (Co-SLAM)."""
+    tsslam_map_every: int = 5
+    """TS-SLAM (ours): every n-th frame on which no spline interval completes, Co-SLAM's global BA
+    on what the spline does not reach yet (the map, the newer keyframes and the current frame; the
+    spline and the keyframes it reaches are held), so that the map takes in new views as often as
+    Co-SLAM's does.  0 gives the paper's schedule, mapping only once per interval dt, which loses
+    the camera on walking-speed motion (docs/system.md, "Walking-speed motion")."""
     kf_pixel_fraction: float = 0.05
     """Share of each keyframe's pixels stored (Co-SLAM ``n_pixels``)."""
     lr_embed: float = 0.01

@@ -10,7 +10,8 @@ frame, the feature-smoothness term, one map step per iteration, pose steps every
 
 * :func:`coslam_global_ba` - one free pose per keyframe, keyframe 0 fixed, the current frame's pose
   optimised iff ``optim_cur`` (with fewer than two keyframes only the map moves).  This is the
-  Co-SLAM baseline and the "w/o B-S." ablation.
+  Co-SLAM baseline and the "w/o B-S." ablation; ``held`` chooses other held poses (TS-SLAM's
+  map update between spline intervals, ours).
 * :func:`tsslam_global_ba` - the keyframes' poses are spline evaluations; only the control points
   older than the sliding window move (control point 0 follows control points 1 and 2 so that frame 0
   keeps its pose, the gauge Co-SLAM fixes by holding keyframe 0); L_DR is sampled over the time
@@ -45,6 +46,7 @@ def coslam_global_ba(
     current_pose: torch.Tensor,
     cfg: Config,
     generator: Optional[torch.Generator] = None,
+    held: Optional[torch.Tensor] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor, BAStats]:
     """Co-SLAM global BA.
 
@@ -52,6 +54,9 @@ def coslam_global_ba(
         keyframe_poses: (K, 4, 4) camera-to-world poses of the keyframe slots.
         current_rays: rays of the whole current frame (any ``frame_ids``).
         current_pose: (4, 4) its camera-to-world pose.
+        held: (K + 1,) bool, the slots (keyframes, then the current frame) whose poses stay as
+            given, replacing Co-SLAM's rule above (TS-SLAM's map update between two spline
+            intervals, ``mapping.tsslam_map_every``, holds the keyframes the spline reaches).
 
     Returns:
         ((K, 4, 4) keyframe poses, (4, 4) current pose, stats), poses detached.
@@ -59,7 +64,11 @@ def coslam_global_ba(
     n_kf = len(keyframes)
     initial = torch.cat([keyframe_poses, current_pose.unsqueeze(0)], dim=0)
     fixed = torch.ones(n_kf + 1, dtype=torch.bool)
-    if n_kf >= 2:
+    if held is not None:
+        fixed = torch.as_tensor(held, dtype=torch.bool).reshape(-1).clone()
+        if fixed.shape[0] != n_kf + 1:
+            raise ValueError(f"held must have one entry per keyframe plus the current frame ({n_kf + 1}), got {fixed.shape[0]}")
+    elif n_kf >= 2:
         fixed[1:n_kf] = False
         fixed[n_kf] = not cfg.mapping.optim_cur
     poses = DiscretePoses(initial, fixed, cfg.mapping.lr_rot, cfg.mapping.lr_trans)

@@ -42,18 +42,21 @@ from . import slam
 
 
 def tracking_lag(state: "slam.SLAMState") -> int:
-    """Frames tracking may run ahead of mapping: ``map_every`` (Co-SLAM) or one dt interval (TS-SLAM)."""
+    """Frames tracking may run ahead of mapping, one mapping period: ``map_every`` (Co-SLAM), one dt
+    interval (TS-SLAM), or ``tsslam_map_every`` when TS-SLAM also maps between intervals and that is shorter."""
     cfg = state.cfg
     if cfg.method == "coslam":
         return max(1, cfg.mapping.map_every)
     spacing = float(np.median(np.diff(state.timestamps))) if len(state.timestamps) > 1 else cfg.spline.dt
-    return max(1, int(math.ceil(cfg.spline.dt / max(spacing, 1e-9))))
+    interval = max(1, int(math.ceil(cfg.spline.dt / max(spacing, 1e-9))))
+    return min(interval, cfg.mapping.tsslam_map_every) if cfg.mapping.tsslam_map_every > 0 else interval
 
 
 def global_ba_calls(state: "slam.SLAMState") -> int:
-    """Global BA runs so far: every mapping step of either method ends with one, and only mapping
-    steps change the map, so a new count means a new map to publish."""
-    return state.timings.calls.get("global_ba", 0)
+    """Global BA runs so far: every mapping step of either method ends with one, TS-SLAM's map
+    updates between intervals are one too, and only these change the map, so a new count means a
+    new map to publish."""
+    return state.timings.calls.get("global_ba", 0) + state.timings.calls.get("map_update", 0)
 
 
 def mapping_view(state: "slam.SLAMState", frame_index: int) -> "slam.SLAMState":

@@ -14,8 +14,10 @@ TS-SLAM Sec. III-D (Fig. 2) and, for the baseline, Co-SLAM's single-process sche
   paper reports).
 * ``method="tsslam"``: the trajectory is a cubic B-spline (``spline.py``); every ``dt`` of sequence
   time a new control point is added and the mapping step runs local BA over the sliding window
-  then global BA over the keyframes outside it (``local_ba.py``, ``global_ba.py``).  Output poses
-  are the spline's poses at the frames' timestamps.
+  then global BA over the keyframes outside it (``local_ba.py``, ``global_ba.py``); on every
+  ``mapping.tsslam_map_every``-th frame where no interval ends, Co-SLAM's global BA runs on what
+  the spline does not reach yet (ours; 0 gives the paper's schedule).  Output poses are the
+  spline's poses at the frames' timestamps.
 
 The loop is sequential and deterministic for a seed.  ``run_slam`` takes a progress callback and a
 checkpoint hook so the command line (``run.py``) can show progress, write partial results and
@@ -401,12 +403,42 @@ def tsslam_step(state: SLAMState, frame: FrameTensors) -> None:
 
 
 def tsslam_after_tracking(state: SLAMState, frame: FrameTensors) -> None:
-    """The mapping side of a TS-SLAM frame: local + global BA per completed interval, keyframes."""
+    """The mapping side of a TS-SLAM frame: local + global BA per completed interval, else a
+    map update every ``mapping.tsslam_map_every`` frames; keyframes."""
     cfg = state.cfg
+    mapped = False
     while frame.timestamp >= state.spline.interval(state.spline.intervals_done)[1]:
         tsslam_mapping(state, frame)
+        mapped = True
+    every = cfg.mapping.tsslam_map_every
+    if not mapped and every > 0 and frame.index % every == 0:
+        tsslam_map_update(state, frame)
     if frame.index % cfg.mapping.keyframe_every == 0:
         add_keyframe(state, frame)
+
+
+def tsslam_map_update(state: SLAMState, frame: FrameTensors) -> None:
+    """Co-SLAM's global BA on what the spline does not reach yet (ours, ``mapping.tsslam_map_every``).
+
+    Between two spline intervals the map would otherwise see no new view for dt seconds; on
+    walking-speed motion tracking then runs off the mapped part of the scene (docs/system.md).
+    Keyframes the spline reaches keep their (spline) poses, as does keyframe 0; the newer ones and
+    the current frame (iff ``mapping.optim_cur``) are discrete poses optimised with the map, and
+    their results replace the tracked poses that the next curve approximation fits.  The
+    spline is left unchanged."""
+    cfg = state.cfg
+    keyframe_frames = state.keyframes.frame_indices
+    slot_times = np.append(state.timestamps[keyframe_frames], state.timestamps[frame.index])
+    held = state.spline.covers(slot_times)
+    held[0] = True
+    held[-1] = held[-1] or not cfg.mapping.optim_cur
+    start = time.perf_counter()
+    keyframe_poses, current_pose, _ = coslam_global_ba(
+        state.field, state.map_optimizer, state.keyframes, state.tracked_poses[keyframe_frames], frame.all_rays(),
+        state.tracked_poses[frame.index], cfg, state.generator, held=torch.as_tensor(held))
+    state.timings.add("map_update", time.perf_counter() - start, cfg.mapping.iters)
+    state.tracked_poses[keyframe_frames] = keyframe_poses
+    state.tracked_poses[frame.index] = current_pose
 
 
 def tsslam_finish(state: SLAMState, sequence, device: torch.device, dtype: torch.dtype) -> None:
