@@ -256,16 +256,21 @@ def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneFiel
         state.log.append({"frame": i, "tracking_loss": best_loss})
 
 
-def coslam_mapping(state: SLAMState, frame: FrameTensors) -> None:
-    """Co-SLAM global BA over all keyframes + the current frame; write back the optimised poses."""
+def coslam_mapping(state: SLAMState, frame: FrameTensors, held: Optional[np.ndarray] = None,
+                   stage: str = "global_ba") -> None:
+    """Co-SLAM global BA over all keyframes + the current frame; write back the optimised poses.
+
+    ``held`` ((K + 1,) bool, keyframes then the current frame) replaces Co-SLAM's choice of held
+    poses (:func:`global_ba.coslam_global_ba`); ``stage`` names the timer."""
     cfg = state.cfg
     keyframe_frames = state.keyframes.frame_indices
     start = time.perf_counter()
     keyframe_poses, current_pose, _ = coslam_global_ba(
         state.field, state.map_optimizer, state.keyframes, state.tracked_poses[keyframe_frames],
         frame.all_rays(), state.tracked_poses[frame.index], cfg, state.generator,
+        held=None if held is None else torch.as_tensor(held),
     )
-    state.timings.add("global_ba", time.perf_counter() - start, cfg.mapping.iters)
+    state.timings.add(stage, time.perf_counter() - start, cfg.mapping.iters)
     state.tracked_poses[keyframe_frames] = keyframe_poses
     state.tracked_poses[frame.index] = current_pose
 
@@ -426,19 +431,11 @@ def tsslam_map_update(state: SLAMState, frame: FrameTensors) -> None:
     the current frame (iff ``mapping.optim_cur``) are discrete poses optimised with the map, and
     their results replace the tracked poses that the next curve approximation fits.  The
     spline is left unchanged."""
-    cfg = state.cfg
-    keyframe_frames = state.keyframes.frame_indices
-    slot_times = np.append(state.timestamps[keyframe_frames], state.timestamps[frame.index])
+    slot_times = np.append(state.timestamps[state.keyframes.frame_indices], state.timestamps[frame.index])
     held = state.spline.covers(slot_times)
     held[0] = True
-    held[-1] = held[-1] or not cfg.mapping.optim_cur
-    start = time.perf_counter()
-    keyframe_poses, current_pose, _ = coslam_global_ba(
-        state.field, state.map_optimizer, state.keyframes, state.tracked_poses[keyframe_frames], frame.all_rays(),
-        state.tracked_poses[frame.index], cfg, state.generator, held=torch.as_tensor(held))
-    state.timings.add("map_update", time.perf_counter() - start, cfg.mapping.iters)
-    state.tracked_poses[keyframe_frames] = keyframe_poses
-    state.tracked_poses[frame.index] = current_pose
+    held[-1] = held[-1] or not state.cfg.mapping.optim_cur
+    coslam_mapping(state, frame, held=held, stage="map_update")
 
 
 def tsslam_finish(state: SLAMState, sequence, device: torch.device, dtype: torch.dtype) -> None:
