@@ -15,6 +15,9 @@ Layer 0 (base): dataclasses only, no torch.
   parsed as JSON where possible, else kept as strings.
 * :func:`load` accepts a preset name or a JSON file written by :func:`save` (every run saves its
   resolved config as ``config.json``).
+* :func:`validate` checks every value's type against its field and the ranges in :data:`RANGES`
+  (a file, an override or a notebook's edit with ``mapping.map_every=0`` or ``tracking.iters="ten"``
+  fails at once, naming the key, the value and what was expected).
 """
 
 import copy
@@ -469,6 +472,99 @@ def from_dict(values: Dict[str, Any], source: str = "<dict>") -> Config:
                 setattr(current, sub_key, sub_value)
         else:
             setattr(cfg, key, value)
+    return validate(cfg, source)
+
+
+# Ranges the code relies on (ours): "section.key": (comparison, bound).  Keys not listed only have
+# their type checked.  A value outside its range raises before any work starts, instead of a
+# division by zero or an empty loop deep inside a run.
+RANGES: Dict[str, tuple] = {
+    "data.fps": (">", 0), "data.frame_start": (">=", 0), "data.frame_step": (">=", 1),
+    "data.crop_edge": (">=", 0), "data.depth_trunc": (">", 0), "data.resize_width": (">=", 8),
+    "data.depth_scale": (">", 0),
+    "field.bound_margin": (">=", 0), "field.n_levels": (">=", 1), "field.n_features_per_level": (">=", 1),
+    "field.base_resolution": (">=", 2), "field.log2_hashmap_size": (">=", 4), "field.voxel_sdf": (">", 0),
+    "field.oneblob_bins": (">=", 1), "field.geo_feat_dim": (">=", 1), "field.hidden_dim": (">=", 1),
+    "field.hidden_dim_color": (">=", 1),
+    "render.n_samples": (">=", 1), "render.n_range_d": (">=", 0), "render.range_d": (">=", 0),
+    "render.near": (">=", 0), "render.truncation": (">", 0), "render.chunk": (">=", 1),
+    "loss.rgb_weight": (">=", 0), "loss.depth_weight": (">=", 0), "loss.sdf_weight": (">=", 0),
+    "loss.fs_weight": (">=", 0), "loss.smooth_weight": (">=", 0), "loss.smooth_pts": (">=", 2),
+    "loss.smooth_vox": (">", 0), "loss.rgb_missing": (">=", 0),
+    "tracking.iters": (">=", 1), "tracking.n_rays": (">=", 1), "tracking.lr_rot": (">", 0),
+    "tracking.lr_trans": (">", 0), "tracking.ignore_edge": (">=", 0), "tracking.max_loss_ratio": (">", 1),
+    "mapping.first_iters": (">=", 0), "mapping.first_n_rays": (">=", 1), "mapping.iters": (">=", 0),
+    "mapping.n_rays": (">=", 1), "mapping.min_pixels_cur": (">=", 0), "mapping.keyframe_every": (">=", 1),
+    "mapping.map_every": (">=", 1), "mapping.tsslam_map_every": (">=", 0),
+    "mapping.kf_pixel_fraction": ("(]", (0, 1)), "mapping.lr_embed": (">", 0), "mapping.lr_decoder": (">", 0),
+    "mapping.lr_rot": (">", 0), "mapping.lr_trans": (">", 0), "mapping.pose_accum_step": (">=", 1),
+    "spline.dt": (">", 0), "spline.convention": ("in", ("paper", "basalt")),
+    "dynamics.lambda_acc": (">=", 0), "dynamics.lambda_ang": (">=", 0), "dynamics.a_max": (">", 0),
+    "dynamics.omegadot_max": (">", 0), "dynamics.n_samples": (">=", 1), "dynamics.barrier_limit": ("()", (0, 1)),
+    "local_ba.window": (">=", 1), "local_ba.fit_iters": (">=", 0), "local_ba.fit_controls": (">=", 1),
+    "local_ba.refine_iters": (">=", 0), "local_ba.joint_iters": (">=", 0), "local_ba.n_rays": (">=", 1),
+    "local_ba.lr_rot": (">", 0), "local_ba.lr_trans": (">", 0), "local_ba.max_deviation": (">", 0),
+    "mesh.voxel_eval": (">", 0), "mesh.voxel_final": (">", 0), "mesh.sdf_cutoff": (">", 0),
+    "method": ("in", ("tsslam", "coslam")), "dtype": ("in", ("float32", "float64")),
+}
+
+
+def _type_problem(value: Any, annotation: Any) -> Optional[str]:
+    """What is wrong with ``value`` for a field annotated ``annotation`` (None when it fits)."""
+    if getattr(annotation, "__origin__", None) is not None and type(None) in getattr(annotation, "__args__", ()):
+        if value is None:
+            return None
+        annotation = next(arg for arg in annotation.__args__ if arg is not type(None))
+    if annotation is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if annotation is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else "an integer"
+    if annotation is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value == value and abs(value) != float("inf")
+        return None if ok else "a finite number"
+    if annotation is str:
+        return None if isinstance(value, str) else "a string"
+    return None  # lists (field.bound) are checked where they are used
+
+
+def _in_range(value: Any, comparison: str, bound: Any) -> bool:
+    if comparison == "in":
+        return value in bound
+    if comparison in ("(]", "()"):
+        return bound[0] < value < bound[1] or (comparison == "(]" and value == bound[1])
+    return value > bound if comparison == ">" else value >= bound
+
+
+def validate(cfg: Config, source: str = "config") -> Config:
+    """Check every value's type against its field and the ranges in :data:`RANGES`.
+
+    Raises ValueError naming ``source``, the key, the value and what was expected; returns
+    ``cfg`` unchanged otherwise.  Called by :func:`apply_overrides`, :func:`from_dict` and
+    ``slam.run_slam``.
+    """
+    sections = [("", cfg)] + [(f.name + ".", getattr(cfg, f.name)) for f in dataclasses.fields(cfg)
+                              if dataclasses.is_dataclass(getattr(cfg, f.name))]
+    for prefix, section in sections:
+        for item in dataclasses.fields(section):
+            value = getattr(section, item.name)
+            if dataclasses.is_dataclass(value):
+                continue
+            key = prefix + item.name
+            expected = _type_problem(value, item.type)
+            if expected is not None:
+                raise ValueError(f"{source}: {key} = {value!r} must be {expected}")
+            if key not in RANGES or value is None:
+                continue
+            comparison, bound = RANGES[key]
+            if not _in_range(value, comparison, bound):
+                wanted = {"in": lambda: "one of " + ", ".join(bound), "(]": lambda: f"in ({bound[0]}, {bound[1]}]",
+                          "()": lambda: f"in ({bound[0]}, {bound[1]})"}.get(comparison, lambda: f"{comparison} {bound}")()
+                raise ValueError(f"{source}: {key} = {value!r} must be {wanted}")
+    if cfg.render.far <= cfg.render.near:
+        raise ValueError(f"{source}: render.far = {cfg.render.far!r} must be > render.near = {cfg.render.near!r}")
+    if cfg.local_ba.fit_controls > cfg.local_ba.window:
+        raise ValueError(f"{source}: local_ba.fit_controls = {cfg.local_ba.fit_controls} must be <= "
+                         f"local_ba.window = {cfg.local_ba.window}")
     return cfg
 
 
@@ -487,7 +583,8 @@ def apply_overrides(cfg: Config, overrides: Sequence[str]) -> Config:
     """Return a copy of ``cfg`` with ``section.key=value`` overrides applied.
 
     Values are parsed as JSON (``3``, ``0.5``, ``true``, ``[[0,1],[0,1],[0,1]]``), else taken as
-    strings.  Raises ValueError naming the override for an unknown key or a malformed string.
+    strings; string fields keep the text as typed.  Raises ValueError naming the override for an
+    unknown key, a malformed string, or a value of the wrong type or out of range (:func:`validate`).
     """
     cfg = copy.deepcopy(cfg)
     for item in overrides:
@@ -502,8 +599,11 @@ def apply_overrides(cfg: Config, overrides: Sequence[str]) -> Config:
             target = getattr(target, part)
         if not hasattr(target, parts[-1]) or dataclasses.is_dataclass(getattr(target, parts[-1])):
             raise ValueError(f"override '{item}': unknown key '{path}'")
-        setattr(target, parts[-1], _parse_value(text.strip()))
-    return cfg
+        value = _parse_value(text.strip())
+        if {f.name: f.type for f in dataclasses.fields(target)}[parts[-1]] is str and not isinstance(value, str):
+            value = text.strip()  # a string field keeps the text as typed (data.path=2024)
+        setattr(target, parts[-1], value)
+    return validate(cfg, "overrides " + " ".join(overrides) if overrides else "config")
 
 
 def load(name_or_file: str) -> Config:

@@ -39,7 +39,7 @@ import torch
 from . import local_ba
 from . import spline as spline_module
 from .bundle import KeyframeDatabase
-from .config import Config
+from .config import Config, validate
 from .field import SceneField
 from .geometry import invert_pose, make_pose, pose_to_tum
 from .global_ba import coslam_global_ba, tsslam_global_ba
@@ -529,8 +529,7 @@ def run_slam(
     Returns:
         :class:`SLAMResult` with float64 camera-to-world poses for every frame.
     """
-    if cfg.method not in ("coslam", "tsslam"):
-        raise ValueError(f"method must be 'coslam' or 'tsslam', got '{cfg.method}'")
+    validate(cfg)  # types and ranges, with the key named (config.RANGES)
     if len(sequence) < 2:
         raise ValueError(f"a SLAM run needs at least 2 frames, the sequence has {len(sequence)}")
     timestamps = np.asarray(sequence.timestamps, dtype=np.float64)

@@ -1,0 +1,72 @@
+"""Configuration (config.py): presets, overrides, files and the checks on every value.
+
+Oracles: the dataclass fields themselves (every preset must pass the checks it is built from) and
+hand-written bad inputs, each of which must fail with a message naming the key, the value and what
+was expected.
+"""
+
+import json
+
+import pytest
+
+from tsslam_ref import config, run
+
+
+@pytest.mark.parametrize("name", sorted(config.PRESETS))
+def test_every_preset_passes_its_own_checks(name):
+    cfg = config.load(name)
+    assert config.validate(cfg, name) is cfg
+
+
+@pytest.mark.parametrize("override, message", [
+    ("mapping.map_every=0", "mapping.map_every = 0 must be >= 1"),
+    ("tracking.iters=ten", "tracking.iters = 'ten' must be an integer"),
+    ("tracking.iters=2.5", "tracking.iters = 2.5 must be an integer"),
+    ("spline.dt=-0.3", "spline.dt = -0.3 must be > 0"),
+    ("data.fps=1e999", "data.fps = inf must be a finite number"),
+    ("tracking.best=1", "tracking.best = 1 must be true or false"),
+    ("mapping.kf_pixel_fraction=1.5", "mapping.kf_pixel_fraction = 1.5 must be in (0, 1]"),
+    ("dynamics.barrier_limit=1", "dynamics.barrier_limit = 1 must be in (0, 1)"),
+    ("spline.convention=cumulative", "spline.convention = 'cumulative' must be one of paper, basalt"),
+    ("method=orbslam", "method = 'orbslam' must be one of tsslam, coslam"),
+    ("local_ba.fit_controls=7", "local_ba.fit_controls = 7 must be <= local_ba.window = 6"),
+    ("render.far=0", "render.far = 0 must be > render.near = 0.0"),
+])
+def test_a_bad_override_names_key_value_and_expectation(override, message):
+    with pytest.raises(ValueError) as error:
+        config.apply_overrides(config.load("tiny"), [override])
+    assert message in str(error.value) and override in str(error.value)
+
+
+def test_good_overrides_keep_their_types():
+    cfg = config.apply_overrides(config.load("tiny"), [
+        "spline.dt=0.25", "dynamics.a_max=5", "field.bound=[[0,1],[0,1],[0,1]]", "data.resize_width=null",
+        "data.path=2024", "local_ba.use_dynamics=false", "mapping.tsslam_map_every=0"])
+    assert cfg.spline.dt == 0.25 and cfg.dynamics.a_max == 5 and cfg.data.resize_width is None
+    assert cfg.data.path == "2024"  # a string field keeps the text as typed
+    assert cfg.local_ba.use_dynamics is False and cfg.mapping.tsslam_map_every == 0
+
+
+def test_a_config_file_with_a_bad_value_names_the_file(tmp_path):
+    path = tmp_path / "mine.json"
+    values = config.to_dict(config.load("tiny"))
+    values["mapping"]["keyframe_every"] = 0
+    path.write_text(json.dumps(values))
+    with pytest.raises(ValueError, match=r"mine\.json: mapping\.keyframe_every = 0 must be >= 1"):
+        config.load(str(path))
+
+
+def test_the_loop_checks_a_config_edited_in_code():
+    from tsslam_ref import slam
+
+    cfg = config.load("tiny")
+    cfg.local_ba.window = 2  # a notebook edit that bypasses apply_overrides
+    with pytest.raises(ValueError, match=r"local_ba\.fit_controls = 3 must be <= local_ba\.window = 2"):
+        slam.run_slam([None, None], cfg)
+
+
+def test_the_command_line_reports_a_bad_value_and_exits_2(capsys, tmp_path):
+    code = run.main(["--set", "mapping.map_every=0", "--out", str(tmp_path / "out")])
+    assert code == 2
+    assert "mapping.map_every = 0 must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
