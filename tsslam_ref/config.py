@@ -27,7 +27,7 @@ import os
 import tempfile
 from dataclasses import dataclass
 from dataclasses import field as _field
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 
 @dataclass
@@ -527,12 +527,17 @@ def _type_problem(value: Any, annotation: Any) -> Optional[str]:
     return None  # lists (field.bound) are checked where they are used
 
 
-def _in_range(value: Any, comparison: str, bound: Any) -> bool:
+def _check_range(value: Any, comparison: str, bound: Any) -> Tuple[bool, str]:
+    """(whether ``value`` keeps the rule, the rule in words) for one entry of :data:`RANGES`."""
     if comparison == "in":
-        return value in bound
-    if comparison in ("(]", "()"):
-        return bound[0] < value < bound[1] or (comparison == "(]" and value == bound[1])
-    return value > bound if comparison == ">" else value >= bound
+        return value in bound, "one of " + ", ".join(bound)
+    if comparison == "(]":
+        return bound[0] < value <= bound[1], f"in ({bound[0]}, {bound[1]}]"
+    if comparison == "()":
+        return bound[0] < value < bound[1], f"in ({bound[0]}, {bound[1]})"
+    if comparison == ">":
+        return value > bound, f"> {bound}"
+    return value >= bound, f">= {bound}"
 
 
 def validate(cfg: Config, source: str = "config") -> Config:
@@ -555,11 +560,9 @@ def validate(cfg: Config, source: str = "config") -> Config:
                 raise ValueError(f"{source}: {key} = {value!r} must be {expected}")
             if key not in RANGES or value is None:
                 continue
-            comparison, bound = RANGES[key]
-            if not _in_range(value, comparison, bound):
-                wanted = {"in": lambda: "one of " + ", ".join(bound), "(]": lambda: f"in ({bound[0]}, {bound[1]}]",
-                          "()": lambda: f"in ({bound[0]}, {bound[1]})"}.get(comparison, lambda: f"{comparison} {bound}")()
-                raise ValueError(f"{source}: {key} = {value!r} must be {wanted}")
+            ok, rule = _check_range(value, *RANGES[key])
+            if not ok:
+                raise ValueError(f"{source}: {key} = {value!r} must be {rule}")
     if cfg.render.far <= cfg.render.near:
         raise ValueError(f"{source}: render.far = {cfg.render.far!r} must be > render.near = {cfg.render.near!r}")
     if cfg.local_ba.fit_controls > cfg.local_ba.window:
