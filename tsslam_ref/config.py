@@ -23,6 +23,7 @@ Layer 0 (base): dataclasses only, no torch.
 import copy
 import dataclasses
 import json
+import math
 import os
 import tempfile
 from dataclasses import dataclass
@@ -520,7 +521,7 @@ def _type_problem(value: Any, annotation: Any) -> Optional[str]:
     if annotation is int:
         return None if isinstance(value, int) and not isinstance(value, bool) else "an integer"
     if annotation is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value == value and abs(value) != float("inf")
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
         return None if ok else "a finite number"
     if annotation is str:
         return None if isinstance(value, str) else "a string"

@@ -46,7 +46,7 @@ def coslam_global_ba(
     current_pose: torch.Tensor,
     cfg: Config,
     generator: Optional[torch.Generator] = None,
-    held: Optional[torch.Tensor] = None,
+    held: Optional[np.ndarray] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor, BAStats]:
     """Co-SLAM global BA.
 

@@ -268,7 +268,7 @@ def coslam_mapping(state: SLAMState, frame: FrameTensors, held: Optional[np.ndar
     keyframe_poses, current_pose, _ = coslam_global_ba(
         state.field, state.map_optimizer, state.keyframes, state.tracked_poses[keyframe_frames],
         frame.all_rays(), state.tracked_poses[frame.index], cfg, state.generator,
-        held=None if held is None else torch.as_tensor(held),
+        held=held,
     )
     state.timings.add(stage, time.perf_counter() - start, cfg.mapping.iters)
     state.tracked_poses[keyframe_frames] = keyframe_poses
