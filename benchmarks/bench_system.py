@@ -9,7 +9,10 @@ Prints, in the form of the paper's tables:
   theoretical throughput 1000 / (tracking ms x iterations) (paper Table IV);
 * with ``--ablations``: w/o B-S., w/o DR, w/o LBA, with local BA's joint stage (off by default),
   the paper's schedule without our map update between intervals (``mapping.tsslam_map_every=0``)
-  and a dt sweep (paper Table V).
+  and a dt sweep (paper Table V);
+* a control row that is not a SLAM method: the spline of the preset's dt fitted offline to the
+  baseline's final trajectory (:func:`tsslam_ref.spline.fit_trajectory`).  It asks whether the
+  spline helps because TS-SLAM learns it with the map, or only because it smooths.
 
     python benchmarks/bench_system.py                              # bundled TUM slice, tum-cpu
     python benchmarks/bench_system.py --data DIR --config synthetic-cpu --seeds 0 1 2 --json out.json
@@ -28,12 +31,29 @@ from typing import Dict, List
 import numpy as np
 import torch
 
-from tsslam_ref import config, data, eval as evaluation, slam
+from tsslam_ref import config, data, eval as evaluation, slam, spline
 from tsslam_ref.run import atomic_write_text
 
 
+CONTROL = "Co-SLAM + spline fit (offline control)"
+
+
+def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> Dict[str, float]:
+    """ATE RMSE and RPE RMSE (1 frame) against the sequence's ground truth, in cm and degrees."""
+    metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, timestamps, poses)
+    return {"ate_cm": 100 * metrics["ate_rmse_m"], "rpe_cm": 100 * metrics["rpe_trans_rmse_m"],
+            "rpe_deg": metrics["rpe_rot_rmse_deg"]}
+
+
+def spline_fit_control(sequence, result: slam.SLAMResult, dt: float) -> Dict[str, float]:
+    """Metrics of the spline (knot spacing ``dt``) fitted to a finished run's output poses."""
+    fitted = spline.fit_trajectory(result.timestamps, torch.as_tensor(result.poses, dtype=torch.float64), dt)
+    return trajectory_metrics(sequence, result.timestamps, fitted.pose(result.timestamps).numpy())
+
+
 def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
-    """One SLAM run -> metrics in cm plus the runtime table (or the failure message)."""
+    """One SLAM run -> metrics in cm plus the runtime table (or the failure message).  A baseline
+    run also gives the control row's metrics (``"spline_fit"``)."""
     torch.manual_seed(cfg.seed)
     start = time.perf_counter()
     try:
@@ -41,15 +61,10 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
     except slam.TrackingFailure as failure:
         return {"failed": str(failure)}
     wall = time.perf_counter() - start
-    metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
     runtime = result.state.timings.table()
-    row = {
-        "ate_cm": 100 * metrics["ate_rmse_m"],
-        "rpe_cm": 100 * metrics["rpe_trans_rmse_m"],
-        "rpe_deg": metrics["rpe_rot_rmse_deg"],
-        "wall_fps": len(sequence) / wall,
-        "runtime": runtime,
-    }
+    row = dict(trajectory_metrics(sequence, result.timestamps, result.poses), wall_fps=len(sequence) / wall, runtime=runtime)
+    if cfg.method == "coslam":
+        row["spline_fit"] = spline_fit_control(sequence, result, cfg.spline.dt)
     if "tracking" in runtime:
         tracking = runtime["tracking"]
         row["theoretical_fps"] = 1000.0 / (tracking["ms_per_iteration"] * tracking["iterations_per_call"])
@@ -60,7 +75,7 @@ def mean_rows(rows: List[Dict]) -> Dict[str, float]:
     good = [row for row in rows if "failed" not in row]
     if not good:
         return {"failed": rows[0]["failed"]}
-    keys = ("ate_cm", "rpe_cm", "rpe_deg", "wall_fps", "theoretical_fps")
+    keys = [key for key in ("ate_cm", "rpe_cm", "rpe_deg", "wall_fps", "theoretical_fps") if key in good[0]]
     summary = {key: float(np.mean([row[key] for row in good])) for key in keys}
     summary.update({key + "_std": float(np.std([row[key] for row in good])) for key in ("ate_cm", "rpe_cm")})
     summary["runs"] = len(good)
@@ -131,6 +146,9 @@ def main() -> None:
                 f"ATE {row['ate_cm']:.2f} cm, RPE {row['rpe_cm']:.3f} cm / {row['rpe_deg']:.3f} deg, {row['wall_fps']:.2f} frames/s")
             print(f"  {name:22s} seed {seed}: {summary}", flush=True)
             results[name] = {"rows": rows, "mean": mean_rows(rows)}
+            if name == "Co-SLAM (baseline)":
+                control = [row.get("spline_fit", row) for row in rows]
+                results[CONTROL] = {"rows": control, "mean": mean_rows(control)}
             if args.json:  # after every run, so that an interrupted benchmark keeps what it measured
                 atomic_write_text(Path(args.json), json.dumps(results, indent=2))
 
@@ -148,10 +166,15 @@ def main() -> None:
         print(f"\nTS-SLAM / baseline: ATE x{ours['ate_cm'] / baseline['ate_cm']:.2f}, "
               f"RPE x{ours['rpe_cm'] / baseline['rpe_cm']:.2f} (paper: RPE -78.5 % on TUM, -40.5 % on ScanNet)")
 
+    control = results[CONTROL]["mean"]
+    if "failed" not in baseline and "failed" not in control:
+        print(f"{CONTROL} / baseline: ATE x{control['ate_cm'] / baseline['ate_cm']:.2f}, "
+              f"RPE x{control['rpe_cm'] / baseline['rpe_cm']:.2f}")
+
     print("\n| method | tracking ms x it | LBA init ms x it | LBA others ms x it | GBA ms x it | map update ms x it | first frame ms x it | wall FPS | theoretical FPS |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name, result in results.items():
-        good = [row for row in result["rows"] if "failed" not in row]
+        good = [row for row in result["rows"] if "failed" not in row and "runtime" in row]
         if good:
             line = runtime_line(name, good[0]["runtime"])
             print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")

@@ -2,7 +2,8 @@
 
 TS-SLAM §III-B, Eq. (5) ``eq:bspline_p`` (translation), Eq. (6) ``eq:bspline_r`` (rotation), Eq. (7)
 (d_j), the unnumbered B(u), C, Ḃ(u), B̈(u); §III-C Eq. (8) ``eq_jeck`` (a(t)) and Eq. (9)
-``eq_rot_jeck`` (the ω / ω̇ recursion); §III-D Eq. (11) (curve approximation, :func:`fit_control_points`).
+``eq_rot_jeck`` (the ω / ω̇ recursion); §III-D Eq. (11) (curve approximation, :func:`fit_control_points`;
+:func:`fit_trajectory` lays a spline over a whole discrete trajectory).
 
 Layer 1 (math).  Imports layer 0 (``geometry``) only.  Taught in notebooks/01_bspline_trajectory.ipynb.
 Sources: Sommer et al. 2020 "Efficient derivative computation for cumulative B-splines on Lie groups";
@@ -646,6 +647,36 @@ def fit_control_points(
         if float(torch.linalg.vector_norm(step)) < tolerance:
             break
     return rotations.to(out_dtype), translations.to(out_dtype)
+
+
+def fit_trajectory(
+    times: np.ndarray, poses: torch.Tensor, dt: float, convention: str = "paper", iters: int = 100
+) -> BSplineTrajectory:
+    """The spline of knot spacing ``dt`` closest to a whole discrete trajectory (Eq. (11), every point free).
+
+    Layout as in the system: the domain starts at the first time, t0 = t_first − 2Δt (paper
+    convention; basalt t0 = t_first), and N = 3 + ⌈(t_last − t_first)/Δt⌉ control points (at least 4)
+    so that it reaches the last time.  Puts any discrete trajectory - the Co-SLAM baseline's, ground
+    truth - on the curve TS-SLAM uses (benchmarks/bench_system.py's offline control row).  The
+    Levenberg-Marquardt system is dense, (6K x 6N) for K poses: meant for hundreds of frames.
+
+    Args:
+        times: (K,) float64 seconds, increasing; poses: (K, 4, 4) camera-to-world.
+
+    Returns:
+        the fitted :class:`BSplineTrajectory` (poses' dtype and device).
+    """
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    if times.shape[0] < 2 or not np.all(np.diff(times) > 0):
+        raise ValueError(f"fit_trajectory needs at least 2 strictly increasing times, got {times.shape[0]} "
+                         f"({'not increasing' if times.shape[0] >= 2 else 'too few'})")
+    offset = _check_convention(convention)
+    if not dt > 0:
+        raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
+    intervals = max(1, math.ceil((times[-1] - times[0]) / dt - 1e-9))
+    n_ctrl, t0 = 3 + intervals, float(times[0]) - offset * dt
+    rotations, translations = fit_control_points(times, poses, dt, t0, n_ctrl, iters=iters, convention=convention)
+    return BSplineTrajectory(rotations, translations, dt, t0, convention)
 
 
 def first_control_point(
