@@ -122,6 +122,43 @@ def test_a_spline_that_leaves_tracking_stops_the_run_with_a_message():
         slam.check_spline_follows_tracking(state, displaced, times[:6], np.arange(6))
 
 
+def test_tsslam_motion_prediction_measures_motion_between_tracking_results_not_stored_poses():
+    """Oracle: a camera under a constant world-frame motion M (0.02 rad and 2 cm per frame), for
+    which the constant-velocity prediction of frame 3 is exactly M T_2.  Frame 1's stored pose is
+    then replaced, as a spline pose replaces it when an interval ends: Co-SLAM's rule measures the
+    motion between the stored poses and is thrown off; TS-SLAM's uses the tracking results."""
+    from types import SimpleNamespace
+
+    from tsslam_ref.geometry import make_pose, so3_exp
+
+    motion = make_pose(so3_exp(torch.tensor([0.0, 0.02, 0.01], dtype=torch.float64)),
+                       torch.tensor([0.02, 0.0, 0.005], dtype=torch.float64))
+    start = make_pose(so3_exp(torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)),
+                      torch.tensor([1.0, 0.5, 1.3], dtype=torch.float64))
+    tracked = [start]
+    for _ in range(3):
+        tracked.append(motion @ tracked[-1])
+    stored = torch.stack(tracked[:3])
+    stored[1, :3, 3] += torch.tensor([0.015, -0.01, 0.0], dtype=torch.float64)  # the spline's pose of frame 1
+    results = {1: tracked[1].clone(), 2: tracked[2].clone()}
+    for method in ("coslam", "tsslam"):
+        cfg = small_config(method)
+        state = SimpleNamespace(cfg=cfg, tracked_poses=stored, tracking_results=results)
+        prediction = slam.motion_prediction(state, 3)
+        error_m = float(torch.linalg.vector_norm(prediction[:3, 3] - tracked[3][:3, 3]))
+        if method == "tsslam":
+            assert torch.allclose(prediction, tracked[3], atol=1e-12)
+        else:
+            assert error_m > 0.01  # the 1.8 cm displacement enters as motion
+            assert torch.allclose(prediction, slam.constant_velocity_init(stored[2], stored[1]), atol=0)
+    cfg = small_config("tsslam")
+    cfg.tracking.const_speed = False
+    state = SimpleNamespace(cfg=cfg, tracked_poses=stored, tracking_results=results)
+    assert torch.equal(slam.motion_prediction(state, 3), stored[2])
+    state = SimpleNamespace(cfg=small_config("tsslam"), tracked_poses=stored, tracking_results={2: tracked[2]})
+    assert torch.allclose(slam.motion_prediction(state, 3), slam.constant_velocity_init(stored[2], stored[1]), atol=0)
+
+
 def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequence, tmp_path, capsys):
     out = tmp_path / "run"
     arguments = ["--data", str(synthetic_sequence), "--config", "tiny", "--out", str(out), "--quiet", "--frames", "0:12",

@@ -141,6 +141,8 @@ def save_checkpoint(state, path: Path) -> None:
 def load_checkpoint(path: Path):
     payload = torch.load(path, weights_only=False)
     state = payload["state"]
+    if not hasattr(state, "tracking_results"):  # a checkpoint written before the field existed
+        state.tracking_results = {}
     state.generator = torch.Generator(device="cpu")
     if payload["generator_state"] is not None:
         state.generator.set_state(payload["generator_state"])

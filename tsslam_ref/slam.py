@@ -6,7 +6,8 @@ TS-SLAM Sec. III-D (Fig. 2) and, for the baseline, Co-SLAM's single-process sche
 * frame 0: its pose is the ground-truth pose when known (Co-SLAM does the same so that the map
   lives in the dataset's world frame and the scene bound applies), else the identity; the map is
   fitted to it for ``mapping.first_iters`` iterations; it becomes keyframe 0.
-* every later frame is tracked with the map frozen (``tracking.py``).
+* every later frame is tracked with the map frozen (``tracking.py``) from a constant-velocity
+  prediction (:func:`motion_prediction`; TS-SLAM measures the motion between tracking results).
 * ``method="coslam"`` (one pose per frame, the paper's baseline and "w/o B-S." row): global BA
   every ``map_every`` frames over all keyframes + the current frame; keyframe every
   ``keyframe_every`` frames, added after BA.  Non-keyframe poses are stored relative to the
@@ -165,6 +166,7 @@ class SLAMState:
     keyframes: KeyframeDatabase
     timestamps: np.ndarray  # (N,) float64 seconds of every frame of the sequence
     tracked_poses: torch.Tensor  # (N, 4, 4) discrete estimates (tracking, then BA updates)
+    tracking_results: Dict[int, torch.Tensor] = field(default_factory=dict)  # the last two frames' tracked poses as tracking returned them
     done: int = 0  # frames processed so far
     keyframe_of_frame: Dict[int, int] = field(default_factory=dict)  # frame -> preceding kf frame
     relative_to_keyframe: Dict[int, torch.Tensor] = field(default_factory=dict)  # Co-SLAM pose_relative
@@ -201,6 +203,7 @@ def initial_state(sequence, cfg: Config, device: torch.device) -> SLAMState:
         keyframes=KeyframeDatabase(),
         timestamps=np.asarray(sequence.timestamps, dtype=np.float64),
         tracked_poses=poses,
+        tracking_results={0: poses[0].clone()},
         generator=generator,
     )
 
@@ -225,8 +228,27 @@ def first_frame_mapping(state: SLAMState, frame: FrameTensors) -> None:
     state.frame_rays[0] = frame.sampled_rays(cfg.tracking.n_rays, state.generator, ignore_edge=cfg.tracking.ignore_edge)
 
 
+def motion_prediction(state: SLAMState, i: int) -> torch.Tensor:
+    """(4, 4) initial pose of frame i: constant velocity, T_i = (T_{i-1} T_{i-2}^-1) T_{i-1}.
+
+    Co-SLAM measures the motion between the stored poses of frames i-2 and i-1, whatever global BA
+    made of them.  TS-SLAM (ours) measures it between the two frames' tracking results and applies
+    it to frame i-1's stored pose: right after a spline interval ends, frame i-2 holds its spline
+    pose and frame i-1 still its tracked one, and their difference is the curve's distance from
+    tracking, not camera motion (docs/system.md, "The motion prior after an interval")."""
+    previous = state.tracked_poses[i - 1].clone()
+    if i < 2 or not state.cfg.tracking.const_speed:
+        return constant_velocity_init(previous, None)
+    before = state.tracked_poses[i - 2].clone()
+    results = state.tracking_results
+    if state.cfg.method == "tsslam" and (i - 1) in results and (i - 2) in results:
+        motion = results[i - 1] @ invert_pose(results[i - 2])  # world frame, T_{i-1} T_{i-2}^-1
+        before = invert_pose(motion) @ previous  # so that the prediction is motion @ T_{i-1}
+    return constant_velocity_init(previous, before)
+
+
 def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneField] = None, lock=None) -> None:
-    """Track frame ``frame.index`` from a constant-velocity prediction; store the estimate.
+    """Track frame ``frame.index`` from :func:`motion_prediction`; store the estimate.
 
     ``field_model`` (default ``state.field``) is the map tracked against; ``lock`` (parallel mode,
     parallel.py) guards the reads and writes of ``state``, not the optimisation."""
@@ -234,8 +256,7 @@ def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneFiel
     i = frame.index
     lock = lock if lock is not None else contextlib.nullcontext()
     with lock:
-        before = state.tracked_poses[i - 2].clone() if (i >= 2 and cfg.tracking.const_speed) else None
-        init = constant_velocity_init(state.tracked_poses[i - 1].clone(), before)
+        init = motion_prediction(state, i)
         reference = [entry["tracking_loss"] for entry in state.log[:5]]
     rays = frame.sampled_rays(cfg.tracking.n_rays, state.generator, ignore_edge=cfg.tracking.ignore_edge)
     start = time.perf_counter()
@@ -252,6 +273,8 @@ def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneFiel
         )
     with lock:
         state.tracked_poses[i] = result.pose
+        state.tracking_results[i] = result.pose.clone()
+        state.tracking_results.pop(i - 2, None)
         state.frame_rays[i] = rays
         state.log.append({"frame": i, "tracking_loss": best_loss})
 
