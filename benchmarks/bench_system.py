@@ -62,7 +62,8 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
         return {"failed": str(failure)}
     wall = time.perf_counter() - start
     runtime = result.state.timings.table()
-    row = dict(trajectory_metrics(sequence, result.timestamps, result.poses), wall_fps=len(sequence) / wall, runtime=runtime)
+    row = dict(trajectory_metrics(sequence, result.timestamps, result.poses),
+               wall_fps=len(sequence) / wall, runtime=runtime)
     if cfg.method == "coslam":
         row["spline_fit"] = spline_fit_control(sequence, result, cfg.spline.dt)
     if "tracking" in runtime:

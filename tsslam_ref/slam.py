@@ -166,7 +166,8 @@ class SLAMState:
     keyframes: KeyframeDatabase
     timestamps: np.ndarray  # (N,) float64 seconds of every frame of the sequence
     tracked_poses: torch.Tensor  # (N, 4, 4) discrete estimates (tracking, then BA updates)
-    tracking_results: Dict[int, torch.Tensor] = field(default_factory=dict)  # the last two frames' tracked poses as tracking returned them
+    # the last two frames' poses as tracking returned them (TS-SLAM's motion_prediction)
+    tracking_results: Dict[int, torch.Tensor] = field(default_factory=dict)
     done: int = 0  # frames processed so far
     keyframe_of_frame: Dict[int, int] = field(default_factory=dict)  # frame -> preceding kf frame
     relative_to_keyframe: Dict[int, torch.Tensor] = field(default_factory=dict)  # Co-SLAM pose_relative
