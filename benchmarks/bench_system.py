@@ -31,16 +31,16 @@ from typing import Dict, List
 import numpy as np
 import torch
 
-from tsslam_ref import config, data, eval as evaluation, slam, spline
-from tsslam_ref.run import atomic_write_text
+from tsslam_ref import config, data, slam, spline
+from tsslam_ref.run import atomic_write_text, trajectory_metrics
 
 
 CONTROL = "Co-SLAM + spline fit (offline control)"
 
 
-def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> Dict[str, float]:
-    """ATE RMSE and RPE RMSE (1 frame) against the sequence's ground truth, in cm and degrees."""
-    metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, timestamps, poses)
+def metrics_cm(sequence, timestamps: np.ndarray, poses: np.ndarray) -> Dict[str, float]:
+    """:func:`tsslam_ref.run.trajectory_metrics` (ATE, RPE over 1 frame) in cm and degrees."""
+    metrics = trajectory_metrics(sequence, timestamps, poses)
     return {"ate_cm": 100 * metrics["ate_rmse_m"], "rpe_cm": 100 * metrics["rpe_trans_rmse_m"],
             "rpe_deg": metrics["rpe_rot_rmse_deg"]}
 
@@ -48,7 +48,7 @@ def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> D
 def spline_fit_control(sequence, result: slam.SLAMResult, dt: float) -> Dict[str, float]:
     """Metrics of the spline (knot spacing ``dt``) fitted to a finished run's output poses."""
     fitted = spline.fit_trajectory(result.timestamps, torch.as_tensor(result.poses, dtype=torch.float64), dt)
-    return trajectory_metrics(sequence, result.timestamps, fitted.pose(result.timestamps).numpy())
+    return metrics_cm(sequence, result.timestamps, fitted.pose(result.timestamps).numpy())
 
 
 def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
@@ -62,7 +62,7 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
         return {"failed": str(failure)}
     wall = time.perf_counter() - start
     runtime = result.state.timings.table()
-    row = dict(trajectory_metrics(sequence, result.timestamps, result.poses),
+    row = dict(metrics_cm(sequence, result.timestamps, result.poses),
                wall_fps=len(sequence) / wall, runtime=runtime)
     if cfg.method == "coslam":
         row["spline_fit"] = spline_fit_control(sequence, result, cfg.spline.dt)
