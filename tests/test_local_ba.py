@@ -54,6 +54,32 @@ def test_eq11_single_point_fit_as_written_in_the_paper_amplifies_errors():
     assert errors[-1] > 10 * errors[1], errors
 
 
+def mid_interval_errors(poses: torch.Tensor, cfg, n_intervals: int) -> np.ndarray:
+    """(n_intervals,) signed x error (m) of the grown curve against the truth in each interval's middle."""
+    track, _ = grow(poses, cfg, n_intervals=n_intervals)
+    middles = np.array([track.interval(n)[0] + 0.5 * track.dt for n in range(n_intervals)])
+    truth = torch.as_tensor(builtin_trajectory(middles), dtype=poses.dtype)
+    return (track.poses(middles)[:, 0, 3] - truth[:, 0, 3]).numpy()
+
+
+def test_holding_a_point_of_the_newest_interval_makes_the_curve_approximation_ring():
+    """A 2 cm tracking error in the first interval only (every later pose exact).  Fitting the
+    three newest points (the default) holds the fourth newest, which still shapes the newest
+    interval: the error returns with alternating sign in every interval and hardly shrinks.
+    Fitting four points (the spline's order) forgets it within a few intervals."""
+    poses = torch.as_tensor(builtin_trajectory(TIMES))
+    in_first_interval = np.nonzero(TIMES < TIMES[0] + config.tiny().spline.dt)[0][1:]
+    poses[in_first_interval, 0, 3] += 0.02
+    assert config.tiny().local_ba.fit_controls == 3
+    ringing = mid_interval_errors(poses, config.tiny(), 9)
+    four = copy.deepcopy(config.tiny())
+    four.local_ba.fit_controls = 4
+    settling = mid_interval_errors(poses, four, 9)
+    assert abs(ringing[7]) > 0.4 * abs(ringing[1]), ringing
+    assert np.all(np.sign(ringing[2:8]) == -np.sign(ringing[1:7])), ringing  # alternating
+    assert abs(settling[7]) < 0.05 * abs(settling[1]), settling
+
+
 def test_first_interval_constant_velocity_fit_is_exact_for_constant_velocity_motion():
     dt, first = 0.25, 10.0
     times = first + np.arange(8) / 30.0

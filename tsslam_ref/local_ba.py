@@ -8,7 +8,8 @@ control-point interval) the mapping step runs, coarse to fine:
    ||Log(R_i^k^T R(t_i^k))|| and ||t_i^k - t(t_i^k)||, the older control points held fixed; in the
    first interval all four control points are fitted.  Before the fit the new point is placed by
    extrapolating the control polygon at constant velocity (ours: the fit alone is poorly
-   conditioned because the new point's weight in that interval is B_3(u) <= 1/6).
+   conditioned because the new point's weight in that interval is B_3(u) <= 1/6), and the three
+   newest points are fitted, not the new one alone (ours, :func:`curve_approximation`).
 2. **Refinement with the map frozen.**  The ``M`` newest control points are optimised on the
    reconstruction loss of rays of every frame inside the window plus the dynamics regulariser
    L_DR sampled uniformly inside the window (Eq. 10).
@@ -191,9 +192,15 @@ def curve_approximation(track: SplineTrack, times: np.ndarray, poses: torch.Tens
     the newest interval is B_3(u) = u^3/6 <= 1/6, so every misfit of that interval is pushed, six
     times larger, into Phi_{i+1}, which then dominates the next interval: the error grows about
     7x per interval (found while writing notebooks/06).  We place Phi_{i+1} by extrapolating the
-    control polygon and then fit the ``fit_controls`` newest points (default 3, all with weight
-    >= 1/6 somewhere in the fitted span) to the poses of the last ``fit_controls`` intervals, the
-    older points fixed.  The first interval is a constant-velocity fit
+    control polygon and then fit the ``fit_controls`` newest points (default 3) to the poses of the
+    last ``fit_controls`` intervals, the older points fixed.  The newest interval depends on the
+    four newest points, so with 3 the held point Phi_{N-4} still weighs up to 1/6 in it: its error
+    is pushed, sign flipped, into the free points, and the approximation alone rings - an error
+    of the first interval returns with alternating sign in every later interval, shrinking only
+    ~12 % per interval.  Fitting 4 (the spline's order) stops that, but in the full system it
+    lets the newest tracked poses move a point that local and global BA have already refined, and
+    it raised ATE on TUM teddy; so the default stays 3 (``tests/test_local_ba.py``;
+    docs/system.md, "The curve approximation rings").  The first interval is a constant-velocity fit
     (:func:`constant_velocity_control_points`).
     """
     poses = poses.detach()
