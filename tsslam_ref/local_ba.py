@@ -198,8 +198,8 @@ def curve_approximation(track: SplineTrack, times: np.ndarray, poses: torch.Tens
     is pushed, sign flipped, into the free points, and the approximation alone rings - an error
     of the first interval returns with alternating sign in every later interval, shrinking only
     ~12 % per interval.  Fitting 4 (the spline's order) stops that, but in the full system it
-    lets the newest tracked poses move a point that local and global BA have already refined, and
-    it raised ATE on TUM teddy; so the default stays 3 (``tests/test_local_ba.py``;
+    raised ATE on TUM teddy (likely because it lets the newest tracked poses move a point that
+    local and global BA have already refined), so the default stays 3 (``tests/test_local_ba.py``;
     docs/system.md, "The curve approximation rings").  The first interval is a constant-velocity fit
     (:func:`constant_velocity_control_points`).
     """
