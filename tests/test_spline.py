@@ -7,6 +7,8 @@ finite differences and autograd in time (torch.func.jvp), gradcheck for control-
 
 import math
 
+from fractions import Fraction
+
 import numpy as np
 import pypose as pp
 import pytest
@@ -425,16 +427,23 @@ def test_out_of_domain_raises_value_error_naming_time_and_domain(convention):
         assert repr(bad) in str(info.value) and repr(t_max) in str(info.value)
 
 
-def test_exact_knots_belong_to_the_segment_starting_there():
-    dt = t0 = 0.1  # floor((t - t0)/dt) mis-rounds several of these knots (spec §5.9)
+def test_knot_times_use_the_exact_floor_of_their_float64_value():
+    """The float64 number is the time: a knot t0 + kΔt that float64 puts before the knot is in the
+    previous segment (at u = 1), as exact rational arithmetic on the same numbers says."""
+    dt = t0 = 0.1
     n = 53
     knots = t0 + dt * np.arange(n, dtype=np.float64)
-    naive = np.floor((knots - t0) / dt).astype(int)
-    assert (naive != np.arange(n)).any()  # the pitfall is present in this example
+    exact = np.array([math.floor((Fraction(k) - Fraction(t0)) / Fraction(dt)) for k in knots])
+    assert (exact != np.arange(n)).any() and (exact == np.arange(n)).any()  # both cases occur here
     indices = spline.active_control_indices(knots[:n - 2], n, dt, t0, "basalt")
-    assert indices[:, 0].tolist() == list(range(n - 3)) + [n - 4]  # last knot is t_max (closed)
+    assert indices[:, 0].tolist() == np.clip(exact[:n - 2], 0, n - 4).tolist()
     indices = spline.active_control_indices(knots[2:n - 1], n, dt, t0, "paper")
-    assert indices[:, 0].tolist() == list(range(n - 4)) + [n - 4]
+    assert indices[:, 0].tolist() == np.clip(exact[2:n - 1] - 2, 0, n - 4).tolist()
+    R, P = random_spline(18, n_ctrl=n)
+    at_knots = spline.evaluate(R, P, knots[:n - 2], dt, t0, "basalt", derivatives=1)
+    segment_start = spline.evaluate_segments(R, P, torch.arange(n - 3), torch.zeros(n - 3, dtype=F64), dt, 1)
+    for value, start in zip(at_knots[:3] + at_knots[4:5], segment_start[:3] + segment_start[4:5]):
+        assert torch.allclose(value[:n - 3], start, atol=1e-12)  # C1 quantities: the choice is invisible
 
 
 def test_large_absolute_timestamps_handled_in_float64():

@@ -7,8 +7,8 @@ TS-SLAM §III-B, Eq. (5) ``eq:bspline_p`` (translation), Eq. (6) ``eq:bspline_r`
 
 Layer 1 (math).  Imports layer 0 (``geometry``) only.  Taught in notebooks/01_bspline_trajectory.ipynb.
 Sources: Sommer et al. 2020 "Efficient derivative computation for cumulative B-splines on Lie groups";
-basalt-headers ``so3_spline.h`` / ``rd_spline.h`` @a585db3 (same recursion, body frame).  All the
-maths, conventions and pitfalls are worked out in shared/spec/spline.md; docs/spline.md is the user doc.
+basalt-headers ``so3_spline.h`` / ``rd_spline.h`` @a585db3 (same recursion, body frame).  docs/spline.md is the user doc;
+the conformance kit's reference (tsslam_ref/assets/spline_kit.md) lists formulas and golden values.
 
 Index conventions (s = (t − t0)/Δt, control point k sits at t_k = t0 + kΔt, n = n_ctrl ≥ 4):
 
@@ -19,18 +19,25 @@ Index conventions (s = (t − t0)/Δt, control point k sits at t_k = t0 + kΔt, 
 Both give the same curve with paper time = basalt time + 2Δt.  **The domain is closed**: t_max
 maps to the last segment at u = 1 (like PyPose; basalt and kontiki are half-open and reject t_max).
 
-Segment rule (robust on exact knots): i = floor(s + ε), u = s − i, with the tolerance
-ε = KNOT_SNAP + 4·eps64·(|t| + |t0|)/Δt (1e-9 of a segment plus the float64 resolution of the
-absolute times; ~8e-6 for TUM stamps of 1.3e9 s at Δt = 0.03 s).  A time that is a knot up to
-float64 rounding (t0 + kΔt computed in float64 may give s = k − 1e-16) therefore belongs to the
-segment that *starts* at that knot, with u ≥ −ε; the cubic is continued by at most ε of a segment
-there.  By C² continuity that changes p and R by O((εΔt)³·Δjerk), v and ω by O((εΔt)²·Δjerk)
-and a and ω̇ by O(εΔt·Δjerk) (Δjerk: the jump of the third derivative at the knot), i.e. nothing
-for ordinary times and the float64 resolution of the stamps themselves for absolute stamps.  The
-segment index is clamped to the last segment, so t_max gives u = 1.  Times outside
-[t_min − εΔt, t_max + εΔt] raise ValueError naming the time and the domain.
+Segment rule (exact on what it is given): the float64 numbers t, t0 and Δt are the times.  The
+segment is i = floor((t − t0)/Δt) − offset of the *exact* rational quotient, u = s − i with
+s = (t − t0)/Δt − offset in float64.  floor of the float64 quotient is already exact unless it
+lies within 8 eps of an integer; only those times (knots, in practice) are redone with
+``fractions.Fraction``.  A knot time that float64 puts 1e-17 before the knot is therefore in the
+previous segment at u = 1 (the curve is C², so only a and ω̇ notice, by Δjerk times the
+distance, i.e. nothing), and a time 3e-6 segments before a knot is in the previous segment at
+u = 1 − 3e-6, as exact arithmetic says.  No tolerance moves a time to another segment.
+Special cases, the domain ends only: the index is clamped to the last segment, so t_max gives u = 1
+(closed domain); a time within the float64 rounding of an end (END_ULPS ulps of the ends'
+magnitude, :func:`time_in_domain`) is accepted and continues the end segment by that much.  The
+same rule holds for absolute stamps and relative times (the ulp of a 1.3e9 s stamp is 2.4e-7 s,
+that of 0.06 s is 1.4e-17 s).  Other times raise ValueError naming the time and the domain.
 
-Not an interpolant (spec §2.3): with the paper convention the curve near t_i is dominated by
+Rotation steps: the principal Log is ambiguous at a relative rotation of π between consecutive
+control points (the two choices give different curves); :func:`evaluate` does not check this,
+the conformance kit refuses such input (``conformance.ROTATION_STEP_LIMIT``).
+
+Not an interpolant: with the paper convention the curve near t_i is dominated by
 control point i−1, so control point k "belongs" to time t_{k+1} (basalt: t_{k−1}).
 
 Glossary
@@ -53,6 +60,7 @@ Here M stands for ``times.shape`` (the outputs carry the query shape).
 """
 
 import math
+from fractions import Fraction
 from typing import NamedTuple, Optional, Tuple, Union
 
 import numpy as np
@@ -68,9 +76,9 @@ _C = (
     (0.0, 0.0, 0.0, 1.0),
 )
 
-KNOT_SNAP = 1e-9
-"""Tolerance (in units of Δt) for exact knots and domain ends: prevents float64 rounding of
-(t − t0)/Δt from moving a knot time into the previous segment or out of the domain."""
+END_ULPS = 4.0
+"""Float64 rounding allowed at the domain ends, in ulps of the ends' magnitude: t0 + kΔt computed
+in float64 is within one ulp of the exact end, and a caller's own t0 = t_first − 2Δt adds another."""
 
 CONVENTIONS = ("paper", "basalt")
 
@@ -176,16 +184,62 @@ def _times_float64(times: TimesLike) -> torch.Tensor:
 
 
 def _snap_tolerance(times64, dt: float, t0: float):
-    """Knot/domain tolerance in units of Δt: KNOT_SNAP plus 4 float64 ulps of |t| and |t0|
-    (a TUM stamp of 1.3e9 s has a float64 spacing of 2.4e-7 s, i.e. 8e-6 Δt at Δt = 0.03 s)."""
-    return KNOT_SNAP + 4.0 * np.finfo(np.float64).eps * (abs(times64) + abs(float(t0))) / float(dt)
+    """Domain-end tolerance in units of Δt: the float64 rounding of the ends t0 + kΔt, i.e.
+    4 ulps at the magnitude of |t| and |t0| (a TUM stamp of 1.3e9 s has an ulp of 2.4e-7 s).
+
+    Only the domain ends use it (:func:`time_in_domain`); segments are located exactly
+    (:func:`_exact_first_segment`), with no tolerance."""
+    return END_ULPS * np.finfo(np.float64).eps * (abs(times64) + abs(float(t0))) / float(dt)
+
+
+def _end_tolerance(t_end: float, t0: float) -> float:
+    """Seconds of float64 rounding allowed at a domain end t_end = t0 + kΔt (END_ULPS ulps of the
+    larger of |t_end| and |t0|)."""
+    return END_ULPS * np.finfo(np.float64).eps * max(abs(t_end), abs(t0))
+
+
+def time_in_domain(times: TimesLike, n_ctrl: int, dt: float, t0: float, convention: str = "paper"):
+    """Inside the closed domain [t_min, t_max]: boolean, times' shape (numpy for numpy or float
+    input, a tensor for a tensor).
+
+    The ends are the float64 values of :func:`valid_time_range`, widened by their own float64
+    rounding (:func:`_end_tolerance`); the same rule for absolute stamps and relative times
+    (a 1.3e9 s stamp's rounding is 2.4e-7 s, a 0.06 s time's 1.4e-17 s).  NaN is outside.
+    """
+    t_min, t_max = valid_time_range(n_ctrl, dt, t0, convention)
+    if not isinstance(times, torch.Tensor):
+        times = np.asarray(times, dtype=np.float64)
+    return (times >= t_min - _end_tolerance(t_min, t0)) & (times <= t_max + _end_tolerance(t_max, t0))
+
+
+def _exact_floor_quotient(flat: torch.Tensor, dt: float, t0: float) -> torch.Tensor:
+    """floor((t − t0)/Δt) of the float64 numbers t, t0, Δt taken as exact rationals, (M,) int64.
+
+    q = fl(fl(t − t0)/Δt) is within 2 eps·|q| of the exact quotient, so floor(q) is exact unless q
+    lies within 8 eps·max(|q|, 1) of an integer; only those times (in practice: knot times) are
+    redone in exact rational arithmetic (``fractions.Fraction``).
+    """
+    q = (flat - float(t0)) / float(dt)  # (M,) float64
+    k = torch.floor(q)
+    nearest = torch.round(q)
+    band = 8.0 * torch.finfo(torch.float64).eps * torch.clamp(q.abs(), min=1.0)
+    ambiguous = ((q - nearest).abs() <= band).nonzero().reshape(-1)
+    if ambiguous.numel():
+        t0_exact, dt_exact = Fraction(float(t0)), Fraction(float(dt))
+        times_list, knots = flat[ambiguous].tolist(), nearest[ambiguous].tolist()
+        exact = [knot if Fraction(t) - t0_exact >= int(knot) * dt_exact else knot - 1
+                 for t, knot in zip(times_list, knots)]
+        k = k.index_put((ambiguous,), torch.as_tensor(exact, dtype=k.dtype, device=k.device))
+    return k.to(torch.int64)
 
 
 def _locate(times: TimesLike, n_ctrl: int, dt: float, t0: float, convention: str):
     """Segment lookup: (first control index (M,) int64, u (M,) float64, times.shape).
 
-    s = (t − t0)/Δt − offset is computed in float64 before any cast; see the module docstring
-    for the knot rule.  Raises ValueError naming the first out-of-domain time.
+    The segment is the floor of the exact (t − t0)/Δt minus the offset (module docstring),
+    clamped to the segments so that t_max gives u = 1; u = s − segment with
+    s = (t − t0)/Δt − offset in float64 (differentiable w.r.t. a times tensor).
+    Raises ValueError naming the first out-of-domain time.
     """
     t_min, t_max = valid_time_range(n_ctrl, dt, t0, convention)
     offset = _FIRST_SEGMENT_OFFSET[convention]
@@ -195,15 +249,15 @@ def _locate(times: TimesLike, n_ctrl: int, dt: float, t0: float, convention: str
     s = (flat - float(t0)) / float(dt) - offset  # (M,) float64, 0 at t_min
     n_segments = n_ctrl - 3
     with torch.no_grad():
-        snap = _snap_tolerance(flat.detach(), dt, t0)  # (M,)
-        bad = ~((s >= -snap) & (s <= n_segments + snap))  # NaN is bad too
+        plain = flat.detach()
+        bad = ~time_in_domain(plain, n_ctrl, dt, t0, convention)  # NaN is bad too
         if bool(bad.any()):
-            first_bad = float(flat[bad.nonzero()[0, 0]])
+            first_bad = float(plain[bad.nonzero()[0, 0]])
             raise ValueError(
                 f"time {first_bad!r} s is outside the spline domain [{t_min!r}, {t_max!r}] s "
                 f"(n_ctrl={n_ctrl}, dt={dt}, t0={t0}, convention={convention!r}, closed interval)"
             )
-        first = torch.floor(s + snap).to(torch.int64).clamp_(0, n_segments - 1)  # (M,)
+        first = (_exact_floor_quotient(plain, dt, t0) - offset).clamp_(0, n_segments - 1)  # (M,)
     u = s - first.to(s.dtype)  # (M,), differentiable w.r.t. times
     return first, u, shape
 
@@ -241,7 +295,7 @@ def knot_rotation_differences(control_rotations: torch.Tensor) -> torch.Tensor:
         (..., N−1, 3) rotation vectors in rad (body frame of R_{j−1}).
 
     Differs from: the paper writes d_j ∈ se(3); in the split representation it is so(3)
-    (shared/spec/spline.md §0).
+    (split representation).
     """
     relative = control_rotations[..., :-1, :, :].transpose(-1, -2) @ control_rotations[..., 1:, :, :]
     return so3_log(relative)  # (..., N-1, 3)
