@@ -4,7 +4,8 @@ Each vector is one JSON file holding an input (convention, dt, t0, rotvecs, tran
 and our float64 output (R, p, v, a, omega_body, omegadot_body), in the format of
 :mod:`tsslam_ref.conformance`.  The outputs are validated in tests/test_conformance.py against
 oracles that do not use our closed forms (autograd in time, central differences, PyPose rotations,
-scipy B-splines for translation, the basalt golden table of shared/spec/spline.md §3.5).
+scipy B-splines for translation, exact rational arithmetic at knot-adjacent times, the basalt golden
+table of tsslam_ref/assets/spline_kit.md).
 
 Deterministic: numpy ``default_rng(SEED)``.  Usage:
 
@@ -18,7 +19,7 @@ import sys
 import numpy as np
 import torch
 
-from tsslam_ref import conformance, spline
+from tsslam_ref import conformance, spline, spline_kit
 from tsslam_ref.geometry import so3_exp, so3_log
 
 SEED = 20250521
@@ -32,7 +33,13 @@ RANDOM_SPLINES = [
     ("basalt_dt0.1_floor_knots", "basalt", 12, 0.1, 0.1, 1.0, 0.5),
 ]
 
-# shared/spec/spline.md §3.5 (basalt convention, t0 = 0, dt = 0.5 s).
+# Joint SE(3) ("representation": "se3"), same columns.
+SE3_SPLINES = [
+    ("se3_basalt_dt1_pypose", "basalt", 8, 1.0, 0.0, 1.0, 1.0),
+    ("se3_paper_dt0.05_large_rot", "paper", 9, 0.05, 100.0, 2.0, 0.2),
+]
+
+# The basalt golden table's knots (tsslam_ref/assets/spline_kit.md; basalt convention, t0 = 0, dt = 0.5 s).
 BASALT_GOLDEN_ROTVECS = [[0, 0, 0], [0.1, -0.2, 0.3], [0.4, -0.1, 0.5], [0.3, 0.3, 0.9], [-0.2, 0.6, 1.2], [-0.5, 0.4, 1.0]]
 BASALT_GOLDEN_TRANSLATIONS = [[0, 0, 0], [1, 0, 0.5], [1.5, 1, 0.5], [1, 2, 0], [0, 2.5, -0.5], [-1, 2, -1]]
 BASALT_GOLDEN_TIMES = [0.0, 0.35, 0.8, 1.2]
@@ -54,16 +61,20 @@ def random_control_points(rng: np.random.Generator, n_ctrl: int, max_angle: floa
 
 
 def query_times(rng: np.random.Generator, n_ctrl: int, dt: float, t0: float, convention: str) -> np.ndarray:
-    """All knots in the domain (both ends included) plus random times, sorted, float64."""
+    """All knots in the domain (both ends included), the float64 neighbours just before and after
+    every interior knot (where the segment choice is hardest), plus random times; sorted, float64."""
     t_min, t_max = spline.valid_time_range(n_ctrl, dt, t0, convention)
     offset = 2 if convention == "paper" else 0
     knots = t0 + dt * np.arange(offset, offset + n_ctrl - 2, dtype=np.float64)
     random = t_min + (t_max - t_min) * rng.uniform(size=N_RANDOM_TIMES)
-    return np.sort(np.concatenate([[t_min, t_max], knots, random]))
+    interior = knots[1:-1]
+    neighbours = [np.nextafter(interior, -np.inf), np.nextafter(interior, np.inf),
+                  np.nextafter(np.nextafter(interior, -np.inf), -np.inf)]
+    return np.sort(np.concatenate([[t_min, t_max], knots, *neighbours, random]))
 
 
-def make_vector(convention, dt, t0, rotvecs, translations, times, description) -> dict:
-    data = {"description": description, "convention": convention, "dt": dt, "t0": t0,
+def make_vector(convention, dt, t0, rotvecs, translations, times, description, representation="split") -> dict:
+    data = {"description": description, "representation": representation, "convention": convention, "dt": dt, "t0": t0,
             "rotvecs": np.asarray(rotvecs, dtype=np.float64).tolist(),
             "translations": np.asarray(translations, dtype=np.float64).tolist(),
             "times": np.asarray(times, dtype=np.float64).tolist()}
@@ -88,10 +99,17 @@ def main(argv=None) -> int:
     golden_times = np.sort(np.concatenate([BASALT_GOLDEN_TIMES, query_times(rng, 6, 0.5, 0.0, "basalt")]))
     vectors["basalt_golden_dt0.5"] = make_vector(
         "basalt", 0.5, 0.0, BASALT_GOLDEN_ROTVECS, BASALT_GOLDEN_TRANSLATIONS, golden_times,
-        "basalt_golden_dt0.5: knots of shared/spec/spline.md 3.5 (basalt golden table)")
+        "basalt_golden_dt0.5: the knots of the basalt golden table (tsslam_ref/assets/spline_kit.md); our values "
+        "at t = 0, 0.35, 0.8, 1.2 s agree with basalt-headers' to the table's 9 digits")
+    for name, convention, n_ctrl, dt, t0, max_angle, scale in SE3_SPLINES:
+        rotvecs, translations = random_control_points(rng, n_ctrl, max_angle, scale)
+        times = query_times(rng, n_ctrl, dt, t0, convention)
+        description = (f"{name}: random JOINT SE(3) spline (PyPose pp.bspline, Sophus), seed {SEED}, "
+                       f"n_ctrl={n_ctrl}, relative rotations <= {max_angle} rad")
+        vectors[name] = make_vector(convention, dt, t0, rotvecs, translations, times, description, "se3")
     for name, data in vectors.items():
         path = os.path.join(args.out, name + ".json")
-        conformance.write_json_atomic(path, data, force=args.force)
+        spline_kit.write_json_atomic(path, data, force=args.force)
         print(f"{path}: {len(data['times'])} times, {os.path.getsize(path) / 1024:.0f} KiB")
     return 0
 

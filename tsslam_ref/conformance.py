@@ -1,46 +1,51 @@
-"""Spline conformance kit: evaluate a spline from JSON and compare two result files.
+"""Spline conformance kit, the maths: read an input, evaluate it, compare a candidate with a reference.
 
-TS-SLAM §III-B/§III-C, Eq. (5)-(9): lets another implementation (C++, JAX, a port of this
-package) check itself against ours with shared test vectors (tsslam_ref/assets/spline_vectors).
+TS-SLAM §III-B/§III-C, Eq. (5)-(9): lets another implementation (C++, JAX, a port of this package)
+check itself against ours with shared test vectors (tsslam_ref/assets/spline_vectors).  The command
+line is :mod:`tsslam_ref.spline_kit` (it imports this module; this module never imports it).
 
-Side module (command line).  Imports ``spline`` and ``geometry``.  Run as
+Side module.  Imports ``spline`` and ``geometry``.
 
-    python -m tsslam_ref.spline evaluate INPUT.json -o OUTPUT.json [--force]
-    python -m tsslam_ref.spline check REFERENCE.json CANDIDATE.json [--atol 1e-9] [--rtol 1e-7]
+Input keys: ``convention`` ("paper" | "basalt"), ``dt`` and ``t0`` (s), ``rotvecs`` (N x 3, rad),
+``translations`` (N x 3, m), ``times`` (M, s); optional ``representation`` ("split", the default,
+or "se3" for the joint SE(3) spline, :mod:`tsslam_ref.se3_spline`).  Output keys: ``times`` (M),
+``R`` (M x 3 x 3), ``p``, ``v``, ``a`` (M x 3, world), ``omega_body``, ``omegadot_body`` (M x 3,
+body), all float64.  A vector file holds the input keys and the output keys together.
 
-Input JSON keys: ``convention`` ("paper" | "basalt"), ``dt`` and ``t0`` (s), ``rotvecs`` (N x 3,
-rad), ``translations`` (N x 3, m), ``times`` (M, s).  Output JSON keys: ``times`` (M), ``R``
-(M x 3 x 3), ``p``, ``v``, ``a`` (M x 3, world), ``omega_body``, ``omegadot_body`` (M x 3, body),
-all float64; a vector file holds the input keys and the output keys together.
-
-``check`` passes a quantity when max |cand − ref| ≤ atol + rtol · max |ref| (default atol 1e-9,
-rtol 1e-7; float64 implementations agree to ~1e-14).  Exit codes: 0 pass, 1 fail, 2 bad input
-(malformed file, out-of-domain time, refused overwrite).  docs/spline.md describes the format.
+Error definition (one, used everywhere): per quantity q, error = max over times and components of
+|cand − ref|; scale = max |ref| over the quantity; the quantity passes when
+error ≤ atol + rtol · scale (default atol 1e-9, rtol 1e-7; float64 implementations agree to
+~1e-14).  "scaled error" = error / scale.  :func:`diagnose` recognises common mistakes.
 """
 
-import argparse
 import json
 import math
-import os
-import sys
-import tempfile
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
 
 from tsslam_ref import spline
-from tsslam_ref.geometry import so3_exp
+from tsslam_ref.geometry import so3_exp, so3_log
 
 INPUT_KEYS = ("convention", "dt", "t0", "rotvecs", "translations", "times")
+OPTIONAL_INPUT_KEYS = ("representation",)
+REPRESENTATIONS = ("split", "se3")
 OUTPUT_KEYS = ("R", "p", "v", "a", "omega_body", "omegadot_body")
 OUTPUT_SHAPES = {"R": (3, 3), "p": (3,), "v": (3,), "a": (3,), "omega_body": (3,), "omegadot_body": (3,)}
 DEFAULT_ATOL = 1e-9
 DEFAULT_RTOL = 1e-7
+ROTATION_STEP_LIMIT = math.pi - 1e-6
+"""Largest relative rotation (rad) between consecutive control points the kit accepts.  At π the
+principal Log is ambiguous (Log(R) and −Log(R) are both valid; two correct implementations then
+give different curves), and within ~1e-6 rad of π float64 rotation matrices no longer decide the
+sign reliably.  Insert a control point (halve Δt) instead."""
+TIME_MATCH = 4.0 * np.finfo(np.float64).eps
+"""Candidate and reference times match when they differ by at most this times max(1, |t|)."""
 
 
 class ConformanceError(ValueError):
-    """Malformed input or output file (exit code 2)."""
+    """Malformed input or output file, or a refused value (exit code 2)."""
 
 
 def _array(data: dict, key: str, shape_tail: Sequence[int], source: str) -> np.ndarray:
@@ -54,7 +59,8 @@ def _array(data: dict, key: str, shape_tail: Sequence[int], source: str) -> np.n
         wanted = " x ".join(["M"] + [str(n) for n in shape_tail])
         raise ConformanceError(f"{source}: key {key!r} must be {wanted}, got shape {value.shape}")
     if not np.all(np.isfinite(value)):
-        raise ConformanceError(f"{source}: key {key!r} contains non-finite values")
+        row = int(np.flatnonzero(~np.isfinite(value.reshape(value.shape[0], -1)).all(axis=1))[0])
+        raise ConformanceError(f"{source}: key {key!r} contains non-finite values (first at row {row})")
     return value
 
 
@@ -67,6 +73,13 @@ def _scalar(data: dict, key: str, source: str) -> float:
     return float(value)
 
 
+def check_tolerances(atol: float, rtol: float) -> None:
+    """ConformanceError unless both tolerances are finite and ≥ 0."""
+    for name, value in (("--atol", atol), ("--rtol", rtol)):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            raise ConformanceError(f"{name} must be a finite number >= 0, got {value!r}")
+
+
 def load_json(path: str) -> dict:
     """Read a JSON object; ConformanceError naming the file on failure."""
     try:
@@ -76,20 +89,36 @@ def load_json(path: str) -> dict:
         raise ConformanceError(f"{path}: cannot read ({error.strerror})") from None
     except json.JSONDecodeError as error:
         raise ConformanceError(f"{path}: invalid JSON at line {error.lineno}: {error.msg}") from None
+    except ValueError as error:
+        raise ConformanceError(f"{path}: invalid JSON ({error})") from None
     if not isinstance(data, dict):
         raise ConformanceError(f"{path}: top level must be a JSON object")
     return data
 
 
+def rotation_steps(rotvecs: np.ndarray) -> np.ndarray:
+    """(N−1,) angles in rad of R_{k−1}ᵀ R_k for (N, 3) rotation vectors."""
+    rotations = so3_exp(torch.as_tensor(rotvecs, dtype=torch.float64))
+    relative = rotations[:-1].transpose(-1, -2) @ rotations[1:]
+    return torch.linalg.vector_norm(so3_log(relative), dim=-1).numpy()
+
+
 def parse_input(data: dict, source: str = "input") -> dict:
-    """Validate the input keys; returns convention, dt, t0 and float64 arrays."""
+    """Validate the input keys; returns representation, convention, dt, t0 and float64 arrays.
+
+    Raises ConformanceError naming the key: malformed values, fewer than 4 control points, or a
+    rotation step ≥ :data:`ROTATION_STEP_LIMIT` (the message names the pair and the angle).
+    """
     convention = data.get("convention")
     if convention not in spline.CONVENTIONS:
         raise ConformanceError(f"{source}: key 'convention' must be one of {spline.CONVENTIONS}, got {convention!r}")
+    representation = data.get("representation", "split")
+    if representation not in REPRESENTATIONS:
+        raise ConformanceError(f"{source}: key 'representation' must be one of {REPRESENTATIONS}, got {representation!r}")
     dt = _scalar(data, "dt", source)
     if dt <= 0:
         raise ConformanceError(f"{source}: key 'dt' must be > 0, got {dt}")
-    parsed = {"convention": convention, "dt": dt, "t0": _scalar(data, "t0", source)}
+    parsed = {"representation": representation, "convention": convention, "dt": dt, "t0": _scalar(data, "t0", source)}
     parsed["rotvecs"] = _array(data, "rotvecs", (3,), source)
     parsed["translations"] = _array(data, "translations", (3,), source)
     parsed["times"] = _array(data, "times", (), source)
@@ -97,111 +126,264 @@ def parse_input(data: dict, source: str = "input") -> dict:
         raise ConformanceError(f"{source}: 'rotvecs' and 'translations' must have the same length")
     if parsed["rotvecs"].shape[0] < 4:
         raise ConformanceError(f"{source}: key 'rotvecs' needs at least 4 control points")
+    if np.abs(parsed["rotvecs"]).max() > 1e6:
+        row = int(np.flatnonzero(np.abs(parsed["rotvecs"]).max(axis=1) > 1e6)[0])
+        raise ConformanceError(f"{source}: key 'rotvecs' row {row} has a component above 1e6 rad "
+                               f"({np.abs(parsed['rotvecs'][row]).max():.3g}); float64 cannot represent its "
+                               f"rotation (write the rotation vector with norm <= pi)")
+    steps = rotation_steps(parsed["rotvecs"])
+    if not np.all(np.isfinite(steps)):
+        raise ConformanceError(f"{source}: key 'rotvecs' gives non-finite rotations")
+    if steps.max() >= ROTATION_STEP_LIMIT:
+        k = int(np.argmax(steps))
+        raise ConformanceError(
+            f"{source}: key 'rotvecs': control points {k} and {k + 1} are {steps[k]!r} rad apart; the kit needs "
+            f"every step < pi - 1e-6 rad (at pi Log is ambiguous and two correct splines differ); insert a "
+            f"control point between them")
     return parsed
 
 
-def evaluate_input(data: dict, source: str = "input") -> Dict[str, list]:
-    """Evaluate a parsed-or-raw input dict in float64; returns the output dict (lists).
+def evaluate_parsed(parsed: dict, times: Optional[np.ndarray] = None) -> Dict[str, np.ndarray]:
+    """Float64 outputs (arrays) of a parsed input at ``times`` (default: its own times).
 
-    Raises ConformanceError (malformed) or ValueError (a time outside the domain).
+    Raises ValueError for a time outside the domain.
     """
-    parsed = parse_input(data, source)
+    times = parsed["times"] if times is None else times
     rotations = so3_exp(torch.as_tensor(parsed["rotvecs"]))
     translations = torch.as_tensor(parsed["translations"])
-    sample = spline.evaluate(rotations, translations, parsed["times"], parsed["dt"], parsed["t0"],
-                             parsed["convention"], derivatives=2)
+    if parsed["representation"] == "se3":
+        from tsslam_ref import se3_spline
+
+        sample = se3_spline.evaluate(rotations, translations, times, parsed["dt"], parsed["t0"],
+                                     parsed["convention"], derivatives=2)
+    else:
+        sample = spline.evaluate(rotations, translations, times, parsed["dt"], parsed["t0"],
+                                 parsed["convention"], derivatives=2)
     values = [sample.rotation, sample.translation, sample.velocity_world, sample.acceleration_world,
               sample.omega_body, sample.omegadot_body]
-    output = {"times": parsed["times"].tolist()}
-    output.update({key: value.detach().cpu().numpy().tolist() for key, value in zip(OUTPUT_KEYS, values)})
-    return output
+    return {key: value.detach().cpu().numpy() for key, value in zip(OUTPUT_KEYS, values)}
 
 
-def write_json_atomic(path: str, data: dict, force: bool = False) -> None:
-    """Write JSON via a temp file in the same folder and os.replace; refuse to overwrite unless force."""
-    if os.path.exists(path) and not force:
-        raise FileExistsError(f"{path} exists; pass --force to overwrite it")
-    folder = os.path.dirname(os.path.abspath(path))
-    handle, tmp_path = tempfile.mkstemp(prefix=".tmp_", suffix=".json", dir=folder)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as stream:
-            json.dump(data, stream)
-            stream.write("\n")
-        os.chmod(tmp_path, 0o644)  # mkstemp creates 0600; results are meant to be shared
-        os.replace(tmp_path, path)
-    except BaseException:
-        if os.path.exists(tmp_path):
-            os.remove(tmp_path)
-        raise
+def evaluate_input(data: dict, source: str = "input") -> Dict[str, object]:
+    """Evaluate a raw input dict in float64; returns the inputs echoed plus the output keys (lists).
+
+    Raises ConformanceError (malformed, or non-finite results) or ValueError (a time outside the
+    domain).
+    """
+    parsed = parse_input(data, source)
+    outputs = evaluate_parsed(parsed)
+    for key, value in outputs.items():
+        if not np.all(np.isfinite(value)):
+            raise ConformanceError(f"{source}: evaluation gave non-finite {key!r}; check 'rotvecs' and "
+                                   f"'translations' (values too large for float64?)")
+    result = {"representation": parsed["representation"], "convention": parsed["convention"],
+              "dt": parsed["dt"], "t0": parsed["t0"], "rotvecs": parsed["rotvecs"].tolist(),
+              "translations": parsed["translations"].tolist(), "times": parsed["times"].tolist()}
+    result.update({key: value.tolist() for key, value in outputs.items()})
+    return result
+
+
+# ------------------------------------------------------------------------------------------------
+# Comparison
+
+
+def match_times(ref_times: np.ndarray, cand_times: np.ndarray, candidate_name: str) -> np.ndarray:
+    """(M_cand,) index into the reference times of each candidate time.
+
+    Every candidate time must equal a reference time up to :data:`TIME_MATCH` (relative);
+    the candidate may leave reference times out (e.g. t_max, for a half-open domain).
+    Raises ConformanceError naming the first candidate time without a partner.
+    """
+    order = np.argsort(ref_times, kind="stable")
+    sorted_times = ref_times[order]
+    position = np.clip(np.searchsorted(sorted_times, cand_times), 1, max(len(sorted_times) - 1, 1))
+    left, right = sorted_times[position - 1], sorted_times[np.minimum(position, len(sorted_times) - 1)]
+    pick_right = np.abs(right - cand_times) < np.abs(left - cand_times)
+    nearest = np.where(pick_right, position, position - 1)
+    nearest = np.clip(nearest, 0, len(sorted_times) - 1)
+    gap = np.abs(sorted_times[nearest] - cand_times)
+    unmatched = np.flatnonzero(gap > TIME_MATCH * np.maximum(1.0, np.abs(cand_times)))
+    if unmatched.size:
+        m = int(unmatched[0])
+        raise ConformanceError(f"{candidate_name}: time {cand_times[m]!r} (index {m}) is not among the reference "
+                               f"times (nearest {sorted_times[nearest[m]]!r}); evaluate at the reference's times")
+    return order[nearest]
+
+
+def _segment_and_u(parsed: Optional[dict], times: np.ndarray):
+    """(segment index (M,), u (M,)) of times in the reference spline, or (None, None)."""
+    if parsed is None:
+        return None, None
+    offset = 2 if parsed["convention"] == "paper" else 0
+    first = spline.active_control_indices(times, parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
+                                          parsed["convention"])[..., 0].numpy()
+    s = (times - parsed["t0"]) / parsed["dt"] - offset
+    return first + offset, s - first
 
 
 def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: float = DEFAULT_RTOL,
-            reference_name: str = "reference", candidate_name: str = "candidate") -> List[dict]:
-    """Per-quantity errors.  Each row: quantity, max_abs, max_ref, rel (= max_abs / max_ref),
-    bound (= atol + rtol·max_ref), ok.  ``times`` must agree to 1e-12 s.  Raises ConformanceError."""
+            reference_name: str = "reference", candidate_name: str = "candidate") -> dict:
+    """Compare a candidate's outputs with a reference's at the candidate's times.
+
+    Returns a report dict: ``rows`` (per quantity: quantity, error, scale, scaled, bound, ok and, at
+    the worst time: index, time, segment, u, ref, cand), ``matched`` (candidate index -> reference
+    index), ``missing`` (reference times the candidate left out), ``hints`` (list of str, from
+    :func:`diagnose`), ``ok``.  Raises ConformanceError on malformed files or bad tolerances.
+    """
+    check_tolerances(atol, rtol)
     ref_times = _array(reference, "times", (), reference_name)
     cand_times = _array(candidate, "times", (), candidate_name)
-    if ref_times.shape != cand_times.shape or np.max(np.abs(ref_times - cand_times), initial=0.0) > 1e-12:
-        raise ConformanceError(f"{candidate_name}: key 'times' differs from {reference_name}")
-    rows = []
+    if cand_times.size == 0:
+        raise ConformanceError(f"{candidate_name}: key 'times' is empty")
+    index = match_times(ref_times, cand_times, candidate_name)
+    missing = np.setdiff1d(np.unique(ref_times), ref_times[index])  # reference times the candidate left out
+    try:
+        parsed = parse_input(reference, reference_name)
+    except ConformanceError:
+        parsed = None  # a bare output file: no segment / u, fewer hints
+    segment, u = _segment_and_u(parsed, cand_times)
+    refs, cands, rows = {}, {}, []
     for key in OUTPUT_KEYS:
         ref = _array(reference, key, OUTPUT_SHAPES[key], reference_name)
         cand = _array(candidate, key, OUTPUT_SHAPES[key], candidate_name)
-        if ref.shape != cand.shape:
-            raise ConformanceError(f"{candidate_name}: key {key!r} has shape {cand.shape}, reference {ref.shape}")
-        max_abs = float(np.max(np.abs(cand - ref), initial=0.0))
-        max_ref = float(np.max(np.abs(ref), initial=0.0))
-        bound = atol + rtol * max_ref
-        rows.append({"quantity": key, "max_abs": max_abs, "max_ref": max_ref,
-                     "rel": max_abs / max_ref if max_ref > 0 else max_abs, "bound": bound, "ok": max_abs <= bound})
-    return rows
+        if ref.shape[0] != ref_times.shape[0] or cand.shape[0] != cand_times.shape[0]:
+            name = reference_name if ref.shape[0] != ref_times.shape[0] else candidate_name
+            raise ConformanceError(f"{name}: key {key!r} has {max(ref.shape[0], cand.shape[0])} rows but 'times' "
+                                   f"has a different count")
+        ref = ref[index]
+        refs[key], cands[key] = ref, cand
+        per_time = np.abs(cand - ref).reshape(len(cand), -1).max(axis=1)  # (M,)
+        worst = int(np.argmax(per_time))
+        error, scale = float(per_time[worst]), float(np.abs(ref).max(initial=0.0))
+        bound = atol + rtol * scale
+        rows.append({"quantity": key, "error": error, "scale": scale,
+                     "scaled": error / scale if scale > 0 else error, "bound": bound, "ok": error <= bound,
+                     "index": worst, "time": float(cand_times[worst]),
+                     "segment": None if segment is None else int(segment[worst]),
+                     "u": None if u is None else float(u[worst]),
+                     "ref": ref[worst].tolist(), "cand": cand[worst].tolist(), "per_time": per_time})
+    report = {"rows": rows, "matched": index, "missing": missing, "times": cand_times,
+              "ok": all(row["ok"] for row in rows)}
+    report["hints"] = [] if report["ok"] else diagnose(report, refs, cands, parsed, atol, rtol)
+    return report
 
 
-def format_table(rows: List[dict]) -> str:
-    lines = [f"{'quantity':<14} {'max abs err':>12} {'max rel err':>12} {'bound':>10}  result"]
-    for row in rows:
-        lines.append(f"{row['quantity']:<14} {row['max_abs']:12.3e} {row['rel']:12.3e} {row['bound']:10.2e}  "
-                     f"{'ok' if row['ok'] else 'FAIL'}")
+def _close(candidate: np.ndarray, model: np.ndarray, tolerance: float = 1e-6) -> bool:
+    """candidate equals model up to ``tolerance`` of max |model| (and they are not both zero)."""
+    scale = max(float(np.abs(model).max(initial=0.0)), 1e-300)
+    return candidate.shape == model.shape and float(np.abs(candidate - model).max(initial=0.0)) <= tolerance * scale
+
+
+def _transposed_basis_translation(parsed: dict, times: np.ndarray) -> np.ndarray:
+    """p(t) with the basis matrix transposed (B = Cᵀ [1, u, u², u³]ᵀ), the common typo; (M, 3)."""
+    first = spline.active_control_indices(times, parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
+                                          parsed["convention"])[..., 0].numpy()
+    offset = 2 if parsed["convention"] == "paper" else 0
+    u = (times - parsed["t0"]) / parsed["dt"] - offset - first
+    monomials = np.stack([np.ones_like(u), u, u * u, u * u * u], -1)  # (M, 4)
+    weights = monomials @ (np.asarray(spline._C) / 6.0)  # (M, 4): Cᵀ applied instead of C
+    points = parsed["translations"]
+    deltas = points[first[:, None] + np.arange(1, 4)] - points[first[:, None] + np.arange(0, 3)]  # (M, 3, 3)
+    return points[first] + (weights[:, 1:, None] * deltas).sum(1)
+
+
+def diagnose(report: dict, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndarray], parsed: Optional[dict],
+             atol: float, rtol: float) -> List[str]:
+    """Hints naming the likely mistake from the pattern of errors (list of one-line strings)."""
+    rows = {row["quantity"]: row for row in report["rows"]}
+    failing = {key for key, row in rows.items() if not row["ok"]}
+    hints = []
+    R = refs["R"]
+    # Frames of the angular rates.
+    for key in ("omega_body", "omegadot_body"):
+        if key in failing and _close(cands[key], np.einsum("mij,mj->mi", R, refs[key])):
+            hints.append(f"{key}: the candidate equals R @ {key}, the WORLD-frame value; the kit wants the body "
+                         f"frame ([omega]x = R^T dR/dt), i.e. omega_body = R^T omega_world")
+    # Time scaling: v, a (and omega, omegadot) off by a power of dt.
+    if parsed is not None:
+        dt = parsed["dt"]
+        for key, order in (("v", 1), ("a", 2), ("omega_body", 1), ("omegadot_body", 2)):
+            if key not in failing:
+                continue
+            for power in (-2, -1, 1, 2):
+                if dt != 1.0 and _close(cands[key], refs[key] * dt ** power):
+                    hints.append(f"{key}: the candidate is the reference times dt^{power} (dt = {dt}); a time "
+                                 f"derivative of order {order} needs 1/dt^{order} (chain rule, du/dt = 1/dt)")
+                    break
+    # Float32.
+    scaled = [row["scaled"] for row in rows.values()]
+    if failing and max(scaled) < 3e-5 and sum(value > 1e-9 for value in scaled) >= 4:
+        hints.append(f"all quantities differ by 1e-9..3e-5 of their scale (largest {max(scaled):.1e}): the "
+                     f"candidate looks like float32 arithmetic (about 1e-7 relative); compute in float64, "
+                     f"or check with --rtol 1e-5 if float32 is intended")
+    # Joint SE(3) instead of split.
+    if failing and failing <= {"p", "v", "a"} and {"p", "v", "a"} & failing:
+        hints.append("only p, v, a differ while R, omega, omegadot agree: the candidate may be a JOINT SE(3) "
+                     "spline (translation coupled to rotation, e.g. PyPose pp.bspline, Sophus); the reference "
+                     "is split SO(3) x R^3 unless the input says \"representation\": \"se3\"")
+    if parsed is None:
+        return hints
+    times = report["times"]
+    # Errors only at knots.
+    _, u = _segment_and_u(parsed, times)
+    near_knot = np.minimum(np.abs(u), np.abs(1.0 - u)) < 1e-4
+    if failing and near_knot.any():
+        bad_anywhere = np.zeros(len(times), dtype=bool)
+        for key in failing:
+            bad_anywhere |= rows[key]["per_time"] > rows[key]["bound"]
+        if bad_anywhere.any() and not (bad_anywhere & ~near_knot).any():
+            hints.append(f"errors only at times within 1e-4 segments of a knot ({int(bad_anywhere.sum())} of "
+                         f"{int(near_knot.sum())} such times, nowhere else): the knot rule; the segment of t is floor((t - t0)/dt) of the "
+                         f"exact float64 values (a time 1e-6 segments before a knot is in the earlier segment), "
+                         f"t_max is the end of the last segment")
+    # Index convention: a shift by whole segments.
+    n, dt, t0 = parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"]
+    t_min, t_max = spline.valid_time_range(n, dt, t0, parsed["convention"])
+    for shift in (-2, -1, 1, 2):
+        shifted = times + shift * dt
+        inside = (shifted >= t_min) & (shifted <= t_max)
+        if inside.sum() < max(3, len(times) // 4) or "p" not in failing:
+            continue
+        model = evaluate_parsed(parsed, shifted[inside])
+        if _close(cands["p"][inside], model["p"]) and _close(cands["R"][inside], model["R"]):
+            hints.append(f"the candidate at t equals the reference at t {'+' if shift > 0 else '-'} {abs(shift)} dt: "
+                         f"an index convention shifted by {abs(shift)} segment(s) (paper: segment [t_i, t_i+1) uses "
+                         f"control points i-2..i+1; basalt and Sommer et al.: i..i+3; Lovegrove-style: i-1..i+2)")
+            break
+    # Transposed basis matrix.
+    if "p" in failing and parsed["representation"] == "split":
+        if _close(cands["p"], _transposed_basis_translation(parsed, times)):
+            hints.append("p equals the spline with the TRANSPOSED basis matrix: B(u) = C [1, u, u^2, u^3]^T with "
+                         "rows of C = (6,0,0,0), (5,3,-3,1), (1,3,3,-2), (0,0,0,1) over 6")
+    return hints
+
+
+def format_report(report: dict, reference_name: str = "reference", candidate_name: str = "candidate") -> str:
+    """Human-readable report: the error definition, one line per quantity, the worst time of each
+    failing quantity, missing times and hints."""
+    lines = ["error = max |cand - ref| over times and components; scale = max |ref|; "
+             "pass if error <= atol + rtol * scale",
+             f"{'quantity':<14} {'error':>10} {'scale':>10} {'error/scale':>11} {'bound':>10}  result"]
+    for row in report["rows"]:
+        lines.append(f"{row['quantity']:<14} {row['error']:10.3e} {row['scale']:10.3e} {row['scaled']:11.3e} "
+                     f"{row['bound']:10.3e}  {'ok' if row['ok'] else 'FAIL'}")
+    for row in report["rows"]:
+        if row["ok"]:
+            continue
+        where = f"index {row['index']}, t = {row['time']!r} s"
+        if row["segment"] is not None:
+            k = row["segment"]
+            where += f", segment [t_{k}, t_{k + 1}) with t_k = t0 + k dt, u = {row['u']!r}"
+        lines.append(f"  {row['quantity']} worst at {where}:")
+        for label in ("ref", "cand"):
+            value = np.asarray(row[label]).reshape(-1)  # R row by row
+            lines.append(f"    {label:<4} {np.array2string(value, precision=12, separator=', ', max_line_width=400)}")
+        lines.append(f"    error {row['error']:.3e} (bound {row['bound']:.3e})")
+    matched, missing = len(report["times"]), report["missing"]
+    if missing.size:
+        shown = ", ".join(repr(float(t)) for t in missing[:3]) + (" ..." if missing.size > 3 else "")
+        lines.append(f"note: {candidate_name} leaves out {missing.size} reference time(s); checked on its {matched} "
+                     f"times (missing: {shown}; a half-open domain drops t_max)")
+    for hint in report["hints"]:
+        lines.append(f"hint: {hint}")
     return "\n".join(lines)
-
-
-def _build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m tsslam_ref.spline",
-                                     description="B-spline trajectory conformance kit (docs/spline.md).")
-    commands = parser.add_subparsers(dest="command", required=True)
-    run = commands.add_parser("evaluate", help="evaluate R, p, v, a, omega, omegadot at the input times")
-    run.add_argument("input", help="input JSON (convention, dt, t0, rotvecs, translations, times)")
-    run.add_argument("-o", "--output", required=True, help="output JSON path")
-    run.add_argument("--force", action="store_true", help="overwrite an existing output")
-    check = commands.add_parser("check", help="compare a candidate result with a reference")
-    check.add_argument("reference")
-    check.add_argument("candidate")
-    check.add_argument("--atol", type=float, default=DEFAULT_ATOL, help=f"absolute tolerance (default {DEFAULT_ATOL})")
-    check.add_argument("--rtol", type=float, default=DEFAULT_RTOL,
-                       help=f"relative tolerance times max|ref| per quantity (default {DEFAULT_RTOL})")
-    return parser
-
-
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Command-line entry; returns the exit code (0 ok, 1 check failed, 2 bad input)."""
-    args = _build_parser().parse_args(argv)
-    try:
-        if args.command == "evaluate":
-            data = load_json(args.input)
-            output = evaluate_input(data, args.input)
-            write_json_atomic(args.output, output, force=args.force)
-            print(f"wrote {len(output['times'])} samples to {args.output}")
-            return 0
-        rows = compare(load_json(args.reference), load_json(args.candidate), args.atol, args.rtol,
-                       args.reference, args.candidate)
-        print(format_table(rows))
-        passed = all(row["ok"] for row in rows)
-        print("PASS" if passed else "FAIL")
-        return 0 if passed else 1
-    except (ConformanceError, FileExistsError, ValueError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -799,6 +799,6 @@ def pin_first_control_point(
 if __name__ == "__main__":
     import sys
 
-    from tsslam_ref.conformance import main
+    from tsslam_ref.spline_kit import main  # the kit's command line (it imports this module, never the reverse)
 
     sys.exit(main())

@@ -1,0 +1,93 @@
+"""A second, independent float64 implementation of the split cumulative cubic B-spline, for tests.
+
+Written from the formulas of docs/spline.md / tsslam_ref/assets/spline_kit.md only (numpy; it does
+not import tsslam_ref.spline): B(u) = C [1, u, u², u³]ᵀ, Eq. (5) p, Eq. (6) R, Eq. (8) v, a,
+Eq. (9) ω, ω̇ (body frame), segment = floor of the exact (t − t0)/Δt (fractions.Fraction).
+``mistake`` plants the usual errors a user makes, so tests can check that ``check`` names them.
+"""
+
+import math
+from fractions import Fraction
+
+import numpy as np
+
+C = np.array([[6, 0, 0, 0], [5, 3, -3, 1], [1, 3, 3, -2], [0, 0, 0, 1]], dtype=np.float64) / 6.0
+OFFSET = {"paper": 2, "basalt": 0}
+
+
+def hat(v):
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def exp_so3(v):
+    theta = math.sqrt(float(v @ v))
+    K = hat(v)
+    if theta < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + math.sin(theta) / theta * K + (1 - math.cos(theta)) / theta**2 * K @ K
+
+
+def log_so3(R):
+    """Principal Log for angles < π − 1e-3 (enough for the shipped vectors' steps ≤ 2 rad)."""
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    s, c = np.linalg.norm(w), (np.trace(R) - 1.0) / 2.0
+    theta = math.atan2(s, c)
+    return w * (theta / s if s > 1e-12 else 1.0 + theta**2 / 6.0)
+
+
+def exact_segment(t, t0, dt, offset, n_ctrl):
+    """floor((t − t0)/Δt) − offset in exact rationals, clamped to the segments."""
+    s = (Fraction(float(t)) - Fraction(float(t0))) / Fraction(float(dt))
+    return min(max(math.floor(s) - offset, 0), n_ctrl - 4)
+
+
+def evaluate(data, dtype=np.float64, mistake=None):
+    """Outputs dict (R, p, v, a, omega_body, omegadot_body) of a vector's input, float64 arrays.
+
+    mistake: None, "float32" (all arithmetic in float32), "world_frame" (ω, ω̇ world),
+    "no_dt" (v, a not divided by Δt, Δt²), "transposed_basis" (Cᵀ for the translation),
+    "snap_knots" (segment = floor(s + 1e-4): a time up to 1e-4 segments before a knot is put
+    in the next one).
+    """
+    if mistake == "float32":
+        dtype = np.float32
+    dt, t0, convention = data["dt"], data["t0"], data["convention"]
+    rotvecs = np.asarray(data["rotvecs"], dtype=np.float64)
+    points = np.asarray(data["translations"], dtype=np.float64).astype(dtype)
+    rotations = [exp_so3(v).astype(dtype) for v in rotvecs]
+    n = len(rotations)
+    out = {key: [] for key in ("R", "p", "v", "a", "omega_body", "omegadot_body")}
+    basis_p = C.T if mistake == "transposed_basis" else C
+    for t in data["times"]:
+        s_float = (t - t0) / dt - OFFSET[convention]
+        if mistake == "snap_knots":
+            i = min(max(math.floor(s_float + 1e-4), 0), n - 4)
+        else:
+            i = exact_segment(t, t0, dt, OFFSET[convention], n)
+        u = dtype(s_float - i)
+        B = (C @ np.array([1, u, u * u, u * u * u], dtype=np.float64)).astype(dtype)
+        Bd = (C @ np.array([0, 1, 2 * u, 3 * u * u], dtype=np.float64)).astype(dtype)
+        Bdd = (C @ np.array([0, 0, 2, 6 * u], dtype=np.float64)).astype(dtype)
+        Bp = (basis_p @ np.array([1, u, u * u, u * u * u], dtype=np.float64)).astype(dtype)
+        Bpd = (basis_p @ np.array([0, 1, 2 * u, 3 * u * u], dtype=np.float64)).astype(dtype)
+        Bpdd = (basis_p @ np.array([0, 0, 2, 6 * u], dtype=np.float64)).astype(dtype)
+        scale_v, scale_a = (1.0, 1.0) if mistake == "no_dt" else (dtype(dt), dtype(dt) ** 2)
+        p, v, a = points[i].copy(), np.zeros(3, dtype), np.zeros(3, dtype)
+        R = rotations[i].copy()
+        omega, omega_dot = np.zeros(3, dtype), np.zeros(3, dtype)
+        for j in range(1, 4):
+            delta = points[i + j] - points[i + j - 1]
+            p = p + Bp[j] * delta
+            v = v + Bpd[j] * delta / scale_v
+            a = a + Bpdd[j] * delta / scale_a
+            d = log_so3((rotations[i + j - 1].T @ rotations[i + j]).astype(np.float64)).astype(dtype)
+            A = exp_so3(B[j] * d.astype(np.float64)).astype(dtype)
+            R = R @ A
+            omega = A.T @ omega + Bd[j] / scale_v * d
+            omega_dot = Bd[j] / scale_v * np.cross(omega, d) + A.T @ omega_dot + Bdd[j] / scale_a * d
+        if mistake == "world_frame":
+            omega, omega_dot = R @ omega, R @ omega_dot
+        for key, value in zip(out, (R, p, v, a, omega, omega_dot)):
+            out[key].append(np.asarray(value, dtype=np.float64))
+    return {key: np.stack(value) for key, value in out.items()}

@@ -1,0 +1,198 @@
+"""Spline conformance kit, the command line (TS-SLAM §III-B/§III-C, Eq. (5)-(9)).
+
+Side module (CLI), on top of :mod:`tsslam_ref.conformance` (the maths) and :mod:`tsslam_ref.spline`.
+Everything it needs ships inside the package: the test vectors (assets/spline_vectors/*.json) and
+the reference (assets/spline_kit.md: conventions, formulas, golden values and their provenance).
+
+    python -m tsslam_ref.spline_kit list
+    python -m tsslam_ref.spline_kit docs
+    python -m tsslam_ref.spline_kit inputs FOLDER             # the shipped inputs, for your code
+    python -m tsslam_ref.spline_kit evaluate INPUT.json -o OUTPUT.json [--force]
+    python -m tsslam_ref.spline_kit check REFERENCE CANDIDATE.json [--atol 1e-9] [--rtol 1e-7]
+    python -m tsslam_ref.spline_kit check-all FOLDER           # FOLDER/<vector name>.json
+
+(``python -m tsslam_ref.spline ...`` still works and runs this.)  Exit codes: 0 pass, 1 a check
+failed, 2 bad input (the message names the file, key and value), nothing overwritten.
+
+Overwrite rule: files this kit wrote carry ``"written_by": "tsslam_ref.spline_kit"`` and are
+replaced on a re-run; any other existing file is kept unless ``--force`` is given.
+"""
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import List, Optional, Sequence
+
+from tsslam_ref import conformance
+
+VECTOR_DIR = Path(__file__).resolve().parent / "assets" / "spline_vectors"
+REFERENCE_DOC = Path(__file__).resolve().parent / "assets" / "spline_kit.md"
+WRITTEN_BY = "tsslam_ref.spline_kit"
+
+
+def shipped_vectors() -> List[Path]:
+    """Paths of the shipped vector files, sorted by name."""
+    return sorted(VECTOR_DIR.glob("*.json"))
+
+
+def resolve_reference(name: str) -> str:
+    """A path, or the name of a shipped vector (with or without .json)."""
+    if os.path.exists(name):
+        return name
+    candidate = VECTOR_DIR / (name if name.endswith(".json") else name + ".json")
+    return str(candidate) if candidate.exists() else name
+
+
+def _written_by_kit(path: str) -> bool:
+    try:
+        with open(path, "r", encoding="utf-8") as handle:
+            return json.load(handle).get("written_by") == WRITTEN_BY
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def write_json_atomic(path: str, data: dict, force: bool = False) -> None:
+    """Write JSON via a temp file in the same folder and os.replace.
+
+    An existing file is replaced only if this kit wrote it (``written_by``) or ``force``;
+    otherwise FileExistsError with a message that says so.
+    """
+    if os.path.exists(path) and not force and not _written_by_kit(path):
+        raise FileExistsError(f"{path} exists and was not written by this kit; pass --force to overwrite it "
+                              f"(files the kit wrote are replaced on a re-run)")
+    folder = os.path.dirname(os.path.abspath(path))
+    handle, tmp_path = tempfile.mkstemp(prefix=".tmp_", suffix=".json", dir=folder)
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8") as stream:
+            json.dump(data, stream)
+            stream.write("\n")
+        os.chmod(tmp_path, 0o644)  # mkstemp creates 0600; results are meant to be shared
+        os.replace(tmp_path, path)
+    except BaseException:
+        if os.path.exists(tmp_path):
+            os.remove(tmp_path)
+        raise
+
+
+def _epilog() -> str:
+    return (f"Shipped vectors: {VECTOR_DIR} (see 'list'). Reference (conventions, formulas, golden values): "
+            f"{REFERENCE_DOC} (see 'docs').")
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m tsslam_ref.spline_kit", epilog=_epilog(),
+                                     description="Cubic B-spline trajectory conformance kit: evaluate our "
+                                                 "reference and check your implementation against it.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    commands.add_parser("list", help="list the shipped vectors (name, convention, representation, sizes)",
+                        epilog=_epilog())
+    commands.add_parser("docs", help="print the kit's reference (conventions, formulas, golden values)")
+    inputs = commands.add_parser("inputs", help="write the input part of every shipped vector to FOLDER/<name>.json")
+    inputs.add_argument("folder")
+    inputs.add_argument("--force", action="store_true", help="overwrite files this kit did not write")
+    run = commands.add_parser("evaluate", help="evaluate R, p, v, a, omega, omegadot at the input times",
+                              epilog=_epilog())
+    run.add_argument("input", help="input JSON (convention, dt, t0, rotvecs, translations, times[, representation])")
+    run.add_argument("-o", "--output", required=True, help="output JSON path (inputs echoed + outputs)")
+    run.add_argument("--force", action="store_true", help="overwrite an existing file this kit did not write")
+    for name, help_text in (("check", "compare a candidate result with a reference (a file or a shipped name)"),
+                            ("check-all", "check FOLDER/<name>.json against every shipped vector <name>")):
+        check = commands.add_parser(name, help=help_text, epilog=_epilog())
+        if name == "check":
+            check.add_argument("reference", help="reference JSON, or the name of a shipped vector")
+            check.add_argument("candidate")
+        else:
+            check.add_argument("folder")
+        check.add_argument("--atol", type=float, default=conformance.DEFAULT_ATOL,
+                           help=f"absolute tolerance (default {conformance.DEFAULT_ATOL})")
+        check.add_argument("--rtol", type=float, default=conformance.DEFAULT_RTOL,
+                           help=f"relative tolerance times max|ref| per quantity (default {conformance.DEFAULT_RTOL})")
+    return parser
+
+
+def _list() -> int:
+    print(f"shipped vectors in {VECTOR_DIR}:")
+    for path in shipped_vectors():
+        data = conformance.load_json(str(path))
+        print(f"  {path.stem:<28} {data.get('representation', 'split'):<6} {data['convention']:<7} "
+              f"n_ctrl={len(data['rotvecs']):<3} times={len(data['times']):<4} dt={data['dt']} t0={data['t0']}")
+    print("run your code on each input ('inputs FOLDER'), save FOLDER/<name>.json, then 'check-all FOLDER'")
+    return 0
+
+
+def _inputs(folder: str, force: bool) -> int:
+    os.makedirs(folder, exist_ok=True)
+    for path in shipped_vectors():
+        data = conformance.load_json(str(path))
+        subset = {key: data[key] for key in conformance.INPUT_KEYS + conformance.OPTIONAL_INPUT_KEYS if key in data}
+        subset["written_by"] = WRITTEN_BY
+        target = os.path.join(folder, path.name)
+        write_json_atomic(target, subset, force=force)
+        print(f"wrote {target}")
+    return 0
+
+
+def _check(reference_path: str, candidate_path: str, atol: float, rtol: float) -> bool:
+    report = conformance.compare(conformance.load_json(reference_path), conformance.load_json(candidate_path),
+                                 atol, rtol, reference_path, candidate_path)
+    print(conformance.format_report(report, reference_path, candidate_path))
+    print("PASS" if report["ok"] else "FAIL")
+    return report["ok"]
+
+
+def _check_all(folder: str, atol: float, rtol: float) -> int:
+    conformance.check_tolerances(atol, rtol)
+    results = {}
+    for path in shipped_vectors():
+        candidate = os.path.join(folder, path.name)
+        if not os.path.exists(candidate):
+            results[path.stem] = "missing"
+            continue
+        print(f"== {path.stem}")
+        try:
+            results[path.stem] = "PASS" if _check(str(path), candidate, atol, rtol) else "FAIL"
+        except conformance.ConformanceError as error:
+            print(f"error: {error}")
+            results[path.stem] = "error"
+    print("== summary")
+    for name, result in results.items():
+        print(f"  {name:<28} {result}")
+    if all(result == "missing" for result in results.values()):
+        print(f"error: {folder} holds none of the shipped names (see 'list')", file=sys.stderr)
+        return 2
+    return 0 if all(result in ("PASS", "missing") for result in results.values()) else 1
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Command-line entry; returns the exit code (0 ok, 1 check failed, 2 bad input)."""
+    args = _build_parser().parse_args(argv)
+    try:
+        if args.command == "list":
+            return _list()
+        if args.command == "docs":
+            print(f"{REFERENCE_DOC}\n")
+            print(REFERENCE_DOC.read_text(encoding="utf-8"))
+            return 0
+        if args.command == "inputs":
+            return _inputs(args.folder, args.force)
+        if args.command == "evaluate":
+            data = conformance.load_json(args.input)
+            output = conformance.evaluate_input(data, args.input)
+            output = {"written_by": WRITTEN_BY, **output}
+            write_json_atomic(args.output, output, force=args.force)
+            print(f"wrote {len(output['times'])} samples to {args.output}")
+            return 0
+        if args.command == "check":
+            conformance.check_tolerances(args.atol, args.rtol)
+            return 0 if _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol) else 1
+        return _check_all(args.folder, args.atol, args.rtol)
+    except (conformance.ConformanceError, FileExistsError, ValueError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
