@@ -39,6 +39,10 @@ SE3_SPLINES = [
     ("se3_paper_dt0.05_large_rot", "paper", 9, 0.05, 100.0, 2.0, 0.2),
 ]
 
+# A smaller vector that also holds the Jacobians (M x 4 x 3 x 3 per quantity).
+JACOBIAN_SPLINE = ("jacobians_paper_dt0.25", "paper", 8, 0.25, 0.5, 1.5, 1.0)
+N_JACOBIAN_TIMES = 30
+
 # The basalt golden table's knots (tsslam_ref/assets/spline_kit.md; basalt convention, t0 = 0, dt = 0.5 s).
 BASALT_GOLDEN_ROTVECS = [[0, 0, 0], [0.1, -0.2, 0.3], [0.4, -0.1, 0.5], [0.3, 0.3, 0.9], [-0.2, 0.6, 1.2], [-0.5, 0.4, 1.0]]
 BASALT_GOLDEN_TRANSLATIONS = [[0, 0, 0], [1, 0, 0.5], [1.5, 1, 0.5], [1, 2, 0], [0, 2.5, -0.5], [-1, 2, -1]]
@@ -73,12 +77,13 @@ def query_times(rng: np.random.Generator, n_ctrl: int, dt: float, t0: float, con
     return np.sort(np.concatenate([[t_min, t_max], knots, *neighbours, random]))
 
 
-def make_vector(convention, dt, t0, rotvecs, translations, times, description, representation="split") -> dict:
+def make_vector(convention, dt, t0, rotvecs, translations, times, description, representation="split",
+                jacobians=False) -> dict:
     data = {"description": description, "representation": representation, "convention": convention, "dt": dt, "t0": t0,
             "rotvecs": np.asarray(rotvecs, dtype=np.float64).tolist(),
             "translations": np.asarray(translations, dtype=np.float64).tolist(),
             "times": np.asarray(times, dtype=np.float64).tolist()}
-    data.update(conformance.evaluate_input(data, description))
+    data.update(conformance.evaluate_input(data, description, jacobians=jacobians))
     return data
 
 
@@ -107,6 +112,14 @@ def main(argv=None) -> int:
         description = (f"{name}: random JOINT SE(3) spline (PyPose pp.bspline, Sophus), seed {SEED}, "
                        f"n_ctrl={n_ctrl}, relative rotations <= {max_angle} rad")
         vectors[name] = make_vector(convention, dt, t0, rotvecs, translations, times, description, "se3")
+    name, convention, n_ctrl, dt, t0, max_angle, scale = JACOBIAN_SPLINE
+    rotvecs, translations = random_control_points(rng, n_ctrl, max_angle, scale)
+    t_min, t_max = spline.valid_time_range(n_ctrl, dt, t0, convention)
+    knots = t0 + dt * np.arange(2, n_ctrl, dtype=np.float64)
+    times = np.sort(np.concatenate([knots, t_min + (t_max - t_min) * rng.uniform(size=N_JACOBIAN_TIMES)]))
+    description = (f"{name}: random spline with analytic Jacobians w.r.t. the 4 active control points "
+                   f"(R_k <- Exp(delta) R_k, P_k <- P_k + tau; output R <- Exp(eps) R), seed {SEED}")
+    vectors[name] = make_vector(convention, dt, t0, rotvecs, translations, times, description, jacobians=True)
     for name, data in vectors.items():
         path = os.path.join(args.out, name + ".json")
         spline_kit.write_json_atomic(path, data, force=args.force)

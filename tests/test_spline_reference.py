@@ -72,7 +72,7 @@ def test_knot_adjacent_times_agree_with_exact_rational_evaluation(path):
     times = np.asarray(data["times"])
     s = (times - data["t0"]) / data["dt"]
     near = np.flatnonzero(np.abs(s - np.round(s)) < 1e-4)
-    assert near.size >= 10
+    assert near.size >= 5
     for key, k in (("p", 0), ("v", 1), ("a", 2)):
         values = np.asarray(data[key])
         scale = np.abs(values).max()

@@ -10,7 +10,10 @@ Input keys: ``convention`` ("paper" | "basalt"), ``dt`` and ``t0`` (s), ``rotvec
 ``translations`` (N x 3, m), ``times`` (M, s); optional ``representation`` ("split", the default,
 or "se3" for the joint SE(3) spline, :mod:`tsslam_ref.se3_spline`).  Output keys: ``times`` (M),
 ``R`` (M x 3 x 3), ``p``, ``v``, ``a`` (M x 3, world), ``omega_body``, ``omegadot_body`` (M x 3,
-body), all float64.  A vector file holds the input keys and the output keys together.
+body), all float64.  With Jacobians (``evaluate --jacobians``, :mod:`tsslam_ref.spline_jacobians`):
+``J_first`` (M, first active control index) and ``J_R``, ``J_p``, ``J_v``, ``J_a``,
+``J_omega_body``, ``J_omegadot_body`` (M x 4 x 3 x 3).  A vector file holds the input keys and the
+output keys together.
 
 Error definition (one, used everywhere): per quantity q, error = max over times and components of
 |cand − ref|; scale = max |ref| over the quantity; the quantity passes when
@@ -164,14 +167,29 @@ def evaluate_parsed(parsed: dict, times: Optional[np.ndarray] = None) -> Dict[st
     return {key: value.detach().cpu().numpy() for key, value in zip(OUTPUT_KEYS, values)}
 
 
-def evaluate_input(data: dict, source: str = "input") -> Dict[str, object]:
-    """Evaluate a raw input dict in float64; returns the inputs echoed plus the output keys (lists).
+JACOBIAN_KEYS = ("J_R", "J_p", "J_v", "J_a", "J_omega_body", "J_omegadot_body")
+JACOBIAN_SHAPE = (4, 3, 3)
+
+
+def evaluate_input(data: dict, source: str = "input", jacobians: bool = False) -> Dict[str, object]:
+    """Evaluate a raw input dict in float64; returns the inputs echoed plus the output keys (lists),
+    and with ``jacobians`` the Jacobian keys (split representation only).
 
     Raises ConformanceError (malformed, or non-finite results) or ValueError (a time outside the
     domain).
     """
     parsed = parse_input(data, source)
     outputs = evaluate_parsed(parsed)
+    if jacobians:
+        if parsed["representation"] != "split":
+            raise ConformanceError(f"{source}: Jacobians are available for \"representation\": \"split\" only")
+        from tsslam_ref import spline_jacobians
+
+        blocks = spline_jacobians.jacobians(so3_exp(torch.as_tensor(parsed["rotvecs"])),
+                                            torch.as_tensor(parsed["translations"]), parsed["times"],
+                                            parsed["dt"], parsed["t0"], parsed["convention"])
+        outputs["J_first"] = blocks["first"].numpy()
+        outputs.update({key: blocks[key].numpy() for key in JACOBIAN_KEYS})
     for key, value in outputs.items():
         if not np.all(np.isfinite(value)):
             raise ConformanceError(f"{source}: evaluation gave non-finite {key!r}; check 'rotvecs' and "
@@ -243,9 +261,19 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
         parsed = None  # a bare output file: no segment / u, fewer hints
     segment, u = _segment_and_u(parsed, cand_times)
     refs, cands, rows = {}, {}, []
-    for key in OUTPUT_KEYS:
-        ref = _array(reference, key, OUTPUT_SHAPES[key], reference_name)
-        cand = _array(candidate, key, OUTPUT_SHAPES[key], candidate_name)
+    shapes = dict(OUTPUT_SHAPES)
+    if any(key in candidate for key in JACOBIAN_KEYS):  # a candidate with Jacobians is checked on them too
+        shapes.update({key: JACOBIAN_SHAPE for key in JACOBIAN_KEYS})
+        first_ref = _array(reference, "J_first", (), reference_name)[index]
+        first_cand = _array(candidate, "J_first", (), candidate_name)
+        if first_ref.shape == first_cand.shape and not np.array_equal(first_ref, first_cand):
+            m = int(np.flatnonzero(first_ref != first_cand)[0])
+            raise ConformanceError(f"{candidate_name}: 'J_first' at index {m} (t = {cand_times[m]!r}) is "
+                                   f"{first_cand[m]:.0f}, reference {first_ref[m]:.0f}: another active window "
+                                   f"(index convention or knot rule)")
+    for key, shape_tail in shapes.items():
+        ref = _array(reference, key, shape_tail, reference_name)
+        cand = _array(candidate, key, shape_tail, candidate_name)
         if ref.shape[0] != ref_times.shape[0] or cand.shape[0] != cand_times.shape[0]:
             name = reference_name if ref.shape[0] != ref_times.shape[0] else candidate_name
             raise ConformanceError(f"{name}: key {key!r} has {max(ref.shape[0], cand.shape[0])} rows but 'times' "

@@ -7,7 +7,7 @@ the reference (assets/spline_kit.md: conventions, formulas, golden values and th
     python -m tsslam_ref.spline_kit list
     python -m tsslam_ref.spline_kit docs
     python -m tsslam_ref.spline_kit inputs FOLDER             # the shipped inputs, for your code
-    python -m tsslam_ref.spline_kit evaluate INPUT.json -o OUTPUT.json [--force]
+    python -m tsslam_ref.spline_kit evaluate INPUT.json -o OUTPUT.json [--force] [--jacobians]
     python -m tsslam_ref.spline_kit check REFERENCE CANDIDATE.json [--atol 1e-9] [--rtol 1e-7]
     python -m tsslam_ref.spline_kit check-all FOLDER           # FOLDER/<vector name>.json
 
@@ -98,6 +98,10 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("input", help="input JSON (convention, dt, t0, rotvecs, translations, times[, representation])")
     run.add_argument("-o", "--output", required=True, help="output JSON path (inputs echoed + outputs)")
     run.add_argument("--force", action="store_true", help="overwrite an existing file this kit did not write")
+    run.add_argument("--jacobians", action="store_true",
+                     help="also write J_first and the Jacobians J_R, J_p, J_v, J_a, J_omega_body, J_omegadot_body "
+                          "(M x 4 x 3 x 3) w.r.t. the 4 active control points (R_k <- Exp(delta) R_k, P_k <- P_k + tau; "
+                          "see 'docs')")
     for name, help_text in (("check", "compare a candidate result with a reference (a file or a shipped name)"),
                             ("check-all", "check FOLDER/<name>.json against every shipped vector <name>")):
         check = commands.add_parser(name, help=help_text, epilog=_epilog())
@@ -180,7 +184,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _inputs(args.folder, args.force)
         if args.command == "evaluate":
             data = conformance.load_json(args.input)
-            output = conformance.evaluate_input(data, args.input)
+            output = conformance.evaluate_input(data, args.input, jacobians=args.jacobians)
             output = {"written_by": WRITTEN_BY, **output}
             write_json_atomic(args.output, output, force=args.force)
             print(f"wrote {len(output['times'])} samples to {args.output}")
