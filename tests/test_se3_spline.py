@@ -108,3 +108,14 @@ def test_se3_with_equal_rotations_is_the_split_spline():
     split = conformance.evaluate_input(data)
     for key, value in zip(conformance.OUTPUT_KEYS, joint):
         assert np.abs(value.numpy() - np.asarray(split[key])).max() < 1e-12
+
+
+def test_check_names_a_split_candidate_against_a_joint_se3_vector(tmp_path, capsys):
+    path = SE3_PATHS[0]
+    data = json.loads(path.read_text())
+    split = conformance.evaluate_input({key: data[key] for key in conformance.INPUT_KEYS})
+    candidate = tmp_path / "split.json"
+    candidate.write_text(json.dumps({key: split[key] for key in ("times",) + conformance.OUTPUT_KEYS}))
+    assert spline_kit.main(["check", str(path), str(candidate)]) == 1
+    out = capsys.readouterr().out
+    assert "p equals the SPLIT" in out and "worst at index" in out

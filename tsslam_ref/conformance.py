@@ -344,11 +344,20 @@ def diagnose(report: dict, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndar
         hints.append(f"all quantities differ by 1e-9..3e-5 of their scale (largest {max(scaled):.1e}): the "
                      f"candidate looks like float32 arithmetic (about 1e-7 relative); compute in float64, "
                      f"or check with --rtol 1e-5 if float32 is intended")
-    # Joint SE(3) instead of split.
+    # Joint SE(3) instead of split (or the reverse): compare with the other representation directly.
     if failing and failing <= {"p", "v", "a"} and {"p", "v", "a"} & failing:
-        hints.append("only p, v, a differ while R, omega, omegadot agree: the candidate may be a JOINT SE(3) "
-                     "spline (translation coupled to rotation, e.g. PyPose pp.bspline, Sophus); the reference "
-                     "is split SO(3) x R^3 unless the input says \"representation\": \"se3\"")
+        other = None
+        if parsed is not None:
+            swapped = dict(parsed, representation="split" if parsed["representation"] == "se3" else "se3")
+            other = evaluate_parsed(swapped, report["times"])
+        if other is not None and _close(cands["p"], other["p"]):
+            hints.append("p equals the JOINT SE(3) spline of the same control points (PyPose pp.bspline, Sophus) "
+                         "but this vector is split SO(3) x R^3" if parsed["representation"] == "split" else
+                         "p equals the SPLIT SO(3) x R^3 spline but this vector is JOINT SE(3) "
+                         "(\"representation\": \"se3\")")
+        else:
+            hints.append("only p, v, a differ while R, omega, omegadot agree: the translation is coupled "
+                         "differently, e.g. a JOINT SE(3) spline (PyPose, Sophus) against a split one")
     if parsed is None:
         return hints
     times = report["times"]
