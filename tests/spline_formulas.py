@@ -1,4 +1,5 @@
-"""A second, independent float64 implementation of the split cumulative cubic B-spline, for tests.
+"""A second, independent float64 implementation of the cumulative cubic B-spline (split, and joint
+SE(3) with the Lie-group form of the ω recursion), for tests.
 
 Written from the formulas of docs/spline.md / tsslam_ref/assets/spline_kit.md only (numpy; it does
 not import tsslam_ref.spline): B(u) = C [1, u, u², u³]ᵀ, Eq. (5) p, Eq. (6) R, Eq. (8) v, a,
@@ -36,6 +37,67 @@ def log_so3(R):
     return w * (theta / s if s > 1e-12 else 1.0 + theta**2 / 6.0)
 
 
+def v_matrix(phi):
+    theta = math.sqrt(float(phi @ phi))
+    K = hat(phi)
+    if theta < 1e-6:
+        return np.eye(3) + 0.5 * K + K @ K / 6.0
+    return np.eye(3) + (1 - math.cos(theta)) / theta**2 * K + (theta - math.sin(theta)) / theta**3 * K @ K
+
+
+def exp_se3(xi):
+    """4 x 4 pose of a tangent ξ = (ρ, φ)."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = exp_so3(xi[3:]), v_matrix(xi[3:]) @ xi[:3]
+    return T
+
+
+def log_se3(T):
+    phi = log_so3(T[:3, :3])
+    return np.concatenate([np.linalg.solve(v_matrix(phi), T[:3, 3]), phi])
+
+
+def hat_se3(xi):
+    H = np.zeros((4, 4))
+    H[:3, :3], H[:3, 3] = hat(xi[3:]), xi[:3]
+    return H
+
+
+def evaluate_se3(data):
+    """Joint SE(3): T = T_k Π Exp(B_j ξ_j); body twist H = T⁻¹Ṫ by the Lie-group recursion
+    H' = A⁻¹ H A + Ḃ ξ̂, Ḣ' = Ḃ [H', ξ̂] + A⁻¹ Ḣ A + B̈ ξ̂; v = R ρ, a = R(ω × ρ + ρ̇)."""
+    dt, t0, convention = data["dt"], data["t0"], data["convention"]
+    poses = []
+    for v, p in zip(np.asarray(data["rotvecs"], dtype=np.float64), np.asarray(data["translations"], dtype=np.float64)):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = exp_so3(v), p
+        poses.append(T)
+    n = len(poses)
+    out = {key: [] for key in ("R", "p", "v", "a", "omega_body", "omegadot_body")}
+    for t in data["times"]:
+        i = exact_segment(t, t0, dt, OFFSET[convention], n)
+        u = (t - t0) / dt - OFFSET[convention] - i
+        B = C @ np.array([1, u, u * u, u**3])
+        Bd = C @ np.array([0, 1, 2 * u, 3 * u * u]) / dt
+        Bdd = C @ np.array([0, 0, 2, 6 * u]) / dt**2
+        T, H, H_dot = poses[i].copy(), np.zeros((4, 4)), np.zeros((4, 4))
+        for j in range(1, 4):
+            xi = log_se3(np.linalg.inv(poses[i + j - 1]) @ poses[i + j])
+            A = exp_se3(B[j] * xi)
+            A_inv = np.linalg.inv(A)
+            T = T @ A
+            H = A_inv @ H @ A + Bd[j] * hat_se3(xi)
+            H_dot = Bd[j] * (H @ hat_se3(xi) - hat_se3(xi) @ H) + A_inv @ H_dot @ A + Bdd[j] * hat_se3(xi)
+        R = T[:3, :3]
+        omega = np.array([H[2, 1], H[0, 2], H[1, 0]])
+        omega_dot = np.array([H_dot[2, 1], H_dot[0, 2], H_dot[1, 0]])
+        rho, rho_dot = H[:3, 3], H_dot[:3, 3]
+        values = (R, T[:3, 3], R @ rho, R @ (np.cross(omega, rho) + rho_dot), omega, omega_dot)
+        for key, value in zip(out, values):
+            out[key].append(value)
+    return {key: np.stack(value) for key, value in out.items()}
+
+
 def exact_segment(t, t0, dt, offset, n_ctrl):
     """floor((t − t0)/Δt) − offset in exact rationals, clamped to the segments."""
     s = (Fraction(float(t)) - Fraction(float(t0))) / Fraction(float(dt))
@@ -50,6 +112,8 @@ def evaluate(data, dtype=np.float64, mistake=None):
     "snap_knots" (segment = floor(s + 1e-4): a time up to 1e-4 segments before a knot is put
     in the next one).
     """
+    if data.get("representation", "split") == "se3":
+        return evaluate_se3(data)
     if mistake == "float32":
         dtype = np.float32
     dt, t0, convention = data["dt"], data["t0"], data["convention"]

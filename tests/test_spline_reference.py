@@ -36,7 +36,7 @@ def as_candidate(data, outputs, keep=None):
 
 
 def test_a_float64_implementation_from_the_formulas_passes_every_vector_at_default_tolerances():
-    for path in SPLIT_PATHS:
+    for path in VECTOR_PATHS:  # split and joint SE(3)
         data = load(path)
         report = conformance.compare(data, as_candidate(data, spline_formulas.evaluate(data)))
         assert report["ok"], (path.stem, conformance.format_report(report))
@@ -235,12 +235,12 @@ def test_kit_runs_from_a_folder_outside_the_checkout(tmp_path):
     assert "spline_vectors" in kit("--help").stdout
     assert kit("inputs", "inputs").returncode == 0
     os.makedirs(tmp_path / "mine")
-    for path in SPLIT_PATHS:  # the user's own code
+    for path in VECTOR_PATHS:  # the user's own code
         data = load(tmp_path / "inputs" / path.name)
         (tmp_path / "mine" / path.name).write_text(json.dumps(as_candidate(data, spline_formulas.evaluate(data))))
     result = kit("check-all", "mine")
     assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.count("PASS") >= len(SPLIT_PATHS)
+    assert result.stdout.count("PASS") >= len(VECTOR_PATHS)
     old_entry = subprocess.run([sys.executable, "-m", "tsslam_ref.spline", "list"], cwd=tmp_path, env=env,
                                capture_output=True, text=True, timeout=300)
     assert old_entry.returncode == 0 and "basalt_golden_dt0.5" in old_entry.stdout
