@@ -30,8 +30,8 @@ u = 1 − 3e-6, as exact arithmetic says.  No tolerance moves a time to another 
 Special cases, the domain ends only: the index is clamped to the last segment, so t_max gives u = 1
 (closed domain); a time within the float64 rounding of an end (END_ULPS ulps of the ends'
 magnitude, :func:`time_in_domain`) is accepted and continues the end segment by that much.  The
-same rule holds for absolute stamps and relative times (the ulp of a 1.3e9 s stamp is 2.4e-7 s,
-that of 0.06 s is 1.4e-17 s).  Other times raise ValueError naming the time and the domain.
+same rule holds for absolute stamps and relative times (1.2e-6 s for ends near a 1.3e9 s stamp,
+whose ulp is 2.4e-7 s; 5e-17 s for ends near 0.06 s).  Other times raise ValueError naming the time and the domain.
 
 Rotation steps: the principal Log is ambiguous at a relative rotation of π between consecutive
 control points (the two choices give different curves); :func:`evaluate` does not check this,
@@ -187,8 +187,8 @@ def _snap_tolerance(times64, dt: float, t0: float):
     """Domain-end tolerance in units of Δt: the float64 rounding of the ends t0 + kΔt, i.e.
     4 ulps at the magnitude of |t| and |t0| (a TUM stamp of 1.3e9 s has an ulp of 2.4e-7 s).
 
-    Only the domain ends use it (:func:`time_in_domain`); segments are located exactly
-    (:func:`_exact_first_segment`), with no tolerance."""
+    Kept for ``BSplineTrajectory.valid``; :func:`time_in_domain` is the rule itself.  Segments are
+    located exactly (:func:`_exact_floor_quotient`), with no tolerance."""
     return END_ULPS * np.finfo(np.float64).eps * (abs(times64) + abs(float(t0))) / float(dt)
 
 
@@ -204,7 +204,7 @@ def time_in_domain(times: TimesLike, n_ctrl: int, dt: float, t0: float, conventi
 
     The ends are the float64 values of :func:`valid_time_range`, widened by their own float64
     rounding (:func:`_end_tolerance`); the same rule for absolute stamps and relative times
-    (a 1.3e9 s stamp's rounding is 2.4e-7 s, a 0.06 s time's 1.4e-17 s).  NaN is outside.
+    (1.2e-6 s at ends near a 1.3e9 s stamp, 5e-17 s at ends near 0.06 s).  NaN is outside.
     """
     t_min, t_max = valid_time_range(n_ctrl, dt, t0, convention)
     if not isinstance(times, torch.Tensor):
