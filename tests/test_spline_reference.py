@@ -244,3 +244,22 @@ def test_kit_runs_from_a_folder_outside_the_checkout(tmp_path):
     old_entry = subprocess.run([sys.executable, "-m", "tsslam_ref.spline", "list"], cwd=tmp_path, env=env,
                                capture_output=True, text=True, timeout=300)
     assert old_entry.returncode == 0 and "basalt_golden_dt0.5" in old_entry.stdout
+
+
+def test_domain_ends_allow_only_their_own_float64_rounding_for_stamps_and_relative_times():
+    from tsslam_ref import spline
+
+    n, dt = 9, 0.03
+    for t0 in (0.0, 1305031102.175304):
+        t_min, t_max = spline.valid_time_range(n, dt, t0)
+        tolerance = 4 * np.finfo(np.float64).eps * max(abs(t0), abs(t_max))
+        assert spline.time_in_domain(np.array([t_min, t_max]), n, dt, t0).all()
+        below, above = np.nextafter(t_min, -np.inf), np.nextafter(t_max, np.inf)  # one ulp outside
+        assert spline.time_in_domain(np.array([below, above]), n, dt, t0).all()
+        outside = np.array([t_min - 2 * tolerance, t_max + 2 * tolerance])
+        assert not spline.time_in_domain(outside, n, dt, t0).any()
+        with pytest.raises(ValueError, match="outside the spline domain"):
+            spline.active_control_indices(outside[:1], n, dt, t0)
+    # the example: 5.7e-8 s before 0.06 s is outside, as it would be 2e-6 s before a stamp's end
+    assert spline.valid_time_range(10, 0.03, 0.0)[0] == 0.06
+    assert not spline.time_in_domain(0.059999942779541016, 10, 0.03, 0.0)
