@@ -263,3 +263,12 @@ def test_domain_ends_allow_only_their_own_float64_rounding_for_stamps_and_relati
     # the example: 5.7e-8 s before 0.06 s is outside, as it would be 2e-6 s before a stamp's end
     assert spline.valid_time_range(10, 0.03, 0.0)[0] == 0.06
     assert not spline.time_in_domain(0.059999942779541016, 10, 0.03, 0.0)
+
+
+def test_dependencies_point_one_way_math_never_imports_the_kit():
+    code = ("import sys, tsslam_ref.spline, tsslam_ref.spline_jacobians, tsslam_ref.se3_spline; "
+            "assert 'tsslam_ref.conformance' not in sys.modules and 'tsslam_ref.spline_kit' not in sys.modules; "
+            "import tsslam_ref.conformance; assert 'tsslam_ref.spline_kit' not in sys.modules")
+    result = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, PYTHONPATH=str(CHECKOUT)),
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
