@@ -25,7 +25,7 @@ import dataclasses
 import json
 import math
 import os
-import tempfile
+import re
 from dataclasses import dataclass
 from dataclasses import field as _field
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
@@ -205,7 +205,10 @@ class SplineConfig:
     """Uniform cubic B-spline trajectory (Sec. III-B)."""
 
     dt: float = 0.3
-    """Knot spacing Delta t in seconds (paper: 0.30 ScanNet/synthetic, 0.25 TUM)."""
+    """Knot spacing Delta t in seconds (paper: 0.30 ScanNet/synthetic, 0.25 TUM); at most 10 s: the
+    knot times are float64 seconds of dataset time (about 1.3e9 s for TUM), and a spacing of
+    hours would leave a hand-held camera's motion unmodelled while the basis coordinate
+    (t - t0) / dt loses precision (at 1e6 s positions fall onto a 1/64 m grid)."""
     convention: str = "paper"
     """Index convention: 'paper' (segment [t_i, t_i+1) uses points i-2..i+1) or 'basalt' (i..i+3)."""
 
@@ -506,13 +509,14 @@ RANGES: Dict[str, tuple] = {
     "mapping.map_every": (">=", 1), "mapping.tsslam_map_every": (">=", 0),
     "mapping.kf_pixel_fraction": ("(]", (0, 1)), "mapping.lr_embed": (">", 0), "mapping.lr_decoder": (">", 0),
     "mapping.lr_rot": (">", 0), "mapping.lr_trans": (">", 0), "mapping.pose_accum_step": (">=", 1),
-    "spline.dt": (">", 0), "spline.convention": ("in", ("paper", "basalt")),
+    "spline.dt": ("(]", (0, 10)), "spline.convention": ("in", ("paper", "basalt")),
     "dynamics.lambda_acc": (">=", 0), "dynamics.lambda_ang": (">=", 0), "dynamics.a_max": (">", 0),
     "dynamics.omegadot_max": (">", 0), "dynamics.n_samples": (">=", 1), "dynamics.barrier_limit": ("()", (0, 1)),
     "local_ba.window": (">=", 1), "local_ba.fit_iters": (">=", 0), "local_ba.fit_controls": (">=", 1),
     "local_ba.refine_iters": (">=", 0), "local_ba.joint_iters": (">=", 0), "local_ba.n_rays": (">=", 1),
     "local_ba.lr_rot": (">", 0), "local_ba.lr_trans": (">", 0), "local_ba.max_deviation": (">", 0),
     "mesh.voxel_eval": (">", 0), "mesh.voxel_final": (">", 0), "mesh.sdf_cutoff": (">", 0),
+    "seed": ("[]", (0, 2**63 - 1)),
     "method": ("in", ("tsslam", "coslam")), "dtype": ("in", ("float32", "float64")),
 }
 
@@ -539,6 +543,8 @@ def _check_range(value: Any, comparison: str, bound: Any) -> Tuple[bool, str]:
     """(whether ``value`` keeps the rule, the rule in words) for one entry of :data:`RANGES`."""
     if comparison == "in":
         return value in bound, "one of " + ", ".join(bound)
+    if comparison == "[]":
+        return bound[0] <= value <= bound[1], f"an integer in [{bound[0]}, {bound[1]}]"
     if comparison == "(]":
         return bound[0] < value <= bound[1], f"in ({bound[0]}, {bound[1]}]"
     if comparison == "()":
@@ -571,12 +577,32 @@ def validate(cfg: Config, source: str = "config") -> Config:
             ok, rule = _check_range(value, *RANGES[key])
             if not ok:
                 raise ValueError(f"{source}: {key} = {value!r} must be {rule}")
+    if not re.fullmatch(r"auto|cpu|cuda(:[0-9]+)?", cfg.device):
+        raise ValueError(f"{source}: device = {cfg.device!r} must be auto, cpu, cuda or cuda:N")
+    _check_bound(cfg.field.bound, source)
     if cfg.render.far <= cfg.render.near:
         raise ValueError(f"{source}: render.far = {cfg.render.far!r} must be > render.near = {cfg.render.near!r}")
     if cfg.local_ba.fit_controls > cfg.local_ba.window:
         raise ValueError(f"{source}: local_ba.fit_controls = {cfg.local_ba.fit_controls} must be <= "
                          f"local_ba.window = {cfg.local_ba.window}")
     return cfg
+
+
+def _check_bound(bound: Any, source: str) -> None:
+    """field.bound: None (estimated from frame 0) or [[xmin, xmax], [ymin, ymax], [zmin, zmax]] in m."""
+    if bound is None:
+        return
+    expected = "None or [[xmin, xmax], [ymin, ymax], [zmin, zmax]] of finite numbers with min < max"
+    try:
+        rows = [[float(v) for v in row] for row in bound]
+        ok = len(rows) == 3 and all(len(row) == 2 for row in rows) and not any(
+            isinstance(v, bool) for row in bound for v in row)
+    except (TypeError, ValueError):
+        ok = False
+    if ok:
+        ok = all(math.isfinite(v) for row in rows for v in row) and all(row[0] < row[1] for row in rows)
+    if not ok:
+        raise ValueError(f"{source}: field.bound = {bound!r} must be {expected}")
 
 
 def _parse_value(text: str) -> Any:
@@ -622,11 +648,16 @@ def load(name_or_file: str) -> Config:
     if name_or_file in PRESETS:
         return PRESETS[name_or_file]()
     if os.path.isfile(name_or_file):
-        with open(name_or_file) as handle:
-            try:
+        try:
+            with open(name_or_file, encoding="utf-8") as handle:
                 values = json.load(handle)
-            except json.JSONDecodeError as error:
-                raise ValueError(f"{name_or_file}: not valid JSON ({error})") from error
+        except UnicodeDecodeError:
+            raise ValueError(f"{name_or_file}: not a text file; expected a JSON config object") from None
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{name_or_file}: not valid JSON ({error}); expected a JSON config object") from None
+        if not isinstance(values, dict):
+            raise ValueError(f"{name_or_file}: the JSON is a {type(values).__name__}; expected an object "
+                             f"{{section: {{key: value}}}} like a run's config.json")
         return from_dict(values, source=name_or_file)
     raise ValueError(
         f"config '{name_or_file}' is neither a preset ({', '.join(PRESETS)}) nor an existing JSON file"
@@ -634,9 +665,7 @@ def load(name_or_file: str) -> Config:
 
 
 def save(cfg: Config, path: str) -> None:
-    """Write the config as JSON atomically (temporary file, then rename)."""
-    directory = os.path.dirname(os.path.abspath(path))
-    handle, temporary = tempfile.mkstemp(dir=directory, suffix=".tmp")
-    with os.fdopen(handle, "w") as stream:
-        json.dump(to_dict(cfg), stream, indent=2)
-    os.replace(temporary, path)
+    """Write the config as JSON atomically (a new file in the same folder, then rename; files.py)."""
+    from .files import atomic_write_text
+
+    atomic_write_text(path, json.dumps(to_dict(cfg), indent=2))

@@ -1,0 +1,182 @@
+"""Saving and loading the SLAM loop's state (``checkpoint.pt``) in a format that cannot run code.
+
+A checkpoint is a ``torch.save`` file holding only plain data: tensors, numbers, strings, lists
+and dicts.  It is read back with ``torch.load(weights_only=True)``, which refuses every other
+Python object, so a crafted file cannot execute anything while it is read.  The objects of the
+loop (the map, its optimizer, keyframes, the spline) are rebuilt from that data here.
+
+The file starts with a format tag and a version; :func:`load` checks both and the structure, and
+raises :class:`CheckpointError` (a ``ValueError``) naming the file for an empty, truncated,
+corrupt or foreign file or another version.
+
+Layer 4 (system): used by ``run.py``; knows the state of ``slam.py``.
+"""
+
+import json
+from pathlib import Path
+from typing import Any, Dict
+
+import numpy as np
+import torch
+
+from . import config as config_module
+from .files import atomic_path
+
+FORMAT = "tsslam_ref-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """The file is not a checkpoint this version can resume from; the message names the file."""
+
+
+def _rays_to_plain(rays) -> Dict[str, torch.Tensor]:
+    return {"directions_cam": rays.directions_cam, "rgb": rays.rgb, "depth": rays.depth, "frame_ids": rays.frame_ids}
+
+
+def _rays_from_plain(values: Dict[str, torch.Tensor]):
+    from .render import RayBatch
+
+    return RayBatch(values["directions_cam"], values["rgb"], values["depth"], values["frame_ids"])
+
+
+def to_plain(state) -> Dict[str, Any]:
+    """The state of ``slam.SLAMState`` as nested dicts / lists of tensors, numbers and strings."""
+    spline = None
+    if state.spline is not None:
+        track = state.spline
+        spline = {"dt": float(track.dt), "t0": float(track.t0), "rotations": track.rotations.detach(),
+                  "translations": track.translations.detach(), "intervals_done": int(track.intervals_done),
+                  "convention": str(track.convention),
+                  "start_pose": None if track.start_pose is None else track.start_pose.detach()}
+    keyframes = state.keyframes
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "config": json.dumps(config_module.to_dict(state.cfg)),
+        "field": state.field.state_dict(),
+        "map_optimizer": state.map_optimizer.state_dict(),
+        "keyframes": {"rays": [_rays_to_plain(r) for r in keyframes._rays],
+                      "frame_indices": [int(i) for i in keyframes.frame_indices],
+                      "timestamps": [float(t) for t in keyframes.timestamps]},
+        "timestamps": torch.from_numpy(np.asarray(state.timestamps, dtype=np.float64).copy()),
+        "tracked_poses": state.tracked_poses.detach(),
+        "tracking_results": {int(k): v.detach() for k, v in state.tracking_results.items()},
+        "done": int(state.done),
+        "keyframe_of_frame": {int(k): int(v) for k, v in state.keyframe_of_frame.items()},
+        "relative_to_keyframe": {int(k): v.detach() for k, v in state.relative_to_keyframe.items()},
+        "spline": spline,
+        "frame_rays": {int(k): _rays_to_plain(v) for k, v in state.frame_rays.items()},
+        "generator_state": None if state.generator is None else state.generator.get_state(),
+        "timings": {"seconds": dict(state.timings.seconds), "iterations": dict(state.timings.iterations),
+                    "calls": dict(state.timings.calls)},
+        "log": [dict(entry) for entry in state.log],
+    }
+
+
+def from_plain(values: Dict[str, Any], device=None):
+    """Rebuild a ``slam.SLAMState`` from :func:`to_plain`'s dict (tensors moved to ``device``)."""
+    from .bundle import KeyframeDatabase
+    from .field import SceneField
+    from .local_ba import SplineTrack
+    from .mapping import make_map_optimizer
+    from .slam import SLAMState, Timings
+
+    cfg = config_module.from_dict(json.loads(values["config"]), source="the checkpoint's config")
+    device = torch.device(device) if device is not None else values["tracked_poses"].device
+    dtype = getattr(torch, cfg.dtype)
+    field_model = SceneField(cfg.field, values["field"]["bound"]).to(device=device, dtype=dtype)
+    field_model.load_state_dict(values["field"])
+    optimizer = make_map_optimizer(field_model, cfg.mapping)
+    optimizer.load_state_dict(values["map_optimizer"])
+    keyframes = KeyframeDatabase()
+    for rays, index, stamp in zip(values["keyframes"]["rays"], values["keyframes"]["frame_indices"],
+                                  values["keyframes"]["timestamps"]):
+        keyframes.add(index, stamp, _rays_from_plain({k: v.to(device) for k, v in rays.items()}))
+    spline = None
+    if values["spline"] is not None:
+        plain = values["spline"]
+        spline = SplineTrack(dt=plain["dt"], t0=plain["t0"], rotations=plain["rotations"].to(device),
+                             translations=plain["translations"].to(device), intervals_done=plain["intervals_done"],
+                             convention=plain["convention"],
+                             start_pose=None if plain["start_pose"] is None else plain["start_pose"].to(device))
+    generator = torch.Generator(device="cpu")
+    if values["generator_state"] is not None:
+        generator.set_state(values["generator_state"])
+    timings = Timings(seconds=dict(values["timings"]["seconds"]), iterations=dict(values["timings"]["iterations"]),
+                      calls=dict(values["timings"]["calls"]))
+    return SLAMState(
+        cfg=cfg,
+        field=field_model,
+        map_optimizer=optimizer,
+        keyframes=keyframes,
+        timestamps=values["timestamps"].numpy().astype(np.float64),
+        tracked_poses=values["tracked_poses"].to(device),
+        tracking_results={int(k): v.to(device) for k, v in values["tracking_results"].items()},
+        done=int(values["done"]),
+        keyframe_of_frame={int(k): int(v) for k, v in values["keyframe_of_frame"].items()},
+        relative_to_keyframe={int(k): v.to(device) for k, v in values["relative_to_keyframe"].items()},
+        spline=spline,
+        frame_rays={int(k): _rays_from_plain({n: t.to(device) for n, t in v.items()})
+                    for k, v in values["frame_rays"].items()},
+        generator=generator,
+        timings=timings,
+        log=[dict(entry) for entry in values["log"]],
+    )
+
+
+def save(state, path) -> Path:
+    """Write the loop state to ``path`` atomically (a new file, the user's normal mode)."""
+    with atomic_path(path) as temporary:
+        torch.save(to_plain(state), temporary)
+    return Path(path)
+
+
+def read(path) -> Dict[str, Any]:
+    """The checked plain dict of a checkpoint file (no Python object is ever constructed from it).
+
+    Raises:
+        CheckpointError: naming the file, for a missing, empty, truncated, corrupt, foreign or
+            other-version file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{path}: the checkpoint is empty (0 bytes); expected a file written by tsslam_ref.run")
+    try:
+        values = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for corrupt, truncated or foreign files
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise CheckpointError(f"{path}: not a readable tsslam_ref checkpoint ({reason[:200]})") from None
+    if not isinstance(values, dict) or values.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a tsslam_ref checkpoint (no '{FORMAT}' format tag)")
+    if values.get("version") != VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {values.get('version')!r}; this version of tsslam_ref "
+                              f"reads version {VERSION} (start the run again with --overwrite)")
+    expected = {"config": str, "field": dict, "map_optimizer": dict, "keyframes": dict, "timestamps": torch.Tensor,
+                "tracked_poses": torch.Tensor, "tracking_results": dict, "done": int, "keyframe_of_frame": dict,
+                "relative_to_keyframe": dict, "frame_rays": dict, "timings": dict, "log": list}
+    for key, kind in expected.items():
+        if not isinstance(values.get(key), kind):
+            raise CheckpointError(f"{path}: checkpoint entry '{key}' is missing or not a {kind.__name__}")
+    if not 0 <= values["done"] <= len(values["timestamps"]):
+        raise CheckpointError(f"{path}: checkpoint says {values['done']} frames done of {len(values['timestamps'])}")
+    return values
+
+
+def load(path, device=None):
+    """Read and rebuild the state saved by :func:`save` (see :func:`read` for the checks)."""
+    values = read(path)
+    try:
+        return from_plain(values, device)
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as error:
+        raise CheckpointError(f"{path}: the checkpoint's content does not fit ({error})") from None
+
+
+def config_of(values: Dict[str, Any]) -> Dict[str, Any]:
+    """The saved config (nested dict) of a checkpoint read by :func:`read`."""
+    return json.loads(values["config"])
+
+
+__all__ = ["FORMAT", "VERSION", "CheckpointError", "save", "read", "load", "config_of", "to_plain", "from_plain"]
