@@ -210,7 +210,42 @@ def _parse_size(text: str):
         width, height = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"--size must look like 160x120, got '{text}'") from None
+    if not (8 <= width <= 4096 and 8 <= height <= 4096):
+        raise argparse.ArgumentTypeError(f"--size {text}: width and height must be in [8, 4096] pixels")
     return width, height
+
+
+def _number_in(name: str, low: float, high: float, integer: bool = False, low_open: bool = False):
+    """argparse type: a finite number (an integer if ``integer``) in [low, high] ((low, high] if ``low_open``)."""
+
+    def parse(text: str):
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be {'an integer' if integer else 'a number'}, got '{text}'") from None
+        inside = (low < value if low_open else low <= value) and value <= high
+        if not (np.isfinite(value) and inside):
+            interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+            raise argparse.ArgumentTypeError(f"{name} {text}: must be {'an integer' if integer else 'a finite number'} in {interval}")
+        return value
+
+    return parse
+
+
+def _check_synthesize_out(out: Path, force: bool) -> None:
+    """Refuse an --out that is a link, a file, or a non-empty folder this command did not write."""
+    if out.is_symlink():
+        raise ValueError(f"--out {out} is a symbolic link; expected a new folder name or a folder written by this command")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is a file; expected a folder")
+    if force and out.is_dir() and any(out.iterdir()) and not (out / "scene.json").is_file():
+        raise ValueError(f"--out {out} is a non-empty folder without scene.json; --force replaces only a folder "
+                         f"written by this command, so choose a new folder")
+
+
+def _print_check(sequence: RGBDSequence, n_files: int) -> None:
+    print(f"checked: all {n_files} image files of the {len(sequence)} frames (header, size, mode, PNG checksums); "
+          f"depth_valid_fraction is sampled from 5 frames", file=sys.stderr)
 
 
 def main(argv=None) -> int:
@@ -223,22 +258,28 @@ def main(argv=None) -> int:
     synth = commands.add_parser("synthesize", help="render a synthetic TUM-layout sequence")
     synth.add_argument("--out", required=True)
     synth.add_argument("--trajectory", default=None, help="TUM-format trajectory (default: built-in path)")
-    synth.add_argument("--frames", type=int, default=60)
-    synth.add_argument("--size", type=_parse_size, default=(160, 120))
-    synth.add_argument("--seed", type=int, default=0)
-    synth.add_argument("--fps", type=float, default=30.0)
-    synth.add_argument("--start", type=float, default=0.0,
+    synth.add_argument("--frames", type=_number_in("--frames", 1, 100_000, integer=True), default=60,
+                       help="number of frames, 1 to 100000")
+    synth.add_argument("--size", type=_parse_size, default=(160, 120), help="WxH, each 8 to 4096 pixels")
+    synth.add_argument("--seed", type=_number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
+    synth.add_argument("--fps", type=_number_in("--fps", 0, 1000, low_open=True), default=30.0, help="(0, 1000]")
+    synth.add_argument("--start", type=_number_in("--start", 0, 1e6), default=0.0,
                        help="seconds after the trajectory's first pose at which frame 0 is taken (default 0)")
     synth.add_argument("--clean-depth", action="store_true")
-    synth.add_argument("--mesh-voxel", type=float, default=0.03, help="marching-cubes voxel of gt_mesh.ply (m)")
-    synth.add_argument("--force", action="store_true", help="replace a non-empty --out folder")
+    synth.add_argument("--mesh-voxel", type=_number_in("--mesh-voxel", 0.005, 1.0), default=0.03,
+                       help="marching-cubes voxel of gt_mesh.ply (m), 0.005 to 1")
+    synth.add_argument("--force", action="store_true", help="replace a non-empty --out folder written by this command")
     args = parser.parse_args(argv)
     if args.command == "info":
         try:
-            summary = sequence_info(load_sequence(args.path, require_gt=False))
-        except (ValueError, FileNotFoundError) as error:
+            sequence = load_sequence(args.path, require_gt=False)
+            n_files = sequence.check_files()
+            summary = sequence_info(sequence)
+        except (ValueError, OSError) as error:
             print(f"error: {error}", file=sys.stderr)
             return 2
+        summary["files_checked"] = n_files
+        _print_check(sequence, n_files)
         if args.json:
             print(json.dumps(summary, indent=2))
         else:
@@ -249,6 +290,7 @@ def main(argv=None) -> int:
     from tsslam_ref.datasets.tum_format import read_tum_trajectory
 
     try:
+        _check_synthesize_out(Path(args.out), args.force)
         start_time = None
         if args.start != 0.0:
             if args.trajectory is None:
@@ -261,7 +303,7 @@ def main(argv=None) -> int:
             fps=args.fps, seed=args.seed, clean_depth=args.clean_depth, overwrite=args.force, mesh_voxel=args.mesh_voxel,
             start_time=start_time,
         )
-    except (ValueError, FileNotFoundError, FileExistsError) as error:
+    except (ValueError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     print(out)

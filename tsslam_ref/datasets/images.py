@@ -72,6 +72,43 @@ def image_size(path) -> Tuple[int, int]:
         return image.size
 
 
+DEPTH_MODES = ("I;16", "I;16L", "I;16B")
+"""PIL modes of a single-channel 16-bit image (what a depth PNG must be)."""
+COLOUR_MODES = ("RGB", "RGBA", "L", "I;16", "I;16L", "I;16B")
+"""PIL modes :func:`read_rgb` turns into colour (8- or 16-bit RGB / RGBA / grey)."""
+
+
+def check_image(path, role: str, size: Optional[Tuple[int, int]] = None) -> Tuple[int, int]:
+    """Check an image file without decoding its pixels; returns its (width, height).
+
+    Reads the header (format, mode, size) and, for PNG, walks every chunk and its checksum
+    (PIL's ``verify``), which finds truncated and damaged files.  ``role`` is "depth" (a
+    single-channel 16-bit image is required) or "colour" (8- or 16-bit RGB, RGBA or grey).
+    ``size`` (width, height), when given, must match.
+
+    Raises:
+        FileNotFoundError: naming the file.  ValueError: naming the file and what was expected.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: {role} image not found")
+    expected = "a single-channel 16-bit PNG" if role == "depth" else "an 8- or 16-bit RGB, RGBA or grey image"
+    try:
+        with Image.open(path) as image:
+            mode, found_size, kind = image.mode, image.size, image.format
+            image.verify()
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
+        reason = str(error) or type(error).__name__
+        raise ValueError(f"{path}: not a readable {role} image ({reason}); expected {expected}") from None
+    allowed = DEPTH_MODES if role == "depth" else COLOUR_MODES
+    if mode not in allowed or (role == "depth" and kind != "PNG"):
+        raise ValueError(f"{path}: {role} image is {kind} mode {mode}; expected {expected}")
+    if size is not None and tuple(found_size) != tuple(size):
+        raise ValueError(f"{path}: {role} image is {found_size[0]}x{found_size[1]}; expected {size[0]}x{size[1]} "
+                         f"like the sequence's calibration")
+    return found_size
+
+
 def resize_rgb(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     """(H, W, 3) float32 -> (height, width, 3) float32, bilinear (antialiased), edges onto edges."""
     if rgb.shape[1] == width and rgb.shape[0] == height:

@@ -107,6 +107,30 @@ def _gt_at(timestamps: np.ndarray, gt_times: np.ndarray, gt_poses: np.ndarray, m
     return poses
 
 
+def listed_file(folder: Path, listing: Path, line: int, name: str) -> Path:
+    """``folder / name`` for a file named on line ``line`` of ``listing``, checked to stay inside.
+
+    A list may name files in the dataset folder and its sub-folders only: an absolute path, a
+    path through '..' that leaves the folder, or a symbolic link whose target lies outside the
+    folder is refused (a dataset list should not make the program read, say, a file in /etc).
+    Symbolic links whose targets stay inside the folder are allowed.
+
+    Raises:
+        ValueError: '<listing>:<line>: ...' for a path leaving the folder.
+        FileNotFoundError: '<listing>:<line>: ...' for a missing file.
+    """
+    if Path(name).is_absolute():
+        raise ValueError(f"{listing}:{line}: '{name}' is an absolute path; expected a path relative to the dataset folder {folder}")
+    path = folder / name
+    root = folder.resolve()
+    if not path.resolve().is_relative_to(root):
+        raise ValueError(f"{listing}:{line}: '{name}' leads outside the dataset folder {root} "
+                         f"(to {path.resolve()}); expected a file inside it")
+    if not path.is_file():
+        raise FileNotFoundError(f"{listing}:{line}: listed file '{name}' not found")
+    return path
+
+
 def tum_camera(folder: Path) -> str:
     """'freiburg1' | 'freiburg2' | 'freiburg3' from the folder name (fr3 when none is named)."""
     name = folder.resolve().name.lower()
@@ -135,8 +159,7 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     for i in keep:
         j = depth_index[i]
         for listing, name, line in (("rgb.txt", rgb_names[i], rgb_lines[i]), ("depth.txt", depth_names[j], depth_lines[j])):
-            if not (folder / name).is_file():
-                raise FileNotFoundError(f"{folder / listing}:{line}: listed file '{name}' not found")
+            listed_file(folder, folder / listing, line, name)
         rgb_paths.append(folder / rgb_names[i])
         depth_paths.append(folder / depth_names[j])
     timestamps = rgb_times[keep]

@@ -13,13 +13,12 @@ association rule of ``associate.py``).  Side layer.  Taught in notebooks/00_data
 | T_wc | ``poses`` | (N, 4, 4) float64 | m |
 """
 
-import os
-import tempfile
 from pathlib import Path
 from typing import List, Tuple
 
 import numpy as np
 
+from tsslam_ref.files import atomic_write_text
 from tsslam_ref.geometry import matrix_to_quaternion_xyzw, pose_to_tum, quaternion_xyzw_to_matrix, tum_to_pose
 
 TUM_MAX_TIME_DIFF = 0.02
@@ -31,8 +30,15 @@ def _data_lines(path: Path):
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: file not found")
-    with open(path) as handle:
-        for number, line in enumerate(handle, start=1):
+    with open(path, "rb") as handle:
+        for number, raw in enumerate(handle, start=1):
+            try:
+                line = raw.decode("utf-8")
+            except UnicodeDecodeError:
+                raise ValueError(f"{path}:{number}: not text (bytes that are not UTF-8); expected a text file "
+                                 f"of whitespace-separated values") from None
+            if "\x00" in line:
+                raise ValueError(f"{path}:{number}: not text (a NUL byte); expected a text file of whitespace-separated values")
             stripped = line.strip()
             if stripped and not stripped.startswith("#"):
                 yield number, stripped.replace(",", " ").split()
@@ -45,8 +51,9 @@ def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
         timestamps (N,) float64 s, file names relative to the list's folder, line numbers (1-based).
 
     Raises:
-        ValueError: '<file>:<line>: ...' for a malformed line, an empty list, or a timestamp
-            smaller than the previous one.
+        ValueError: '<file>:<line>: ...' for a malformed line, an empty list, a non-finite
+            timestamp, or a timestamp not larger than the previous one (a repeated stamp would
+            make two frames of one instant).
     """
     stamps, names, numbers = [], [], []
     for number, fields in _data_lines(path):
@@ -56,6 +63,10 @@ def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
             stamp = float(fields[0])
         except ValueError:
             raise ValueError(f"{path}:{number}: timestamp '{fields[0]}' is not a number") from None
+        if not np.isfinite(stamp):
+            raise ValueError(f"{path}:{number}: timestamp '{fields[0]}' is not a finite number")
+        if stamps and stamp == stamps[-1]:
+            raise ValueError(f"{path}:{number}: timestamp {fields[0]} repeats line {numbers[-1]}'s; expected one line per time stamp")
         if stamps and stamp < stamps[-1]:
             raise ValueError(f"{path}:{number}: timestamp {fields[0]} is earlier than the previous line's {stamps[-1]:.6f} (timestamps out of order)")
         stamps.append(stamp)
@@ -75,9 +86,9 @@ def read_tum_trajectory(path) -> Tuple[np.ndarray, np.ndarray]:
     Raises:
         FileNotFoundError: the file does not exist.
         ValueError: '<file>:<line>: ...' for a line without 8 numbers, a zero quaternion, a
-            decreasing timestamp, or a file with no poses.
+            decreasing or repeated timestamp, or a file with no poses.
     """
-    stamps, rows = [], []
+    stamps, rows, numbers = [], [], []
     for number, fields in _data_lines(path):
         if len(fields) != 8:
             raise ValueError(f"{path}:{number}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {len(fields)} fields")
@@ -89,9 +100,12 @@ def read_tum_trajectory(path) -> Tuple[np.ndarray, np.ndarray]:
             raise ValueError(f"{path}:{number}: non-finite value in '{' '.join(fields)}'")
         if np.linalg.norm(values[4:8]) < 1e-12:
             raise ValueError(f"{path}:{number}: zero quaternion")
+        if stamps and values[0] == stamps[-1]:
+            raise ValueError(f"{path}:{number}: timestamp {fields[0]} repeats line {numbers[-1]}'s; expected one pose per time stamp")
         if stamps and values[0] < stamps[-1]:
             raise ValueError(f"{path}:{number}: timestamp {fields[0]} is earlier than the previous line's (timestamps out of order)")
         stamps.append(values[0])
+        numbers.append(number)
         rows.append(values[1:])
     if not stamps:
         raise ValueError(f"{path}: no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
@@ -99,7 +113,7 @@ def read_tum_trajectory(path) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Path:
-    """Write camera-to-world poses as a TUM trajectory, atomically (temporary file + os.replace).
+    """Write camera-to-world poses as a TUM trajectory, atomically (``files.atomic_write_text``).
 
     Stamps are written with ``%.6f`` (microseconds), positions and quaternions with ``%.9f``.
     Rows whose pose holds NaN are skipped (unknown ground truth).
@@ -123,10 +137,7 @@ def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Pa
     for stamp, row in zip(timestamps[known], values):
         lines.append(f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in row))
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(handle, "w") as stream:
-        stream.write("\n".join(lines) + "\n")
-    os.replace(temporary, path)
+    atomic_write_text(path, "\n".join(lines) + "\n")  # a new file; a link at ``path`` is replaced, not followed
     return path
 
 
