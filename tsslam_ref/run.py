@@ -17,51 +17,122 @@ Outputs in ``--out`` (default ``runs/<sequence>-<method>``):
 * ``trajectory_<rate>hz.txt`` with velocities when ``--export-rate`` is given (TS-SLAM only).
 
 A run refuses to write into an existing non-empty output folder unless ``--overwrite`` (or
-``--resume``) is given.  Partial outputs (trajectory so far) are written atomically while the run
-goes, so an interrupted run leaves readable files.
+``--resume``) is given.  Every output is written atomically as a new file with the user's normal
+mode (``files.py``); partial outputs (trajectory so far, checkpoint) are written while the run goes,
+so an interrupted run leaves readable files.
+
+The command works in two steps: :func:`prepare` checks every argument, the config, the device,
+the data (every frame's image headers) and the output folder, and loads a checkpoint for
+``--resume``, writing nothing; :func:`execute` then runs and writes.  Exit status: 0 done, 2 bad
+input (one line naming the file, key or value; nothing written), 3 tracking failure, 130
+interrupted (Ctrl-C; ``--resume`` continues from the last checkpoint).  docs/cli.md has the table.
 
 Layer 4 (system).
 """
 
 import argparse
 import json
-import os
+import math
+import re
 import sys
-import tempfile
-import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional
+from typing import Any, Dict, List, Optional
 
 import numpy as np
 import torch
 
+from . import checkpoint as checkpoint_module
 from . import config as config_module
 from . import data as data_module
 from . import eval as eval_module
+from .files import atomic_path, atomic_write_text, remove_stray_temporaries
+
+EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
+
+OUTPUT_NAMES = ("trajectory.txt", "metrics.json", "mesh.ply", "config.json", "trajectory.png", "errors.png",
+                "checkpoint.pt")
+"""Files a run writes into its folder (plus ``trajectory_<rate>hz.txt``); ``--overwrite`` removes only these."""
+_EXPORT_NAME = re.compile(r"trajectory_[0-9.e+-]+hz\.txt")
+MAX_EXPORT_RATE = 1000.0
+"""Largest --export-rate (Hz): far above any camera's frame rate, and it bounds the file size."""
+RESULT_NEUTRAL = ("--checkpoint-every", "--export-rate", "--no-mesh", "--quiet")
+"""Options that may differ on ``--resume``: they change what is written, never the trajectory."""
+
+
+class BadInput(ValueError):
+    """Bad command-line input; the message names the option, key, file or value."""
+
+
+def is_output_name(name: str) -> bool:
+    """Whether ``name`` is a file that a run of ours writes (see :data:`OUTPUT_NAMES`)."""
+    return name in OUTPUT_NAMES or _EXPORT_NAME.fullmatch(name) is not None
 
 
 def parse_frames(text: Optional[str]):
-    """'START:STOP[:STEP]' -> (start, stop or None, step)."""
+    """'START:STOP[:STEP]' -> (start, stop or None, step); 0 <= START < STOP, STEP >= 1."""
     if text is None:
         return None
     parts = text.split(":")
     if len(parts) not in (2, 3):
-        raise ValueError(f"--frames must be START:STOP[:STEP], got '{text}'")
+        raise BadInput(f"--frames must be START:STOP[:STEP], got '{text}'")
     try:
         start = int(parts[0]) if parts[0] else 0
         stop = int(parts[1]) if parts[1] else None
         step = int(parts[2]) if len(parts) == 3 and parts[2] else 1
-    except ValueError as error:
-        raise ValueError(f"--frames must be integers START:STOP[:STEP], got '{text}'") from error
-    if step <= 0 or start < 0 or (stop is not None and stop <= start):
-        raise ValueError(f"--frames '{text}' selects no frames (need 0 <= START < STOP and STEP > 0)")
+    except ValueError:
+        raise BadInput(f"--frames must be integers START:STOP[:STEP], got '{text}'") from None
+    if start < 0 or (stop is not None and stop < 0):
+        raise BadInput(f"--frames {text}: START and STOP count frames from the first one and must be >= 0 "
+                       f"(negative positions are not supported)")
+    if step <= 0 or (stop is not None and stop <= start):
+        raise BadInput(f"--frames '{text}' selects no frames (need 0 <= START < STOP and STEP > 0)")
     return start, stop, step
 
 
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--seed must be an integer in [0, 2**63 - 1], got '{text}'") from None
+    if not 0 <= value <= 2**63 - 1:
+        raise argparse.ArgumentTypeError(f"--seed {text}: must be an integer in [0, 2**63 - 1]")
+    return value
+
+
+def _export_rate(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--export-rate must be a number of samples per second, got '{text}'") from None
+    if not (math.isfinite(value) and 0 < value <= MAX_EXPORT_RATE):
+        raise argparse.ArgumentTypeError(f"--export-rate {text}: must be a finite rate in (0, {MAX_EXPORT_RATE:g}] Hz "
+                                         f"(leave the option out for no export)")
+    return value
+
+
+def _checkpoint_every(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--checkpoint-every must be an integer number of frames, got '{text}'") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"--checkpoint-every {text}: must be >= 1 frames, or 0 for no checkpoint")
+    return value
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (the option and what was expected), exit status 2."""
+
+    def error(self, message: str):
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m tsslam_ref.run",
         description="Run TS-SLAM (or the Co-SLAM baseline) on an RGB-D sequence.",
+        epilog="Exit status: 0 done, 2 bad input (nothing written), 3 tracking failure, 130 interrupted.",
     )
     parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM fr3/teddy slice)")
     parser.add_argument("--dataset", default=None, choices=["auto", "tum", "scannet", "neural_rgbd", "replica", "folder", "synthetic"],
@@ -69,21 +140,36 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--config", default=None, help="preset name (%s) or a config.json; default tum-cpu" % ", ".join(config_module.PRESETS))
     parser.add_argument("--method", default=None, choices=["tsslam", "coslam"], help="trajectory representation (default tsslam)")
     parser.add_argument("--out", default=None, help="output folder (default runs/<sequence>-<method>)")
-    parser.add_argument("--seed", type=int, default=None, help="random seed (default from the config: 0)")
+    parser.add_argument("--seed", type=_seed, default=None, help="random seed, an integer in [0, 2**63 - 1] (default from the config: 0)")
     parser.add_argument("--device", default=None, choices=["cpu", "cuda", "auto"], help="compute device (default auto)")
-    parser.add_argument("--frames", default=None, help="START:STOP[:STEP] frame selection")
+    parser.add_argument("--frames", default=None, help="START:STOP[:STEP] frame selection, 0 <= START < STOP")
     parser.add_argument("--parallel", action="store_true",
                         help="track and map in two threads (not deterministic; default: the sequential loop)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="config override, e.g. --set tracking.iters=20 (repeatable)")
-    parser.add_argument("--export-rate", type=float, default=None, metavar="HZ",
-                        help="also export the continuous trajectory at this rate with velocities (tsslam)")
-    parser.add_argument("--overwrite", action="store_true", help="allow writing into an existing non-empty output folder")
-    parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    parser.add_argument("--checkpoint-every", type=int, default=25, help="frames between checkpoints (0 = never)")
+    parser.add_argument("--export-rate", type=_export_rate, default=None, metavar="HZ",
+                        help=f"also export the continuous trajectory at this rate, (0, {MAX_EXPORT_RATE:g}] Hz, with velocities (tsslam)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the files of an earlier run in a non-empty output folder (other files are kept)")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt (same command otherwise)")
+    parser.add_argument("--checkpoint-every", type=_checkpoint_every, default=25,
+                        help="frames between checkpoints, >= 1, or 0 = never (default 25)")
     parser.add_argument("--no-mesh", action="store_true", help="skip the final mesh")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
+
+
+def _join_dash_values(argv: List[str]) -> List[str]:
+    """'--frames -3:8' -> '--frames=-3:8' so that argparse does not take the value for an option."""
+    joined, i = [], 0
+    while i < len(argv):
+        if argv[i] == "--frames" and i + 1 < len(argv) and argv[i + 1].startswith("-") and argv[i + 1][1:2].isdigit():
+            joined.append(f"--frames={argv[i + 1]}")
+            i += 2
+            continue
+        joined.append(argv[i])
+        i += 1
+    return joined
 
 
 def resolve_config(args) -> config_module.Config:
@@ -107,46 +193,176 @@ def resolve_config(args) -> config_module.Config:
     return config_module.apply_overrides(cfg, args.overrides)
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
-    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(handle, "w") as stream:
-        stream.write(text)
-    os.replace(temporary, path)
-
-
-def prepare_output(out: Path, overwrite: bool, resume: bool) -> None:
-    """Create ``out``; refuse a non-empty existing folder unless overwrite/resume."""
+def _check_output_folder(out: Path, overwrite: bool, resume: bool) -> None:
+    """Refuse an unusable ``--out`` before anything is written (see :func:`prepare`)."""
+    if out.is_symlink() and not out.exists():
+        raise BadInput(f"output folder {out} is a symbolic link to a missing target ({out.readlink()}); "
+                       f"expected a folder or a new name")
     if out.exists() and not out.is_dir():
-        raise ValueError(f"output path {out} exists and is not a folder")
-    if out.exists() and any(out.iterdir()) and not (overwrite or resume):
-        raise FileExistsError(f"output folder {out} is not empty; pass --overwrite to replace its files or --resume to continue")
-    out.mkdir(parents=True, exist_ok=True)
+        raise BadInput(f"output path {out} exists and is not a folder; expected a folder or a new name")
+    if not out.exists():
+        if resume:
+            raise BadInput(f"--resume given but the output folder {out} does not exist")
+        parent = out.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise BadInput(f"cannot create the output folder {out}: {parent} is not a folder")
+        return
+    names = [entry.name for entry in out.iterdir()]
+    if names and not (overwrite or resume):
+        raise BadInput(f"output folder {out} is not empty; pass --overwrite to replace the files of an earlier run "
+                       f"or --resume to continue it")
+    for name in names:
+        entry = out / name
+        if is_output_name(name) and entry.is_dir() and not entry.is_symlink():
+            raise BadInput(f"{entry} is a folder; a run writes a file of that name, so move it away first")
+
+
+def _flatten(values: Dict[str, Any], prefix: str = "") -> Dict[str, Any]:
+    flat = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def _data_folder(path: str) -> str:
+    return str(Path(path).resolve()) if path else str(data_module.default_sequence_path())
+
+
+def resume_differences(saved: Dict[str, Any], cfg: config_module.Config) -> List[str]:
+    """'key: saved -> now' for every config value that differs from the checkpoint's config."""
+    old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))
+    changes = []
+    for key in sorted(set(old) | set(new)):
+        before, after = old.get(key, "<absent>"), new.get(key, "<absent>")
+        if key == "data.path" and isinstance(before, str) and isinstance(after, str):
+            same = _data_folder(before) == _data_folder(after)
+        else:
+            same = json.dumps(before) == json.dumps(after)
+        if not same:
+            changes.append(f"{key} was {json.dumps(before)} in the checkpoint, this command gives {json.dumps(after)}")
+    return changes
+
+
+class CheckedSequence:
+    """A sequence whose frames must hold some valid depth (an all-zero depth image is an error).
+
+    Everything else is the wrapped :class:`tsslam_ref.data.RGBDSequence`'s."""
+
+    def __init__(self, sequence):
+        self._sequence = sequence
+
+    def __len__(self) -> int:
+        return len(self._sequence)
+
+    def __getattr__(self, name):
+        return getattr(self._sequence, name)
+
+    def __getitem__(self, i):
+        frame = self._sequence[i]
+        if not np.any(frame.depth > 0):
+            raise BadInput(f"{self._sequence.depth_paths[frame.index]}: depth is 0 (no measurement) at every pixel; "
+                           f"expected depth in every frame")
+        return frame
+
+
+@dataclass
+class Plan:
+    """What :func:`prepare` checked and loaded; :func:`execute` runs it."""
+
+    args: argparse.Namespace
+    cfg: config_module.Config
+    sequence: Any
+    out: Path
+    device: torch.device
+    state: Any = None  # the resumed loop state, or None
+    finished: bool = False  # --resume of a run that already finished
+
+
+def _finished_run(out: Path) -> bool:
+    try:
+        metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(metrics, dict) and "frames" in metrics and not metrics.get("failed", False)
+
+
+def prepare(args: argparse.Namespace) -> Plan:
+    """Check everything and load what the run needs; writes nothing.
+
+    Raises:
+        ValueError (``BadInput``, ``CheckpointError``, the config's and the loaders' errors) or
+        FileNotFoundError, naming the option, key, file or value.
+    """
+    if args.resume and args.overwrite:
+        raise BadInput("--resume and --overwrite exclude each other: --resume continues the run in --out, "
+                       "--overwrite starts it again")
+    cfg = resolve_config(args)
+    if args.export_rate is not None and cfg.method != "tsslam":
+        raise BadInput(f"--export-rate needs --method tsslam (a continuous trajectory); the method is {cfg.method}")
+    from . import slam
+
+    try:
+        device = slam.resolve_device(cfg.device)
+    except RuntimeError as error:  # torch's own message for a device it does not know
+        raise BadInput(f"device {cfg.device!r} cannot be used ({error})") from None
+    sequence = data_module.load_from_config(cfg.data)
+    if len(sequence) < 2:
+        selection = f"--frames {args.frames} selects" if args.frames else f"{sequence.path} has"
+        raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
+    sequence.check_files()
+    sequence = CheckedSequence(sequence)
+    sequence[0]  # decode frame 0 fully: the map is placed from its depth
+    out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
+    _check_output_folder(out, args.overwrite, args.resume)
+    plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)
+    if args.resume:
+        path = out / "checkpoint.pt"
+        if not path.is_file():
+            raise BadInput(f"--resume given but {path} does not exist (no checkpoint was written: the run stopped "
+                           f"before its first checkpoint, or ran with --checkpoint-every 0)")
+        values = checkpoint_module.read(path)
+        changes = resume_differences(checkpoint_module.config_of(values), cfg)
+        if changes:
+            raise BadInput(f"--resume refused, {path} was made with other settings: {changes[0]}"
+                           + (f" (and {len(changes) - 1} more)" if len(changes) > 1 else "")
+                           + f"; only {', '.join(RESULT_NEUTRAL)} may change on --resume")
+        saved_times = values["timestamps"].numpy()
+        if saved_times.shape != sequence.timestamps.shape or not np.array_equal(saved_times, sequence.timestamps):
+            raise BadInput(f"--resume refused: the frames of {sequence.path} differ from those in {path} "
+                           f"({len(saved_times)} frames saved, {len(sequence)} now)")
+        plan.finished = _finished_run(out)
+        if not plan.finished:
+            try:
+                plan.state = checkpoint_module.from_plain(values, device)
+            except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as error:
+                raise checkpoint_module.CheckpointError(f"{path}: the checkpoint's content does not fit ({error})") from None
+    return plan
+
+
+def remove_previous_outputs(out: Path) -> List[Path]:
+    """Remove the files an earlier run of ours wrote in ``out`` (:func:`is_output_name`), links
+    included (the link, never its target); every other file stays.  Returns what was removed."""
+    removed = []
+    for entry in sorted(out.iterdir()):
+        if is_output_name(entry.name) and (entry.is_symlink() or entry.is_file()):
+            entry.unlink()
+            removed.append(entry)
+    return removed
 
 
 def save_checkpoint(state, path: Path) -> None:
-    """The whole loop state (map, optimizer, poses, keyframes, RNG) via torch.save, atomically."""
-    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    os.close(handle)
-    generator_state = state.generator.get_state() if state.generator is not None else None
-    generator = state.generator
-    state.generator = None
-    try:
-        torch.save({"state": state, "generator_state": generator_state}, temporary)
-    finally:
-        state.generator = generator
-    os.replace(temporary, path)
+    """The whole loop state as plain data (``checkpoint.py``), atomically."""
+    checkpoint_module.save(state, path)
 
 
-def load_checkpoint(path: Path):
-    payload = torch.load(path, weights_only=False)
-    state = payload["state"]
-    if not hasattr(state, "tracking_results"):  # a checkpoint written before the field existed
-        state.tracking_results = {}
-    state.generator = torch.Generator(device="cpu")
-    if payload["generator_state"] is not None:
-        state.generator.set_state(payload["generator_state"])
-    return state
+def load_checkpoint(path: Path, device=None):
+    """The loop state saved by :func:`save_checkpoint` (no code runs while it is read)."""
+    return checkpoint_module.load(path, device)
 
 
 def write_partial_trajectory(state, out: Path) -> None:
@@ -199,7 +415,8 @@ def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, m
     axis.set_xlabel("x [m]"), axis.set_ylabel("y [m]"), axis.set_zlabel("z [m]")
     axis.set_title(f"camera-to-world positions, ATE {metrics.get('ate_rmse_m', float('nan')) * 100:.2f} cm")
     axis.legend()
-    figure.savefig(out / "trajectory.png", dpi=80)
+    with atomic_path(out / "trajectory.png") as temporary:
+        figure.savefig(temporary, dpi=80, format="png")
     plt.close(figure)
     if sequence.gt_poses is not None:
         gt = np.asarray(sequence.gt_poses)
@@ -210,38 +427,31 @@ def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, m
             axis.plot(timestamps[known] - timestamps[0], np.asarray(result["errors_m"]) * 100)
             axis.set_xlabel("time since first frame [s]"), axis.set_ylabel("position error after alignment [cm]")
             figure.tight_layout()
-            figure.savefig(out / "errors.png", dpi=80)
+            with atomic_path(out / "errors.png") as temporary:
+                figure.savefig(temporary, dpi=80, format="png")
             plt.close(figure)
 
 
-def main(argv: Optional[List[str]] = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        cfg = resolve_config(args)
-        sequence = data_module.load_from_config(cfg.data)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
-    try:
-        prepare_output(out, args.overwrite, args.resume)
-    except (ValueError, FileExistsError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+def execute(plan: Plan) -> int:
+    """Run the prepared command and write its outputs; returns the exit status."""
+    args, cfg, sequence, out = plan.args, plan.cfg, plan.sequence, plan.out
+    if plan.finished:
+        print(f"{out} holds a finished run (metrics.json); nothing to resume. Use --overwrite to run it again.")
+        return EXIT_OK
     from . import slam
-    from .mesh import extract_mesh, save_mesh
+    from .mesh import extract_mesh
 
-    config_module.save(cfg, str(out / "config.json"))
-    state = None
+    out.mkdir(parents=True, exist_ok=True)
+    if args.overwrite:
+        remove_previous_outputs(out)
+    remove_stray_temporaries(out, is_output_name)
+    if not args.resume:
+        config_module.save(cfg, str(out / "config.json"))
+    state = plan.state
     checkpoint_path = out / "checkpoint.pt"
-    if args.resume:
-        if not checkpoint_path.exists():
-            print(f"error: --resume given but {checkpoint_path} does not exist", file=sys.stderr)
-            return 2
-        state = load_checkpoint(checkpoint_path)
+    if state is not None:
         print(f"resuming at frame {state.done} of {len(sequence)}")
-
-    device = slam.resolve_device(cfg.device)
+    device = plan.device
     slam.tune_cpu_allocator()
     progress = None
     if not args.quiet:
@@ -249,23 +459,41 @@ def main(argv: Optional[List[str]] = None) -> int:
 
         progress = tqdm(total=len(sequence), desc=f"{cfg.method} on {sequence.name}", unit="frame",
                         initial=state.done if state else 0)
+    reached = {"done": state.done if state else 0, "checkpoint": state.done if state else 0}
 
     def on_frame(current) -> None:
+        reached["done"] = current.done
         if progress is not None:
             progress.update(1)
         if args.checkpoint_every and current.done % args.checkpoint_every == 0:
             write_partial_trajectory(current, out)
             save_checkpoint(current, checkpoint_path)
+            reached["checkpoint"] = current.done
 
     print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}), preset {cfg.name}, device {device}, output {out}")
     try:
         result = slam.run_slam(sequence, cfg, device=device, state=state, on_frame=on_frame)
+    except KeyboardInterrupt:
+        if progress is not None:
+            progress.close()
+        if args.checkpoint_every and checkpoint_path.is_file():
+            where = (f"the checkpoint in {checkpoint_path} holds {reached['checkpoint']} frames; "
+                     f"run the same command with --resume to continue")
+        else:
+            where = "no checkpoint was written; run the same command with --overwrite to start again"
+        print(f"interrupted after frame {reached['done']} of {len(sequence)}; {where}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except slam.TrackingFailure as failure:
         if progress is not None:
             progress.close()
         print(f"error: the run failed: {failure}", file=sys.stderr)
         atomic_write_text(out / "metrics.json", json.dumps({"failed": True, "reason": str(failure)}, indent=2))
-        return 3
+        return EXIT_TRACKING_FAILURE
+    except (ValueError, OSError) as error:  # a frame that cannot be read (checked cheaply before the run)
+        if progress is not None:
+            progress.close()
+        print(f"error: {error}; the outputs so far are in {out}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     if progress is not None:
         progress.close()
     data_module.write_tum_trajectory(out / "trajectory.txt", result.timestamps, result.poses, overwrite=True)
@@ -274,28 +502,45 @@ def main(argv: Optional[List[str]] = None) -> int:
     metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
     metrics["runtime"] = result.state.timings.table()
     if not args.no_mesh:
+        import trimesh
+
         mesh = extract_mesh(result.state.field, None, cfg.mesh.voxel_final, sdf_cutoff=cfg.mesh.sdf_cutoff)
-        save_mesh(mesh, out / "mesh.ply", overwrite=True)
+        with atomic_path(out / "mesh.ply") as temporary:
+            temporary.write_bytes(trimesh.exchange.ply.export_ply(mesh))
         gt_mesh_path = Path(sequence.path) / "gt_mesh.ply"
         if gt_mesh_path.exists() and len(mesh.faces) > 0:
-            import trimesh
-
             gt_mesh = trimesh.load(gt_mesh_path, force="mesh")
             metrics.update(reconstruction_metrics(mesh, gt_mesh, sequence, cfg.seed))
-    if args.export_rate:
-        if cfg.method != "tsslam":
-            print("warning: --export-rate needs --method tsslam (a continuous trajectory); skipped", file=sys.stderr)
-        else:
-            from .slam import export_continuous
-
-            export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
+    if args.export_rate is not None:
+        with atomic_path(out / f"trajectory_{args.export_rate:g}hz.txt") as temporary:
+            slam.export_continuous(result.state, args.export_rate, temporary)
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
     if checkpoint_path.exists() and not args.checkpoint_every:
         checkpoint_path.unlink()
     summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
     print(f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s; {summary}; outputs in {out}")
-    return 0
+    return EXIT_OK
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Command-line entry: :func:`prepare` (checks, no writes), then :func:`execute`."""
+    argv = _join_dash_values(list(sys.argv[1:] if argv is None else argv))
+    args = build_parser().parse_args(argv)
+    try:
+        plan = prepare(args)
+    except (ValueError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted while checking the input; nothing was written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    try:
+        return execute(plan)
+    except KeyboardInterrupt:
+        print(f"interrupted while writing the outputs in {plan.out}; run the same command with --resume "
+              f"(or --overwrite) to finish", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def _jsonable(value):
