@@ -29,6 +29,7 @@ from typing import Optional
 
 import numpy as np
 
+from tsslam_ref.cli_args import OneLineParser, number_in
 from tsslam_ref.datasets.intrinsics import Intrinsics, back_project, pixel_rays
 from tsslam_ref.datasets.layouts import (
     DEPTH_SCALES,
@@ -215,23 +216,6 @@ def _parse_size(text: str):
     return width, height
 
 
-def _number_in(name: str, low: float, high: float, integer: bool = False, low_open: bool = False):
-    """argparse type: a finite number (an integer if ``integer``) in [low, high] ((low, high] if ``low_open``)."""
-
-    def parse(text: str):
-        try:
-            value = int(text) if integer else float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be {'an integer' if integer else 'a number'}, got '{text}'") from None
-        inside = (low < value if low_open else low <= value) and value <= high
-        if not (np.isfinite(value) and inside):
-            interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
-            raise argparse.ArgumentTypeError(f"{name} {text}: must be {'an integer' if integer else 'a finite number'} in {interval}")
-        return value
-
-    return parse
-
-
 def _check_synthesize_out(out: Path, force: bool) -> None:
     """Refuse an --out that is a link, a file, or a non-empty folder this command did not write."""
     if out.is_symlink():
@@ -250,23 +234,24 @@ def _print_check(sequence: RGBDSequence, n_files: int) -> None:
 
 def main(argv=None) -> int:
     """Command-line entry (see the module docstring).  Returns the exit status."""
-    parser = argparse.ArgumentParser(prog="python -m tsslam_ref.data", description="RGB-D dataset tools")
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser = OneLineParser(prog="python -m tsslam_ref.data", description="RGB-D dataset tools",
+                           epilog="Exit status: 0 done, 2 bad input (one line naming the file and what was expected).")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     info = commands.add_parser("info", help="summarise a dataset folder")
     info.add_argument("path")
     info.add_argument("--json", action="store_true", help="print JSON")
     synth = commands.add_parser("synthesize", help="render a synthetic TUM-layout sequence")
     synth.add_argument("--out", required=True)
     synth.add_argument("--trajectory", default=None, help="TUM-format trajectory (default: built-in path)")
-    synth.add_argument("--frames", type=_number_in("--frames", 1, 100_000, integer=True), default=60,
+    synth.add_argument("--frames", type=number_in("--frames", 1, 100_000, integer=True), default=60,
                        help="number of frames, 1 to 100000")
     synth.add_argument("--size", type=_parse_size, default=(160, 120), help="WxH, each 8 to 4096 pixels")
-    synth.add_argument("--seed", type=_number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
-    synth.add_argument("--fps", type=_number_in("--fps", 0, 1000, low_open=True), default=30.0, help="(0, 1000]")
-    synth.add_argument("--start", type=_number_in("--start", 0, 1e6), default=0.0,
+    synth.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
+    synth.add_argument("--fps", type=number_in("--fps", 0, 1000, low_open=True), default=30.0, help="(0, 1000]")
+    synth.add_argument("--start", type=number_in("--start", 0, 1e6), default=0.0,
                        help="seconds after the trajectory's first pose at which frame 0 is taken (default 0)")
     synth.add_argument("--clean-depth", action="store_true")
-    synth.add_argument("--mesh-voxel", type=_number_in("--mesh-voxel", 0.005, 1.0), default=0.03,
+    synth.add_argument("--mesh-voxel", type=number_in("--mesh-voxel", 0.005, 1.0), default=0.03,
                        help="marching-cubes voxel of gt_mesh.ply (m), 0.005 to 1")
     synth.add_argument("--force", action="store_true", help="replace a non-empty --out folder written by this command")
     args = parser.parse_args(argv)

@@ -26,7 +26,6 @@ are float64 seconds.  Every returned key carries its unit (``_m``, ``_deg``, ``_
 or a ratio in [0, 1].
 """
 
-import argparse
 import json
 import os
 import sys
@@ -608,21 +607,28 @@ def _print_result(result: Dict[str, object], keys: Sequence[str], as_json: bool)
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """``python -m tsslam_ref.eval trajectory GT EST`` or ``... mesh REC GT``; bad input -> exit 2."""
-    parser = argparse.ArgumentParser(prog="python -m tsslam_ref.eval", description=__doc__.split("\n")[0])
-    commands = parser.add_subparsers(dest="command", required=True)
+    from tsslam_ref.cli_args import OneLineParser, number_in
+
+    parser = OneLineParser(prog="python -m tsslam_ref.eval", description=__doc__.split("\n")[0],
+                           epilog="Exit status: 0 done, 2 bad input (one line naming the file and what was expected).")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     trajectory = commands.add_parser("trajectory", help="ATE/RPE of EST against GT (TUM format files)")
     trajectory.add_argument("gt", help="ground truth, 'timestamp tx ty tz qx qy qz qw' per line")
-    trajectory.add_argument("est", help="estimate, same format, camera-to-world")
-    trajectory.add_argument("--max-diff", type=float, default=DEFAULT_MAX_DIFF_S, help="association tolerance (s)")
+    trajectory.add_argument("est", help="estimate, same format, camera-to-world; one line per time stamp")
+    trajectory.add_argument("--max-diff", type=number_in("--max-diff", 0, 10, low_open=True), default=DEFAULT_MAX_DIFF_S,
+                            help="association tolerance (s), in (0, 10]")
     trajectory.add_argument("--scale", action="store_true", help="Sim(3) alignment (estimate scale)")
-    trajectory.add_argument("--delta", type=int, default=1, help="RPE interval in frames")
+    trajectory.add_argument("--delta", type=number_in("--delta", 1, 10**9, integer=True), default=1,
+                            help="RPE interval in frames, >= 1")
     trajectory.add_argument("--json", action="store_true", help="print one JSON object")
     mesh = commands.add_parser("mesh", help="accuracy/completion of REC against GT meshes")
     mesh.add_argument("rec")
     mesh.add_argument("gt")
-    mesh.add_argument("--threshold", type=float, default=0.05, help="completion-ratio threshold (m)")
-    mesh.add_argument("--points", type=int, default=200_000, help="surface samples per mesh")
-    mesh.add_argument("--seed", type=int, default=0)
+    mesh.add_argument("--threshold", type=number_in("--threshold", 0, 100, low_open=True), default=0.05,
+                      help="completion-ratio threshold (m), in (0, 100]")
+    mesh.add_argument("--points", type=number_in("--points", 1, 10**8, integer=True), default=200_000,
+                      help="surface samples per mesh, 1 to 1e8")
+    mesh.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
     mesh.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
     try:

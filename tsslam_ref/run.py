@@ -46,6 +46,7 @@ from . import checkpoint as checkpoint_module
 from . import config as config_module
 from . import data as data_module
 from . import eval as eval_module
+from .cli_args import OneLineParser
 from .files import atomic_path, atomic_write_text, remove_stray_temporaries
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
@@ -119,13 +120,6 @@ def _checkpoint_every(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"--checkpoint-every {text}: must be >= 1 frames, or 0 for no checkpoint")
     return value
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line (the option and what was expected), exit status 2."""
-
-    def error(self, message: str):
-        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:

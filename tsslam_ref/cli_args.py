@@ -1,0 +1,37 @@
+"""Pieces the command lines share: one-line usage errors and checked numeric options.
+
+Every command line of the package reports bad input as one line naming the option and what was
+expected, with exit status 2 (docs/cli.md).  Side layer: standard library only.
+"""
+
+import argparse
+import math
+
+EXIT_BAD_INPUT = 2
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (the option and what was expected), exit status 2."""
+
+    def error(self, message: str):
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def number_in(name: str, low: float, high: float, integer: bool = False, low_open: bool = False):
+    """argparse type: a finite number (an integer if ``integer``) in [low, high], or (low, high]
+    when ``low_open``; anything else is refused with a message naming ``name`` and the range."""
+
+    def parse(text: str):
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{name} must be {'an integer' if integer else 'a number'}, got '{text}'") from None
+        inside = (low < value if low_open else low <= value) and value <= high
+        if not (math.isfinite(value) and inside):
+            interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+            raise argparse.ArgumentTypeError(
+                f"{name} {text}: must be {'an integer' if integer else 'a finite number'} in {interval}")
+        return value
+
+    return parse
