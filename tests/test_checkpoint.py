@@ -1,0 +1,121 @@
+"""checkpoint.py: plain data only (a planted pickle never runs), exact round trip, clear refusals."""
+
+import os
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from tsslam_ref import checkpoint, config, data, slam, synthetic
+
+
+class Payload:
+    """Unpickling this calls os.system, which creates the marker file."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch '{self.marker}'",))
+
+
+def cheap_config(method: str) -> config.Config:
+    cfg = config.tiny()
+    cfg.method = method
+    cfg.spline.dt = 0.1
+    cfg.local_ba.window = 3
+    cfg.tracking.ignore_edge = 2
+    cfg.tracking.iters = 2
+    cfg.tracking.n_rays = 32
+    cfg.mapping.first_iters = 3
+    cfg.mapping.iters = 1
+    cfg.mapping.n_rays = cfg.mapping.first_n_rays = 64
+    cfg.render.n_samples = 8
+    cfg.render.n_range_d = 2
+    return config.validate(cfg)
+
+
+@pytest.fixture(scope="module")
+def state(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("synthetic") / "room"
+    synthetic.synthesize(folder, n_frames=6, width=48, height=36, fps=30.0, seed=0, clean_depth=True, mesh_voxel=0.2)
+    sequence = data.load_sequence(folder)
+    kept = {}
+
+    def keep(current):
+        if current.done == 5:  # after a spline interval: spline, frame rays, keyframes all filled
+            kept["state"] = checkpoint.from_plain(checkpoint.to_plain(current))
+
+    slam.run_slam(sequence, cheap_config("tsslam"), device=torch.device("cpu"), on_frame=keep)
+    return kept["state"]
+
+
+def _flat(value, prefix=""):
+    """Every leaf of a plain checkpoint dict, keyed by its path."""
+    if isinstance(value, dict):
+        out = {}
+        for key, item in value.items():
+            out.update(_flat(item, f"{prefix}/{key}"))
+        return out
+    if isinstance(value, (list, tuple)):
+        out = {}
+        for index, item in enumerate(value):
+            out.update(_flat(item, f"{prefix}/{index}"))
+        return out
+    return {prefix: value}
+
+
+def test_a_saved_state_reads_back_identically(state, tmp_path):
+    path = tmp_path / "checkpoint.pt"
+    checkpoint.save(state, path)
+    assert state.spline is not None and state.spline.n_ctrl >= 4 and len(state.keyframes) >= 1 and state.frame_rays
+    before, after = _flat(checkpoint.to_plain(state)), _flat(checkpoint.to_plain(checkpoint.load(path)))
+    assert before.keys() == after.keys()
+    for key in before:
+        if isinstance(before[key], torch.Tensor):
+            assert before[key].dtype == after[key].dtype and torch.equal(before[key], after[key]), key
+        else:
+            assert before[key] == after[key], key
+    assert torch.equal(checkpoint.load(path).generator.get_state(), state.generator.get_state())
+
+
+@pytest.mark.parametrize("inside_torch_file", [False, True])
+def test_a_planted_pickle_never_runs(tmp_path, inside_torch_file):
+    marker = tmp_path / "marker"
+    path = tmp_path / "checkpoint.pt"
+    if inside_torch_file:
+        torch.save({"format": checkpoint.FORMAT, "version": checkpoint.VERSION, "config": Payload(marker)}, path)
+    else:
+        path.write_bytes(pickle.dumps(Payload(marker), protocol=2))
+    with pytest.raises(checkpoint.CheckpointError, match="checkpoint.pt: not a readable tsslam_ref checkpoint"):
+        checkpoint.load(path)
+    assert not marker.exists()
+
+
+def test_damaged_and_foreign_files_are_refused_naming_the_file(state, tmp_path):
+    good = tmp_path / "good.pt"
+    checkpoint.save(state, good)
+    content = good.read_bytes()
+    cases = {
+        "empty.pt": (b"", "the checkpoint is empty"),
+        "truncated.pt": (content[: len(content) // 2], "not a readable tsslam_ref checkpoint"),
+        "random.pt": (np.random.default_rng(0).bytes(4096), "not a readable tsslam_ref checkpoint"),
+    }
+    for name, (payload, message) in cases.items():
+        (tmp_path / name).write_bytes(payload)
+        with pytest.raises(checkpoint.CheckpointError, match=f"{name}: {message}"):
+            checkpoint.load(tmp_path / name)
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
+    with pytest.raises(checkpoint.CheckpointError, match="foreign.pt: not a tsslam_ref checkpoint"):
+        checkpoint.load(tmp_path / "foreign.pt")
+    plain = checkpoint.to_plain(state)
+    plain["version"] = checkpoint.VERSION + 1
+    torch.save(plain, tmp_path / "newer.pt")
+    with pytest.raises(checkpoint.CheckpointError, match=f"newer.pt: checkpoint version {checkpoint.VERSION + 1}"):
+        checkpoint.load(tmp_path / "newer.pt")
+    plain = checkpoint.to_plain(state)
+    del plain["tracked_poses"]
+    torch.save(plain, tmp_path / "partial.pt")
+    with pytest.raises(checkpoint.CheckpointError, match="partial.pt: checkpoint entry 'tracked_poses' is missing"):
+        checkpoint.load(tmp_path / "partial.pt")

@@ -1,0 +1,76 @@
+"""files.py: atomic writes with the user's normal mode, links replaced (never written through),
+cleanup of our own stray temporary files only."""
+
+import os
+import stat
+
+import pytest
+
+from tsslam_ref import files
+
+
+@pytest.fixture
+def umask_027():
+    old = os.umask(0o027)
+    yield 0o640  # what open(path, "w") gives under this umask
+    os.umask(old)
+
+
+def test_a_new_file_gets_the_mode_open_would_give(tmp_path, umask_027):
+    files.atomic_write_text(tmp_path / "a.txt", "hello\n")
+    with open(tmp_path / "b.txt", "w") as stream:  # the oracle: what a plain open() makes
+        stream.write("x")
+    assert (tmp_path / "a.txt").read_text() == "hello\n"
+    assert stat.S_IMODE(os.stat(tmp_path / "a.txt").st_mode) == stat.S_IMODE(os.stat(tmp_path / "b.txt").st_mode) == umask_027
+    assert files.normal_mode() == umask_027
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]  # no temporary left
+
+
+def test_a_link_at_the_name_is_replaced_and_its_target_kept(tmp_path):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    target = outside / "precious.txt"
+    target.write_bytes(b"user data")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "trajectory.png").symlink_to(target)
+    files.atomic_write_bytes(run / "trajectory.png", b"\x89PNG new")
+    assert target.read_bytes() == b"user data"
+    assert not (run / "trajectory.png").is_symlink()
+    assert (run / "trajectory.png").read_bytes() == b"\x89PNG new"
+    (run / "dangling.txt").symlink_to(outside / "missing.txt")
+    files.atomic_write_text(run / "dangling.txt", "new")
+    assert not (outside / "missing.txt").exists() and (run / "dangling.txt").read_text() == "new"
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
+    path = tmp_path / "metrics.json"
+    path.write_text("old")
+    with pytest.raises(KeyboardInterrupt):
+        with files.atomic_path(path) as temporary:
+            temporary.write_text("half")
+            raise KeyboardInterrupt
+    assert path.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]
+
+
+def test_a_folder_at_the_name_is_refused(tmp_path):
+    (tmp_path / "mesh.ply").mkdir()
+    with pytest.raises(IsADirectoryError, match="mesh.ply"):
+        files.atomic_write_text(tmp_path / "mesh.ply", "x")
+
+
+def test_only_our_stray_temporaries_are_removed(tmp_path):
+    outside = tmp_path / "outside.txt"
+    outside.write_text("keep")
+    run = tmp_path / "run"
+    run.mkdir()
+    ours = [".trajectory.txt.ab12cd_3.tmp", "tmpk2j4h5g6.tmp", "tmpk2j4h5g6.ply.tmp", ".checkpoint.pt.zzzzzzzz.tmp"]
+    theirs = [".notes.txt.ab12cd34.tmp", "user.tmp", ".trajectory.txt.tmp", "trajectory.txt"]
+    for name in ours + theirs:
+        (run / name).write_text(name)
+    (run / ".metrics.json.q1w2e3r4.tmp").symlink_to(outside)
+    removed = files.remove_stray_temporaries(run, lambda name: name in ("trajectory.txt", "checkpoint.pt", "metrics.json"))
+    assert sorted(p.name for p in removed) == sorted(ours + [".metrics.json.q1w2e3r4.tmp"])
+    assert sorted(p.name for p in run.iterdir()) == sorted(theirs)
+    assert outside.read_text() == "keep"
