@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import List, Optional, Sequence
 
 from tsslam_ref import conformance
+from tsslam_ref.cli_args import OneLineParser
 
 VECTOR_DIR = Path(__file__).resolve().parent / "assets" / "spline_vectors"
 REFERENCE_DOC = Path(__file__).resolve().parent / "assets" / "spline_kit.md"
@@ -83,10 +84,10 @@ def _epilog() -> str:
 
 
 def _build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m tsslam_ref.spline_kit", epilog=_epilog(),
+    parser = OneLineParser(prog="python -m tsslam_ref.spline_kit", epilog=_epilog(),
                                      description="Cubic B-spline trajectory conformance kit: evaluate our "
                                                  "reference and check your implementation against it.")
-    commands = parser.add_subparsers(dest="command", required=True)
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     commands.add_parser("list", help="list the shipped vectors (name, convention, representation, sizes)",
                         epilog=_epilog())
     commands.add_parser("docs", help="print the kit's reference (conventions, formulas, golden values)")

@@ -1,0 +1,362 @@
+"""Bad input, misuse and faults on every command line: exit status, one line naming the culprit,
+no traceback, and nothing the user made changed (docs/cli.md has the table).
+
+Each class of failure runs at least once as a real subprocess (``python -m tsslam_ref.<module>``);
+the longer lists of bad values of one class call the same ``main`` in-process, which is what the
+subprocess runs.  Folders are compared before and after by a snapshot of every entry (kind, link
+target, SHA-256), files outside the run folder included.  Three short real runs (the Co-SLAM
+loop with very few iterations on a 64x48 synthetic sequence) cover --overwrite, Ctrl-C, resume
+and its refusals.
+"""
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from tsslam_ref import data, files, run, spline_kit
+from tsslam_ref import eval as evaluation
+
+ROOT = Path(__file__).resolve().parents[1]
+BUNDLED = ROOT / "tsslam_ref" / "assets" / "tum_fr3_teddy_160x120"
+
+
+def cli(module: str, *arguments, cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    return subprocess.run([sys.executable, "-m", f"tsslam_ref.{module}", *map(str, arguments)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def snapshot(root: Path) -> dict:
+    """Every entry under ``root`` (links not followed): kind plus link target or content hash."""
+    entries = {}
+    for folder, names, file_names in os.walk(root):
+        for name in names + file_names:
+            path = Path(folder) / name
+            key = str(path.relative_to(root))
+            if path.is_symlink():
+                entries[key] = ("link", os.readlink(path))
+            elif path.is_dir():
+                entries[key] = ("dir",)
+            else:
+                entries[key] = ("file", hashlib.sha256(path.read_bytes()).hexdigest(), os.stat(path).st_mode)
+    return entries
+
+
+def refused(result: subprocess.CompletedProcess, *needles: str) -> None:
+    """Exit 2, one line on stderr holding every needle, no traceback."""
+    assert "Traceback" not in result.stderr, result.stderr
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+
+
+def refused_in_process(capsys, main, arguments, *needles: str) -> None:
+    try:
+        code = main([str(a) for a in arguments])
+    except SystemExit as stop:  # argparse's usage errors
+        code = stop.code
+    captured = capsys.readouterr()
+    refused(subprocess.CompletedProcess(arguments, code, captured.out, captured.err), *needles)
+
+
+@pytest.fixture
+def dataset(tmp_path) -> Path:
+    """A copy of the bundled TUM slice (rgb.txt, depth.txt, groundtruth.txt, intrinsics.json)."""
+    return Path(shutil.copytree(BUNDLED, tmp_path / "teddy"))
+
+
+def _first_listed(folder: Path, listing: str) -> str:
+    return next(line.split()[1] for line in (folder / listing).read_text().splitlines() if line and line[0] != "#")
+
+
+# ------------------------------------------------------------------------------------------------
+# run: arguments, config, device, output folder - refused before anything is written
+
+
+def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
+    """One subprocess per kind of error that used to fail after config.json was written."""
+    (tmp_path / "list.json").write_text("[1, 2]")
+    cases = [(["--set", "device=banana"], ["device = 'banana'", "auto, cpu, cuda"]),
+             (["--export-rate", "nan"], ["--export-rate nan", "(0, 1000]"]),
+             (["--config", "list.json"], ["list.json", "expected an object"]),
+             (["--frames", "-3:8"], ["--frames -3:8", ">= 0"])]
+    if not torch.cuda.is_available():
+        cases.append((["--device", "cuda"], ["cuda"]))
+    before = snapshot(tmp_path)
+    for arguments, needles in cases:
+        refused(cli("run", *arguments, "--out", "out", cwd=tmp_path), *needles)
+        assert snapshot(tmp_path) == before, arguments  # no out folder, nothing else touched
+
+
+@pytest.mark.parametrize("arguments, needles", [
+    (["--export-rate", "-5"], ["--export-rate -5"]),
+    (["--export-rate", "0"], ["--export-rate 0", "leave the option out"]),
+    (["--export-rate", "1e9"], ["--export-rate 1e9"]),
+    (["--set", "field.bound=[[0,1],[0,1]]"], ["field.bound", "[[xmin, xmax]"]),
+    (["--set", "field.bound=[[0,1],[0,1],[1,0]]"], ["field.bound", "min < max"]),
+    (["--checkpoint-every", "-1"], ["--checkpoint-every -1", "0 for no checkpoint"]),
+    (["--seed", "1e23"], ["--seed", "'1e23'"]),
+    (["--seed", str(2**63)], ["--seed", "2**63 - 1"]),
+    (["--set", "seed=-1"], ["seed = -1"]),
+    (["--frames", "0:1"], ["--frames 0:1 selects 1 frame", "at least 2"]),
+    (["--frames=-3:8"], ["--frames -3:8"]),
+    (["--frames", "5:2"], ["--frames '5:2' selects no frames"]),
+    (["--set", "spline.dt=1e6"], ["spline.dt = 1000000.0", "(0, 10]"]),
+    (["--method", "coslam", "--export-rate", "5"], ["--export-rate needs --method tsslam"]),
+    (["--resume", "--overwrite"], ["--resume and --overwrite"]),
+    (["--resume"], ["--resume given but the output folder"]),
+    (["--set", "tracking.nope=1"], ["unknown key 'tracking.nope'"]),
+])
+def test_every_bad_value_is_refused_naming_it(tmp_path, capsys, arguments, needles):
+    before = snapshot(tmp_path)
+    refused_in_process(capsys, run.main, arguments + ["--out", tmp_path / "out"], *needles)
+    assert snapshot(tmp_path) == before
+
+
+def test_config_files_and_output_paths_are_named(tmp_path, capsys):
+    (tmp_path / "binary.json").write_bytes(np.random.default_rng(0).bytes(300))
+    (tmp_path / "broken.json").write_text('{"seed": ')
+    (tmp_path / "a_file").write_text("mine")
+    (tmp_path / "dangling").symlink_to(tmp_path / "missing")
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "notes.txt").write_text("mine")
+    before = snapshot(tmp_path)
+    refused(cli("run", "--config", "binary.json", "--out", "out", cwd=tmp_path), "binary.json", "not a text file")
+    refused_in_process(capsys, run.main, ["--config", tmp_path / "broken.json", "--out", tmp_path / "out"],
+                       "broken.json", "not valid JSON")
+    refused(cli("run", "--out", "dangling", cwd=tmp_path), "dangling", "symbolic link to a missing target")
+    refused_in_process(capsys, run.main, ["--out", tmp_path / "a_file"], "a_file", "is not a folder")
+    refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "taken", "not empty", "--overwrite")
+    assert snapshot(tmp_path) == before
+
+
+# ------------------------------------------------------------------------------------------------
+# Checkpoints cannot run code
+
+
+def test_a_planted_pickle_checkpoint_never_runs(tmp_path):
+    marker = tmp_path / "marker"
+    out = tmp_path / "out"
+    out.mkdir()
+    payload = (b"\x80\x02cposix\nsystem\nq\x00X" + len(f"touch {marker}").to_bytes(4, "little")
+               + f"touch {marker}".encode() + b"q\x01\x85q\x02Rq\x03.")  # pickle of os.system("touch marker")
+    (out / "checkpoint.pt").write_bytes(payload)
+    before = snapshot(tmp_path)
+    refused(cli("run", "--resume", "--out", "out", cwd=tmp_path), "checkpoint.pt", "not a readable tsslam_ref checkpoint")
+    assert not marker.exists()
+    assert snapshot(tmp_path) == before
+    (out / "checkpoint.pt").write_bytes(b"")
+    refused(cli("run", "--resume", "--out", "out", cwd=tmp_path), "checkpoint.pt", "empty")
+
+
+# ------------------------------------------------------------------------------------------------
+# Dataset lists and images
+
+
+def test_list_paths_leaving_the_dataset_are_refused_naming_file_and_line(dataset, tmp_path, capsys):
+    outside = tmp_path / "secret.png"
+    shutil.copy(dataset / _first_listed(dataset, "rgb.txt"), outside)
+    lines = (dataset / "rgb.txt").read_text().splitlines()
+    number = next(i for i, line in enumerate(lines) if line and line[0] != "#")  # first data line (0-based)
+    stamp = lines[number].split()[0]
+    (dataset / "rgb" / "escape.png").symlink_to(outside)
+    (dataset / "rgb" / "alias.png").symlink_to(dataset / lines[number].split()[1])
+    cases = [(f"{stamp} ../secret.png", "leads outside the dataset folder"),
+             (f"{stamp} rgb/../../secret.png", "leads outside the dataset folder"),
+             (f"{stamp} {outside}", "is an absolute path"),
+             (f"{stamp} rgb/escape.png", "leads outside the dataset folder")]
+    original = list(lines)
+    for index, (line, message) in enumerate(cases):
+        lines[number] = line
+        (dataset / "rgb.txt").write_text("\n".join(lines) + "\n")
+        before = snapshot(tmp_path)
+        if index == 0:
+            refused(cli("data", "info", dataset, cwd=tmp_path), f"rgb.txt:{number + 1}:", message)
+        else:
+            refused_in_process(capsys, data.main, ["info", dataset], f"rgb.txt:{number + 1}:", message)
+        assert snapshot(tmp_path) == before
+    lines[number] = f"{stamp} rgb/alias.png"  # a link that stays inside the folder is allowed
+    (dataset / "rgb.txt").write_text("\n".join(lines) + "\n")
+    assert data.main(["info", str(dataset), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["files_checked"] == 2 * len(data.load_sequence(dataset, require_gt=False))
+    lines = list(original)
+    lines.insert(number + 1, lines[number])  # the same stamp twice
+    (dataset / "rgb.txt").write_text("\n".join(lines) + "\n")
+    refused_in_process(capsys, data.main, ["info", dataset], f"rgb.txt:{number + 2}:", "repeats line")
+    refused_in_process(capsys, run.main, ["--data", dataset, "--out", tmp_path / "out"], f"rgb.txt:{number + 2}:")
+    assert not (tmp_path / "out").exists()
+
+
+def _depth_cases(shape):
+    height, width = shape
+    return {
+        "truncated": ("truncated", "not a readable depth image"),
+        "random bytes": (np.random.default_rng(1).bytes(2000), "not a readable depth image"),
+        "wrong size": (Image.fromarray(np.ones((height // 2, width // 2), np.uint16)), f"expected {width}x{height}"),
+        "8-bit": (Image.fromarray(np.ones(shape, np.uint8)), "mode L; expected a single-channel 16-bit PNG"),
+        "3-channel": (Image.fromarray(np.ones(shape + (3,), np.uint8)), "mode RGB; expected a single-channel 16-bit PNG"),
+    }
+
+
+def test_broken_images_are_refused_naming_the_file(dataset, tmp_path, capsys):
+    sequence = data.load_sequence(dataset, require_gt=False)
+    victim = sequence.depth_paths[7]  # data info checks every frame, not a sample
+    original = victim.read_bytes()
+    shape = (sequence.native_intrinsics.height, sequence.native_intrinsics.width)
+    for index, (name, (content, message)) in enumerate(_depth_cases(shape).items()):
+        if isinstance(content, str):
+            victim.write_bytes(original[: len(original) // 2])
+        elif isinstance(content, bytes):
+            victim.write_bytes(content)
+        else:
+            content.save(victim, format="PNG")
+        before = snapshot(tmp_path)
+        if index == 0:
+            refused(cli("data", "info", dataset, cwd=tmp_path), victim.name, message)
+            refused(cli("run", "--data", dataset, "--out", "out", "--frames", "0:9", cwd=tmp_path), victim.name, message)
+        else:
+            refused_in_process(capsys, data.main, ["info", dataset], victim.name, message)
+        assert snapshot(tmp_path) == before, name
+    victim.write_bytes(original)
+    first = data.load_sequence(dataset).depth_paths[0]  # frame 0 of a run (the first frame with ground truth)
+    Image.fromarray(np.zeros(shape, np.uint16)).save(first, format="PNG")
+    refused_in_process(capsys, run.main, ["--data", dataset, "--out", tmp_path / "out", "--frames", "0:3"], first.name,
+                       "depth is 0 (no measurement) at every pixel")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_folder_of_random_files_is_named(tmp_path, capsys):
+    folder = tmp_path / "junk"
+    folder.mkdir()
+    rng = np.random.default_rng(2)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        (folder / name).write_bytes(rng.bytes(500))
+    refused_in_process(capsys, data.main, ["info", folder], "rgb.txt:1:", "not text")
+    refused(cli("run", "--data", folder, "--out", "out", cwd=tmp_path), "rgb.txt:1:", "not text")
+    assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# eval and the spline kit
+
+
+def test_eval_refuses_repeated_stamps_binary_input_and_bad_thresholds(tmp_path, capsys):
+    gt = BUNDLED / "groundtruth.txt"
+    lines = [line for line in gt.read_text().splitlines() if line and line[0] != "#"][:8]
+    (tmp_path / "est.txt").write_text("\n".join(lines[:5] + [lines[4]] + lines[5:]) + "\n")
+    (tmp_path / "binary.txt").write_bytes(np.random.default_rng(3).bytes(400))
+    before = snapshot(tmp_path)
+    refused(cli("eval", "trajectory", gt, "est.txt", cwd=tmp_path), "est.txt:6:", "repeats line 5")
+    refused_in_process(capsys, evaluation.main, ["trajectory", gt, tmp_path / "binary.txt"], "binary.txt:1:", "not text")
+    refused(cli("eval", "mesh", "a.ply", "b.ply", "--threshold", "-1", cwd=tmp_path), "--threshold -1", "(0, 100]")
+    for arguments, needle in ((["mesh", "a.ply", "b.ply", "--threshold", "nan"], "--threshold nan"),
+                              (["trajectory", gt, gt, "--max-diff", "0"], "--max-diff 0"),
+                              (["trajectory", gt, gt, "--delta", "0"], "--delta 0"),
+                              (["mesh", "a.ply", "b.ply", "--points", "0"], "--points 0")):
+        refused_in_process(capsys, evaluation.main, arguments, needle)
+    assert snapshot(tmp_path) == before
+
+
+def test_spline_kit_refuses_negative_and_nan_tolerances(tmp_path, capsys):
+    reference = spline_kit.shipped_vectors()[0]
+    for arguments in (["--atol", "-1"], ["--atol", "nan"], ["--rtol=-1e-9"], ["--rtol", "abc"]):
+        refused_in_process(capsys, spline_kit.main, ["check", reference, reference] + arguments, arguments[0][:6])
+
+
+# ------------------------------------------------------------------------------------------------
+# Real runs: --overwrite in a planted folder, Ctrl-C, resume and its refusals
+
+CHEAP = ["--config", "tiny", "--method", "coslam", "--frames", "0:10", "--quiet", "--no-mesh", "--checkpoint-every", "1",
+         "--set", "tracking.ignore_edge=2", "--set", "tracking.iters=2", "--set", "tracking.n_rays=32",
+         "--set", "mapping.first_iters=3", "--set", "mapping.iters=1", "--set", "mapping.n_rays=64",
+         "--set", "mapping.first_n_rays=64", "--set", "render.n_samples=8", "--set", "render.n_range_d=2"]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """A synthetic sequence, a finished run made with --overwrite in a planted folder, and an
+    interrupted run of the same command."""
+    root = tmp_path_factory.mktemp("runs")
+    assert cli("data", "synthesize", "--out", "room", "--size", "64x48", "--frames", "12", "--clean-depth",
+               "--mesh-voxel", "0.2", cwd=root).returncode == 0
+    outside = root / "outside"
+    outside.mkdir()
+    (outside / "precious.png").write_bytes(b"user's picture")
+    (outside / "metrics.json").write_text("user's numbers")
+    planted = root / "planted"
+    planted.mkdir()
+    (planted / "trajectory.png").symlink_to(outside / "precious.png")
+    (planted / "metrics.json").symlink_to(outside / "metrics.json")
+    (planted / "checkpoint.pt").write_bytes(b"an earlier run's checkpoint")
+    (planted / "trajectory_50hz.txt").write_text("an earlier run's export")
+    (planted / ".trajectory.txt.abcd1234.tmp").write_text("left by a killed run")
+    (planted / "notes.txt").write_text("the user's notes")
+    outside_before = snapshot(outside)
+    finished = cli("run", "--data", "room", "--out", "planted", "--overwrite", *CHEAP, cwd=root)
+    assert finished.returncode == 0 and "Traceback" not in finished.stderr, finished.stderr
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    process = subprocess.Popen([sys.executable, "-m", "tsslam_ref.run", "--data", "room", "--out", "stopped", *CHEAP],
+                               cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    trajectory = root / "stopped" / "trajectory.txt"
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and process.poll() is None:
+        if trajectory.is_file() and len(trajectory.read_text().splitlines()) >= 4:  # header + 3 frames
+            break
+        time.sleep(0.05)
+    process.send_signal(signal.SIGINT)
+    _, stopped_err = process.communicate(timeout=120)
+    return {"root": root, "outside": outside, "outside_before": outside_before, "planted": planted,
+            "stopped": root / "stopped", "stopped_code": process.returncode, "stopped_err": stopped_err}
+
+
+def test_overwrite_replaces_only_our_files_never_through_a_link(runs):
+    planted = runs["planted"]
+    assert snapshot(runs["outside"]) == runs["outside_before"]  # the link targets are byte-identical
+    assert (planted / "notes.txt").read_text() == "the user's notes"
+    assert not (planted / "trajectory_50hz.txt").exists()  # the earlier run's export is gone
+    assert not (planted / ".trajectory.txt.abcd1234.tmp").exists()
+    for name in ("trajectory.png", "metrics.json"):
+        assert not (planted / name).is_symlink() and (planted / name).is_file()
+    assert json.loads((planted / "metrics.json").read_text())["frames"] == 10
+    assert run.load_checkpoint(planted / "checkpoint.pt").done == 10  # a new checkpoint, not the planted bytes
+    mode = files.normal_mode()
+    for name in ("trajectory.txt", "config.json", "metrics.json", "trajectory.png", "errors.png", "checkpoint.pt"):
+        assert os.stat(planted / name).st_mode & 0o777 == mode, name
+
+
+def test_ctrl_c_resume_refusals_and_resume(runs):
+    root, stopped = runs["root"], runs["stopped"]
+    assert runs["stopped_code"] == 130, runs["stopped_err"]
+    assert "Traceback" not in runs["stopped_err"]
+    message = runs["stopped_err"].strip().splitlines()[-1]
+    assert message.startswith("interrupted after frame") and "--resume" in message, message
+    assert run.load_checkpoint(stopped / "checkpoint.pt").done < 10  # stopped mid-way, checkpoint readable
+    before = snapshot(stopped)
+    config_json = (stopped / "config.json").read_bytes()
+    for change, key in ((["--seed", "1"], "seed was 0 in the checkpoint, this command gives 1"),
+                        (["--set", "tracking.iters=3"], "tracking.iters was 2"),
+                        (["--frames", "0:9"], "data.frame_stop was 10"),
+                        (["--method", "tsslam"], "method was \"coslam\"")):
+        refused(cli("run", "--data", "room", "--out", "stopped", *CHEAP, *change, "--resume", cwd=root), key)
+        assert snapshot(stopped) == before and (stopped / "config.json").read_bytes() == config_json
+    resumed = cli("run", "--data", "room", "--out", "stopped", *CHEAP, "--checkpoint-every", "3", "--resume", cwd=root)
+    assert resumed.returncode == 0 and "Traceback" not in resumed.stderr, resumed.stderr
+    assert (stopped / "trajectory.txt").read_bytes() == (runs["planted"] / "trajectory.txt").read_bytes()
+    finished = snapshot(stopped)
+    again = cli("run", "--data", "room", "--out", "stopped", *CHEAP, "--resume", cwd=root)
+    assert again.returncode == 0 and "finished run" in again.stdout, again.stdout + again.stderr
+    assert snapshot(stopped) == finished
