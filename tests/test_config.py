@@ -22,7 +22,7 @@ def test_every_preset_passes_its_own_checks(name):
     ("mapping.map_every=0", "mapping.map_every = 0 must be >= 1"),
     ("tracking.iters=ten", "tracking.iters = 'ten' must be an integer"),
     ("tracking.iters=2.5", "tracking.iters = 2.5 must be an integer"),
-    ("spline.dt=-0.3", "spline.dt = -0.3 must be > 0"),
+    ("spline.dt=-0.3", "spline.dt = -0.3 must be in (0, 10]"),
     ("data.fps=1e999", "data.fps = inf must be a finite number"),
     ("tracking.best=1", "tracking.best = 1 must be true or false"),
     ("mapping.kf_pixel_fraction=1.5", "mapping.kf_pixel_fraction = 1.5 must be in (0, 1]"),
