@@ -126,3 +126,12 @@ def test_stretch_renders_the_same_frames_as_the_full_file(shared_data, tmp_path)
         for folder in ("rgb", "depth"):
             for file in names:
                 assert np.array_equal(iio.imread(a / folder / file), iio.imread(b / folder / file)), (words, folder, file)
+
+
+def test_synthesize_help_lists_the_shipped_names(capsys):
+    with pytest.raises(SystemExit) as stop:
+        data.main(["synthesize", "--help"])
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert stop.value.code == 0
+    for name in data.SHIPPED_TRAJECTORIES:
+        assert name in text
