@@ -97,12 +97,18 @@ def trajectory_origin(path) -> float:
     """The time (float64 s) that ``synthesize --start`` counts from: a ``# origin: SECONDS`` header line
     (a shipped stretch records the first stamp of the full recording it was cut from), else the
     file's smallest timestamp."""
-    with open(path) as handle:
-        for line in handle:
-            if not line.startswith("#"):
-                break
-            if line.startswith("# origin:"):
-                return float(line.split(":", 1)[1])
+    try:
+        with open(path) as handle:
+            for number, line in enumerate(handle, start=1):
+                if not line.startswith("#"):
+                    break
+                if line.startswith("# origin:"):
+                    try:
+                        return float(line.split(":", 1)[1])
+                    except ValueError:
+                        raise ValueError(f"{path}:{number}: expected '# origin: SECONDS', got '{line.strip()}'") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file (expected a TUM trajectory: timestamp tx ty tz qx qy qz qw)") from None
     return float(np.min(read_tum_trajectory(path)[0]))
 
 
