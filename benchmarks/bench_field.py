@@ -1,4 +1,4 @@
-"""Field iteration cost: forward + backward + Adam step of Co-SLAM's map (shared/spec/cpu-budget.md).
+"""Field iteration cost: forward + backward + Adam step of Co-SLAM's map (results in docs/map.md).
 
 For each preset (tum-cpu, synthetic-cpu, and the full tum / synthetic sample counts) and each ray
 count (256, 1024, 4096) it times one map iteration on random points inside a 6.5 m box (the TUM
@@ -8,7 +8,7 @@ CPU kernel where it builds, ``hash_kernel.py``; the PyTorch fast path on CUDA), 
 and, measured in the same run, the PyTorch fast path (``field.compiled_kernel=false``) and the
 plain reference path (``field.fast_gather=false``) with their ratios to the default.
 
-Target (cpu-budget.md): 1024 rays x 43 samples, table 2^16, 2 threads, float32, under 100 ms.
+Target (ours): 1024 rays x 43 samples, table 2^16, 2 threads, float32, under 100 ms.
 
 Usage: python benchmarks/bench_field.py [--repeats 10] [--rays 256 1024 4096] [--presets ...]
 """

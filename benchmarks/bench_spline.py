@@ -3,7 +3,7 @@
 Prints throughput (times per second) of :func:`tsslam_ref.spline.evaluate` with ``derivatives=2``
 in float32 and float64, and ratios to, measured in the same run:
 
-(a) derivatives by autograd through time (forward mode, ``torch.func.jvp`` twice, spec §3.3) on a
+(a) derivatives by autograd through time (forward mode, ``torch.func.jvp`` twice) on a
     subsample, scaled per time;  target: closed form >= 5x faster;
 (b) PyPose ``pp.bspline`` producing poses only (joint SE(3), no derivatives) for the same number
     of samples;  target: ours (pose + derivatives) at least as fast.

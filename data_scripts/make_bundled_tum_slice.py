@@ -1,6 +1,6 @@
 """Make the bundled default sequence: a 160x120 slice of TUM RGB-D fr3/teddy in TUM layout.
 
-Reads a TUM sequence folder (default ../shared/data/tum_fr3_teddy_120 beside the checkout), keeps
+Reads a TUM sequence folder (``--source``: the first 120 frames of rgbd_dataset_freiburg3_teddy), keeps
 its first ``--frames`` associated colour/depth pairs (the first ones of teddy have no ground truth;
 the loader drops them), resizes colour (bilinear, antialiased) and depth (nearest) by 1/4 with the
 exact intrinsics update of ``Intrinsics.resized`` and writes
@@ -90,7 +90,7 @@ def make_slice(source: Path, out: Path, n_frames: int, width: int, force: bool) 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--source", type=Path, default=ROOT.parent / "shared" / "data" / "tum_fr3_teddy_120")
+    parser.add_argument("--source", type=Path, required=True, help="TUM folder of rgbd_dataset_freiburg3_teddy (its first 120 frames suffice)")
     parser.add_argument("--out", type=Path, default=ROOT / "tsslam_ref" / "assets" / "tum_fr3_teddy_160x120")
     parser.add_argument("--frames", type=int, default=104, help="associated frames kept (teddy: first 4 lack GT)")
     parser.add_argument("--width", type=int, default=160)

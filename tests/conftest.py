@@ -1,4 +1,4 @@
-"""Shared fixtures: the location of ../shared/data and deterministic torch settings.
+"""Common fixtures: the location of the real test data (``../shared/data`` beside the checkout) and deterministic torch settings.
 
 Tests that need the real data in ``../shared/data`` (present beside the checkout in CI, absent in a
 user's clone) take the ``shared_data`` fixture.  Without the folder they are skipped with a reason
@@ -28,7 +28,8 @@ def shared_data_dir() -> Path:
 def shared_data() -> Path:
     path = shared_data_dir()
     if not (path / "tum_fr3_teddy_120").is_dir():
-        message = f"real test data not found at {path} (set TSSLAM_SHARED_DATA)"
+        message = (f"needs real data that does not ship with the package (full-resolution TUM teddy frames, "
+                   f"complete ground-truth trajectories), not found at {path}; set TSSLAM_SHARED_DATA to that folder")
         if os.environ.get("CI"):
             pytest.fail(message)
         pytest.skip(message)

@@ -79,7 +79,7 @@ def test_shipped_vector_rotations_match_pypose_and_translations_match_scipy(path
 
 @pytest.mark.parametrize("path", VECTOR_PATHS, ids=lambda p: p.stem)
 def test_shipped_vector_derivatives_match_autograd_in_time(path):
-    """v, a, ω_body, ω̇_body of the vector vs forward-mode autograd of the pose path (spec §3.3)."""
+    """v, a, ω_body, ω̇_body of the vector vs forward-mode autograd of the pose path."""
     data, arrays = load_vector(path)
     R = so3_exp(torch.as_tensor(arrays["rotvecs"]))
     P = torch.as_tensor(arrays["translations"])

@@ -1,4 +1,4 @@
-"""Tests for tsslam_ref.field: OneBlob (spec 1.2), hash-grid geometry (spec 1.3), the field."""
+"""Tests for tsslam_ref.field: OneBlob, hash-grid geometry (tiny-cuda-nn grid.h), the field."""
 
 import math
 

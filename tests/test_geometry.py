@@ -1,7 +1,7 @@
 """Tests for tsslam_ref.geometry: SO(3) Exp/Log wrappers, quaternions, pose helpers.
 
 Oracles: scipy.spatial.transform.Rotation, analytic values (identity, axis flips), gradcheck, and
-the stability table of shared/spec/spline.md §4 (0, tiny angles, near π, exactly π).
+the stability cases of SO(3) Exp/Log (0, tiny angles, near π, exactly π).
 """
 
 import math

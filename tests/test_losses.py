@@ -1,4 +1,4 @@
-"""Tests for tsslam_ref.losses: the five Co-SLAM terms (spec section 3) and render_loss."""
+"""Tests for tsslam_ref.losses: the five Co-SLAM terms and render_loss."""
 
 import dataclasses
 

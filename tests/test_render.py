@@ -1,4 +1,4 @@
-"""Tests for tsslam_ref.render: rays (Eq. 2), samples (spec 2.2), weights and compositing (Eq. 3)."""
+"""Tests for tsslam_ref.render: rays (Eq. 2), samples (Co-SLAM's render_rays), weights and compositing (Eq. 3)."""
 
 import dataclasses
 

@@ -3,7 +3,7 @@
 Oracles: the ground truth of a synthetic sequence rendered from the analytic room and of the real TUM
 frames (motion capture), the spline's own definition for TS-SLAM outputs, and file round trips.
 Sizes are tiny (64x48 images, the `tiny` preset) so the whole file runs in a few minutes on 2 cores;
-the figures reached at the CPU presets are in the README and the issue notes.
+the figures reached at the CPU presets are in the README and docs/system.md.
 """
 
 import json

@@ -1,4 +1,4 @@
-"""Tests for tsslam_ref.spline: every oracle of shared/spec/spline.md §5.
+"""Tests for tsslam_ref.spline: every oracle of the spline's contract (docs/spline.md).
 
 Oracles are independent of the closed forms under test: exact fractions and analytic motions,
 scipy B-splines (translation, scalar angle), PyPose (rotations), basalt golden values, central
@@ -57,7 +57,7 @@ def scipy_bspline(values, dt, t0, convention):
 
 
 def autograd_in_time(rotations, translations, times, dt, t0, convention):
-    """Spec §3.3 oracle: Ṙ, R̈, ṗ, p̈ by forward-mode autograd in t; ω = vee(RᵀṘ), ω̇ = vee(RᵀR̈)."""
+    """Oracle: Ṙ, R̈, ṗ, p̈ by forward-mode autograd in t; ω = vee(RᵀṘ), ω̇ = vee(RᵀR̈)."""
     times = torch.as_tensor(times, dtype=F64)
     ones = torch.ones_like(times)
 
@@ -80,7 +80,7 @@ def rel_err(value, reference):
 
 
 # ------------------------------------------------------------------------------------------
-# Basis (spec §5.1)
+# Basis
 
 
 def test_basis_B0_identically_one_and_noncumulative_weights_partition_unity():
@@ -119,7 +119,7 @@ def test_basis_rejects_bad_order():
 
 
 # ------------------------------------------------------------------------------------------
-# Knot closed forms (spec §2.3, §5.2)
+# Knot closed forms
 
 
 def test_eq5_eq6_eq9_closed_forms_at_knots():
@@ -140,7 +140,7 @@ def test_eq5_eq6_eq9_closed_forms_at_knots():
 
 
 # ------------------------------------------------------------------------------------------
-# C² continuity (spec §5.3)
+# C² continuity
 
 
 def test_c2_continuity_at_interior_knots_and_jerk_jumps():
@@ -167,7 +167,7 @@ def test_c2_continuity_at_interior_knots_and_jerk_jumps():
 
 
 # ------------------------------------------------------------------------------------------
-# Exact motions (spec §5.4)
+# Exact motions
 
 
 @pytest.mark.parametrize("convention", ["paper", "basalt"])
@@ -231,7 +231,7 @@ def test_eq5_eq8_translation_velocity_acceleration_match_scipy_bspline(conventio
 
 
 # ------------------------------------------------------------------------------------------
-# Invariances (spec §5.5)
+# Invariances
 
 
 def _all_outputs(R, P, times, dt, t0=0.0):
@@ -279,7 +279,7 @@ def test_time_scaling_of_derivatives():
 
 
 # ------------------------------------------------------------------------------------------
-# Finite differences with large rotations (spec §5.6)
+# Finite differences with large rotations
 
 
 @pytest.mark.parametrize("seed,dt,max_angle", [(10, 1.0, 0.8), (11, 0.1, 2.0), (12, 0.05, 0.3)])
@@ -298,7 +298,7 @@ def test_eq8_eq9_derivatives_match_central_differences(seed, dt, max_angle):
     omega_fd = so3_log(minus.rotation.transpose(-1, -2) @ plus.rotation) / (2 * h)  # body frame
     assert rel_err(s.omega_body, omega_fd) < 1e-7
     assert rel_err(s.omegadot_body, (plus.omega_body - minus.omega_body) / (2 * h)) < 1e-7
-    # Second differences, independent of the recursion (spec §3.1 last row).
+    # Second differences, independent of the recursion.
     h = 1e-4 * dt
     plus, minus = at(h), at(-h)
     a_fd = (plus.translation - 2 * s.translation + minus.translation) / h**2
@@ -309,7 +309,7 @@ def test_eq8_eq9_derivatives_match_central_differences(seed, dt, max_angle):
 
 
 # ------------------------------------------------------------------------------------------
-# Autograd in time (spec §3.3, §5.7)
+# Autograd in time
 
 
 @pytest.mark.parametrize("convention", ["paper", "basalt"])
@@ -327,7 +327,7 @@ def test_eq8_eq9_match_autograd_in_time(convention):
 
 
 # ------------------------------------------------------------------------------------------
-# External oracles (spec §5.8)
+# External oracles
 
 
 def _pypose_poses(R, P):
@@ -363,7 +363,7 @@ def test_eq5_translation_matches_pypose_when_rotations_equal():
 
 BASALT_ROTVECS = [[0, 0, 0], [0.1, -0.2, 0.3], [0.4, -0.1, 0.5], [0.3, 0.3, 0.9], [-0.2, 0.6, 1.2], [-0.5, 0.4, 1.0]]
 BASALT_POSITIONS = [[0, 0, 0], [1, 0, 0.5], [1.5, 1, 0.5], [1, 2, 0], [0, 2.5, -0.5], [-1, 2, -1]]
-BASALT_TABLE = {  # spec §3.5: t -> rotvec, p, v, a, omega_body, omegadot_body
+BASALT_TABLE = {  # basalt reference values: t -> rotvec, p, v, a, omega_body, omegadot_body
     0.00: [(0.134116980, -0.151459662, 0.282680481), (0.916666667, 0.166666667, 0.416666667), (1.5, 1.0, 0.5),
            (-2, 4, -2), (0.419692610, -0.127856638, 0.478245352), (0.896277239, 1.063012442, -0.512550323)],
     0.35: [(0.289163844, -0.111468504, 0.450617209), (1.290583333, 0.7045, 0.469166667), (0.555, 1.91, -0.2),
@@ -388,7 +388,7 @@ def test_basalt_golden_values(convention, shift):
 
 
 # ------------------------------------------------------------------------------------------
-# Domain (spec §5.9)
+# Domain
 
 
 def test_valid_time_range_both_conventions():
@@ -485,7 +485,7 @@ def test_evaluate_rejects_malformed_control_points():
 
 
 # ------------------------------------------------------------------------------------------
-# Gradients w.r.t. control points (spec §5.10)
+# Gradients w.r.t. control points
 
 
 @pytest.mark.parametrize("gap", [0.0, 1e-9, 1e-5, 0.7])
@@ -524,7 +524,7 @@ def test_local_support_zero_gradient_outside_the_four_active_points():
 
 
 # ------------------------------------------------------------------------------------------
-# Precision (spec §5.11)
+# Precision
 
 
 def test_float32_matches_float64():

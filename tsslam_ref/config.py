@@ -6,7 +6,7 @@ Layer 0 (base): dataclasses only, no torch.
   ``TrackingConfig``, ``MappingConfig``, ``SplineConfig``, ``DynamicsConfig``, ``LocalBAConfig``,
   ``MeshConfig``) gathered in :class:`Config`.
 * Every field says its unit and its source: "Co-SLAM" means the official YAML/code at commit
-  3bb904e as recorded in shared/spec/coslam.md; "paper" means TS-SLAM (shared/paper/ts-slam.tex);
+  3bb904e (github.com/HengyiWang/Co-SLAM); "paper" means TS-SLAM (ICRA 2025, arXiv:2410.08780);
   "ours" means a choice of this project (see docs/deviations.md).
 * Presets are plain functions registered in :data:`PRESETS`: ``tum``, ``scannet``, ``synthetic``,
   ``replica`` (the original numbers), ``tum-cpu`` and ``synthetic-cpu`` (same structure, fewer rays
@@ -88,7 +88,7 @@ class FieldConfig:
     """Hidden width of the colour MLP (Co-SLAM)."""
     fast_gather: bool = True
     """Use the fused corner lookup with its hand-written backward (``field._TrilinearLookup``, see
-    shared/spec/cpu-budget.md); False uses the plain reference path."""
+    the speed table of docs/map.md); False uses the plain reference path."""
     compiled_kernel: bool = True
     """On the CPU, let the fast path use the compiled hash-grid kernel (``hash_kernel.py``, built
     with the local C++ compiler on first use; falls back to the PyTorch fast path with a warning
@@ -316,7 +316,7 @@ class Config:
 
 
 def replica() -> Config:
-    """Co-SLAM's Replica settings (spec Appendix A)."""
+    """Co-SLAM's Replica settings (its ``configs/Replica`` YAML)."""
     cfg = Config(name="replica")
     cfg.data = DataConfig(dataset="replica", depth_scale=6553.5, depth_trunc=100.0)
     cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.02)
@@ -329,7 +329,7 @@ def replica() -> Config:
 
 
 def synthetic() -> Config:
-    """Co-SLAM's NeuralRGBD synthetic settings (spec Appendix A); also our synthetic scenes."""
+    """Co-SLAM's NeuralRGBD synthetic settings (its ``configs/Synthetic`` YAML); also our synthetic scenes."""
     cfg = Config(name="synthetic")
     cfg.data = DataConfig(dataset="auto", depth_trunc=100.0)
     cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.01)
@@ -342,7 +342,7 @@ def synthetic() -> Config:
 
 
 def scannet() -> Config:
-    """Co-SLAM's ScanNet settings (spec Appendix A)."""
+    """Co-SLAM's ScanNet settings (its ``configs/ScanNet`` YAML)."""
     cfg = Config(name="scannet")
     cfg.data = DataConfig(dataset="scannet", crop_edge=10, depth_scale=1000.0, depth_trunc=100.0)
     cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.04)
@@ -354,7 +354,7 @@ def scannet() -> Config:
 
 
 def tum() -> Config:
-    """Co-SLAM's TUM RGB-D settings (spec Appendix A); TS-SLAM uses dt = 0.25 s on TUM."""
+    """Co-SLAM's TUM RGB-D settings (its ``configs/Tum`` YAML); TS-SLAM uses dt = 0.25 s on TUM."""
     cfg = Config(name="tum")
     cfg.data = DataConfig(dataset="tum", crop_edge=8, depth_scale=5000.0, depth_trunc=5.0)
     cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.02)

@@ -2,7 +2,7 @@
 
 TS-SLAM §IV-A "Datasets" (TUM RGB-D, ScanNet and the NeuralRGBD synthetic scenes; "we assumed a
 constant frame rate of 30 FPS" where a dataset has no timestamps), Eq. (2) ``eq:cal_ray`` for
-:func:`back_project`, and Co-SLAM's ``datasets/dataset.py`` @3bb904e (shared/spec/coslam.md section 7;
+:func:`back_project`, and Co-SLAM's ``datasets/dataset.py`` @3bb904e (differences in docs/data.md;
 Replica is supported because Co-SLAM evaluates on it).  Side layer: imports layer 0 only (the ``synthesize`` command
 imports :mod:`tsslam_ref.synthetic` lazily).  Documented in docs/data.md; taught in
 notebooks/00_data_and_cameras.ipynb.
@@ -16,7 +16,7 @@ seconds of dataset time; pixel centres lie at integer coordinates (see ``Intrins
 Command line::
 
     python -m tsslam_ref.data info PATH [--json]
-    python -m tsslam_ref.data synthesize --out DIR [--trajectory FILE] [--frames N] [--size WxH]
+    python -m tsslam_ref.data synthesize --out DIR [--trajectory FILE|NAME [--start S]] [--frames N] [--size WxH]
                                          [--seed S] [--fps F] [--clean-depth] [--force]
                                          [--mesh-voxel M]
 """
@@ -48,6 +48,7 @@ __all__ = [
     "Intrinsics", "Frame", "RGBDSequence", "detect_dataset", "load_sequence", "load_from_config",
     "default_sequence_path", "default_synthetic_path", "read_tum_trajectory", "write_tum_trajectory",
     "sequence_info", "back_project", "pixel_rays", "LAYOUTS", "DEPTH_SCALES",
+    "SHIPPED_TRAJECTORIES", "trajectory_path", "trajectory_origin",
 ]
 
 ASSETS = Path(__file__).resolve().parent / "assets"
@@ -74,6 +75,42 @@ def default_synthetic_path(cache_dir: Optional[Path] = None, verbose: bool = Tru
             print(f"tsslam_ref: generating the default synthetic sequence into {path}", file=sys.stderr)
         synthetic.synthesize(path, n_frames=60, width=160, height=120, fps=30.0, seed=0, overwrite=True)
     return path
+
+
+SHIPPED_TRAJECTORIES = ("tum_rgbd_fr2_desk", "tum_vi_room1", "tum_vi_room2")
+"""Names of the trajectory stretches in ``assets/trajectories/`` (real hand-held motion, TUM format, CC BY 4.0;
+made by data_scripts/make_trajectory_stretches.py): fr2/desk 0-4 s, TUM-VI room1 15-24 s, room2 15-20 s."""
+
+
+def trajectory_path(name_or_path) -> Path:
+    """A trajectory file: an existing path as given, else the shipped stretch of that name
+    (:data:`SHIPPED_TRAJECTORIES`).  Raises FileNotFoundError naming both choices."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    if str(name_or_path) in SHIPPED_TRAJECTORIES:
+        return ASSETS / "trajectories" / f"{name_or_path}.txt"
+    raise FileNotFoundError(f"--trajectory {name_or_path}: no such file and not a shipped trajectory "
+                            f"(expected a TUM-format file or one of {', '.join(SHIPPED_TRAJECTORIES)})")
+
+
+def trajectory_origin(path) -> float:
+    """The time (float64 s) that ``synthesize --start`` counts from: a ``# origin: SECONDS`` header line
+    (a shipped stretch records the first stamp of the full recording it was cut from), else the
+    file's smallest timestamp."""
+    try:
+        with open(path) as handle:
+            for number, line in enumerate(handle, start=1):
+                if not line.startswith("#"):
+                    break
+                if line.startswith("# origin:"):
+                    try:
+                        return float(line.split(":", 1)[1])
+                    except ValueError:
+                        raise ValueError(f"{path}:{number}: expected '# origin: SECONDS', got '{line.strip()}'") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file (expected a TUM trajectory: timestamp tx ty tz qx qy qz qw)") from None
+    return float(np.min(read_tum_trajectory(path)[0]))
 
 
 def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int, path: Path):
@@ -242,14 +279,17 @@ def main(argv=None) -> int:
     info.add_argument("--json", action="store_true", help="print JSON")
     synth = commands.add_parser("synthesize", help="render a synthetic TUM-layout sequence")
     synth.add_argument("--out", required=True)
-    synth.add_argument("--trajectory", default=None, help="TUM-format trajectory (default: built-in path)")
+    synth.add_argument("--trajectory", default=None,
+                       help="TUM-format trajectory file, or a shipped stretch of real motion: "
+                            f"{', '.join(SHIPPED_TRAJECTORIES)} (default: built-in path)")
     synth.add_argument("--frames", type=number_in("--frames", 1, 100_000, integer=True), default=60,
                        help="number of frames, 1 to 100000")
     synth.add_argument("--size", type=_parse_size, default=(160, 120), help="WxH, each 8 to 4096 pixels")
     synth.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
     synth.add_argument("--fps", type=number_in("--fps", 0, 1000, low_open=True), default=30.0, help="(0, 1000]")
     synth.add_argument("--start", type=number_in("--start", 0, 1e6), default=0.0,
-                       help="seconds after the trajectory's first pose at which frame 0 is taken (default 0)")
+                       help="seconds after the trajectory's first pose at which frame 0 is taken (default 0); "
+                            "for a shipped stretch, after the first pose of the full recording it was cut from")
     synth.add_argument("--clean-depth", action="store_true")
     synth.add_argument("--mesh-voxel", type=number_in("--mesh-voxel", 0.005, 1.0), default=0.03,
                        help="marching-cubes voxel of gt_mesh.ply (m), 0.005 to 1")
@@ -277,14 +317,16 @@ def main(argv=None) -> int:
     try:
         _check_synthesize_out(Path(args.out), args.force)
         start_time = None
+        trajectory = None if args.trajectory is None else trajectory_path(args.trajectory)
         if args.start != 0.0:
             if args.trajectory is None:
                 raise ValueError("--start needs --trajectory (the built-in path starts at 0 s)")
             if not args.start >= 0.0:
                 raise ValueError(f"--start must be >= 0 seconds, got {args.start}")
-            start_time = float(np.min(read_tum_trajectory(args.trajectory)[0])) + args.start
+        if trajectory is not None:
+            start_time = trajectory_origin(trajectory) + args.start
         out = synthetic.synthesize(
-            args.out, trajectory=args.trajectory, n_frames=args.frames, width=args.size[0], height=args.size[1],
+            args.out, trajectory=trajectory, n_frames=args.frames, width=args.size[0], height=args.size[1],
             fps=args.fps, seed=args.seed, clean_depth=args.clean_depth, overwrite=args.force, mesh_voxel=args.mesh_voxel,
             start_time=start_time,
         )

@@ -4,7 +4,7 @@ TS-SLAM §IV-A "Metrics" (no numbered equations; tables `tab:scannet_track`, `ta
 `tab:syn`, `tab:ablation` report these numbers): ATE RMSE after Horn alignment, RPE RMSE over a
 fixed interval of 1 frame, Depth L1, Accuracy, Completion and Completion Ratio (5 cm) on meshes
 culled "with the same strategy as Co-SLAM".  Formulas follow the TUM RGB-D paper (Sturm et al.,
-IROS 2012) in its notation; the mesh protocol follows shared/spec/coslam.md §6.2-6.4.
+IROS 2012) in its notation; the mesh protocol follows Co-SLAM's ``cull_mesh.py`` and ``eval_recon.py`` (docs/evaluation.md).
 
 Layer: side (numpy, scipy, trimesh, torch; tsslam_ref.data only for the TUM file reader).  Taught in
 notebooks/08_evaluation.ipynb; protocol and deviations in docs/evaluation.md.
@@ -470,7 +470,7 @@ def cull_mesh(
     mesh: trimesh.Trimesh, poses_c2w, intrinsics, depths=None, occlusion_eps: float = OCCLUSION_EPS_M,
     frustum_only: bool = False, virtual_poses_c2w=None,
 ) -> trimesh.Trimesh:
-    """Remove the triangles no camera saw (Co-SLAM ``cull_mesh.py``, shared/spec/coslam.md §6.2).
+    """Remove the triangles no camera saw (Co-SLAM's ``neural_slam_eval/cull_mesh.py``).
 
     A triangle is kept if one of its vertices is in the frustum of some camera (OpenCV projection,
     0 <= u <= W-1, 0 <= v <= H-1, z > 0) and, unless ``frustum_only``, one vertex is also not

@@ -3,7 +3,7 @@
 TS-SLAM §III-A keeps Co-SLAM's multi-resolution hash grid V(x).  On two CPU cores the PyTorch fast
 path (``field._TrilinearLookup``) is memory-bound: it writes and re-reads an (8, L, N) index and an
 (8, L, N, F) block of gathered rows, so most of a mapping iteration goes to moving memory
-(shared/spec/cpu-budget.md).  ``csrc/hash_grid.cpp`` does hash + gather + trilinear interpolation
+(our measurements, docs/map.md).  ``csrc/hash_grid.cpp`` does hash + gather + trilinear interpolation
 per point in one pass and recomputes the rows in the backward instead of storing them.  Same
 formulas, same corner order; the values agree with the PyTorch paths to rounding
 (tests/test_field.py).

@@ -382,7 +382,7 @@ def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
 
     Both meshes are culled (frustum + occlusion, eval.cull_mesh) with the ground-truth cameras of
     every second frame, so that only what the sequence observed is compared (Co-SLAM culls with the
-    GT poses too, spec section 6.2; it also adds hand-picked virtual cameras, which we do not have).
+    GT poses too, in its ``cull_mesh.py``; it also adds hand-picked virtual cameras, which we do not have).
     """
     intrinsics = sequence.intrinsics
     camera = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height)

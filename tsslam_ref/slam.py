@@ -1,7 +1,7 @@
 """The SLAM system loop: track every frame, map on schedule, keep map, poses and keyframes.
 
 TS-SLAM Sec. III-D (Fig. 2) and, for the baseline, Co-SLAM's single-process schedule
-(shared/spec/coslam.md section 5.1):
+(its single-process ``coslam.py``):
 
 * frame 0: its pose is the ground-truth pose when known (Co-SLAM does the same so that the map
   lives in the dataset's world frame and the scene bound applies), else the identity; the map is
@@ -67,7 +67,7 @@ def tune_cpu_allocator() -> bool:
     """Keep freed buffers in the process instead of returning them to the OS (glibc only).
 
     The map's iterations allocate and free the same ~50 MB buffers again and again; with glibc's
-    defaults each is a fresh mmap that page-faults on first touch (shared/spec/cpu-budget.md:
+    defaults each is a fresh mmap that page-faults on first touch (measured on two cores, docs/map.md:
     20-40 % of an iteration).  Raising the mmap and trim thresholds (``mallopt``, the same as the
     ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` / ``MALLOC_TOP_PAD_`` environment
     variables) avoids that.  Process-wide, so only the command-line entry points call it.

@@ -86,7 +86,7 @@ _FIRST_SEGMENT_OFFSET = {"paper": 2, "basalt": 0}
 """Knot index of the first valid time: segment i uses control points i − offset .. i − offset + 3."""
 
 _ROTATION_JUMP_WARN = 0.5 * math.pi
-"""Consecutive control rotations further apart than this (rad) are suspicious (spec §6): the
+"""Consecutive control rotations further apart than this (rad) are suspicious: the
 principal Log flips sign at π, so the spline becomes discontinuous in its control points."""
 
 TimesLike = Union[float, np.ndarray, torch.Tensor]
@@ -578,7 +578,7 @@ def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "pa
     """(N,) float64 time at which each control point dominates the curve (its basis peak).
 
     paper: t_{k+1} = t0 + (k+1)Δt; basalt: t_{k−1}.  Initialising R_k, t_k from the pose at these
-    times avoids the one-Δt lag of spec §2.3.
+    times avoids a one-Δt lag (docs/spline.md).
     """
     offset = _check_convention(convention)
     return float(t0) + dt * (np.arange(n_ctrl, dtype=np.float64) + offset - 1)
@@ -631,7 +631,7 @@ def fit_control_points(
 
     Initialisation (when no init is given): :func:`initial_control_points_from_poses`, i.e. each
     control point from the pose at the time it dominates (paper: t_{k+1}), not at its own knot
-    time t_k, which would make the curve lag by one Δt (spec §2.3).
+    time t_k, which would make the curve lag by one Δt (docs/spline.md).
 
     Args:
         times: (K,) float64 seconds, all inside the spline domain.

@@ -1,7 +1,7 @@
 // Multi-resolution hash-grid lookup on the CPU: hash + gather + trilinear interpolation in one pass.
 //
 // The compiled twin of HashGridEncoding._encode_fast in tsslam_ref/field.py (TS-SLAM Sec. III-A,
-// Co-SLAM's parametric encoding V(x); tiny-cuda-nn grid.h level geometry, spec coslam.md 1.3).
+// Co-SLAM's parametric encoding V(x); tiny-cuda-nn grid.h level geometry).
 // Built on first use by tsslam_ref/hash_kernel.py with torch.utils.cpp_extension; tested against
 // the PyTorch paths and finite differences in tests/test_field.py.
 //

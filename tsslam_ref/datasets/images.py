@@ -1,6 +1,6 @@
 """Reading colour and 16-bit depth images; crop and resize with the pixel-centre convention.
 
-Co-SLAM dataset code (shared/spec/coslam.md section 7: colour /255, depth PNG / depth scale,
+Co-SLAM dataset code (``datasets/dataset.py``: colour /255, depth PNG / depth scale,
 colour resized to the depth size).  Side layer.  Taught in notebooks/00_data_and_cameras.ipynb.
 
 Resizing uses PIL, whose sampling grid maps image edges onto edges (pixel centres at integers,

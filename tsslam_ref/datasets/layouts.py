@@ -2,7 +2,7 @@
 
 TS-SLAM §IV-A "Datasets" evaluates on TUM RGB-D, ScanNet and the NeuralRGBD synthetic scenes
 (Co-SLAM adds Replica); the layouts, intrinsics and depth scales follow Co-SLAM's
-``datasets/dataset.py`` @3bb904e as recorded in shared/spec/coslam.md section 7, plus a generic
+``datasets/dataset.py`` @3bb904e (docs/data.md lists where we differ), plus a generic
 folder layout of ours.  Side layer.
 Formats are documented in docs/data.md; taught in notebooks/00_data_and_cameras.ipynb.
 
