@@ -110,7 +110,15 @@ def test_tum_rows_round_trip_and_pose_helpers():
     assert torch.allclose(geometry.invert_pose(T) @ T, torch.eye(4, dtype=F64).expand(6, 4, 4), atol=1e-12)
     rotvec = torch.as_tensor(Rotation.from_matrix(poses[:, :3, :3]).as_rotvec())
     assert torch.allclose(geometry.pose_from_rotvec(rotvec, T[:, :3, 3]), T, atol=1e-12)
-    assert torch.allclose(geometry.rotation_angle(T[:, :3, :3]), rotvec.norm(dim=-1), atol=1e-12)
+    np.testing.assert_allclose(geometry.rotation_angle_deg(poses[:, :3, :3]), np.degrees(rotvec.norm(dim=-1).numpy()), atol=1e-10)
+
+
+def test_rotation_angle_is_accurate_near_zero_and_pi():
+    angles = np.array([1e-9, 1e-5, 0.3, np.pi - 1e-7, np.pi])
+    axes = np.random.default_rng(7).normal(size=(5, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    matrices = Rotation.from_rotvec(axes * angles[:, None]).as_matrix()
+    np.testing.assert_allclose(geometry.rotation_angle_deg(matrices), np.degrees(angles), rtol=1e-6, atol=1e-12)
 
 
 def test_opengl_opencv_flip_is_an_involution_that_flips_y_and_z():

@@ -214,6 +214,20 @@ def opengl_to_opencv_pose(pose_gl: np.ndarray) -> np.ndarray:
 opencv_to_opengl_pose = opengl_to_opencv_pose
 
 
-def rotation_angle(rotation: torch.Tensor) -> torch.Tensor:
-    """Angle in radians of rotations (..., 3, 3), computed through Log (stable near 0 and pi)."""
-    return torch.linalg.vector_norm(so3_log(rotation), dim=-1)
+def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
+    """Angle |Log(R)| in degrees of (..., 3, 3) rotations, atan2 form (accurate near 0 and pi).
+
+    angle = atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2).
+    """
+    rotations = np.asarray(rotations, np.float64)
+    skew_part = np.stack(
+        [
+            rotations[..., 2, 1] - rotations[..., 1, 2],
+            rotations[..., 0, 2] - rotations[..., 2, 0],
+            rotations[..., 1, 0] - rotations[..., 0, 1],
+        ],
+        -1,
+    )
+    sin_angle = 0.5 * np.linalg.norm(skew_part, axis=-1)
+    cos_angle = 0.5 * (np.trace(rotations, axis1=-2, axis2=-1) - 1.0)
+    return np.degrees(np.arctan2(sin_angle, cos_angle))
