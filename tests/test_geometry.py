@@ -142,3 +142,16 @@ def test_orthonormalize_projects_onto_so3_and_keeps_rotations():
     # nearest in Frobenius norm: no other rotation close by is nearer
     for candidate in (so3_exp(0.01 * torch.randn(5, 3, generator=generator, dtype=torch.float64)) @ projected,):
         assert torch.all((candidate - noisy).norm(dim=(1, 2)) >= (projected - noisy).norm(dim=(1, 2)) - 1e-12)
+
+
+def test_pixel_to_ray_is_the_inverse_intrinsic_matrix_for_numpy_and_torch():
+    """Oracle: np.linalg.inv(K) @ [u, v, 1] with K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
+    fx, fy, cx, cy = 517.3, 516.5, 318.6, 255.3
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(11)
+    u, v = rng.uniform(0, 640, 50), rng.uniform(0, 480, 50)
+    expected = (np.linalg.inv(K) @ np.stack([u, v, np.ones_like(u)])).T  # (50, 3)
+    np.testing.assert_allclose(geometry.pixel_to_ray(u, v, fx, fy, cx, cy), expected, rtol=1e-12, atol=1e-15)
+    rays = geometry.pixel_to_ray(torch.as_tensor(u), torch.as_tensor(v), fx, fy, cx, cy)
+    assert isinstance(rays, torch.Tensor) and rays.shape == (50, 3)
+    np.testing.assert_allclose(rays.numpy(), expected, rtol=1e-12, atol=1e-15)

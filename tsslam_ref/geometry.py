@@ -129,6 +129,19 @@ def invert_pose(pose: torch.Tensor) -> torch.Tensor:
     return make_pose(rotation_t, translation)
 
 
+def pixel_to_ray(u, v, fx, fy, cx, cy):
+    """Camera-frame ray K^-1 [u, v, 1]^T = ((u - cx) / fx, (v - cy) / fy, 1) through pixel (u, v).
+
+    OpenCV axes (z forward), so a point at depth z on pixel (u, v) is z times the ray.  u is the
+    column, v the row; pixel centres sit at integer coordinates.  Works on numpy arrays or torch
+    tensors (``u`` decides which) of any matching shape; fx, fy, cx, cy are numbers or arrays of
+    that shape.  -> (..., 3).
+    """
+    if isinstance(u, torch.Tensor):
+        return torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)
+    return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
+
+
 def pose_from_rotvec(rotvec: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
     """(..., 3) rotation vector and (..., 3) translation -> (..., 4, 4) pose."""
     return make_pose(so3_exp(rotvec), translation)

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from .config import Config, MappingConfig
+from .geometry import pixel_to_ray
 from .losses import render_loss
 from .render import RayBatch, _as_tensor, _intrinsic_values
 
@@ -80,8 +81,7 @@ class FramePixels:
         rows = pixel // inner_w + ignore_edge
         cols = pixel % inner_w + ignore_edge
         fx, fy, cx, cy = self.intrinsics[frame_ids].unbind(-1)
-        u, v = cols.to(fx.dtype), rows.to(fx.dtype)
-        directions = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)  # (R, 3)
+        directions = pixel_to_ray(cols.to(fx.dtype), rows.to(fx.dtype), fx, fy, cx, cy)  # (R, 3)
         return RayBatch(
             directions_cam=directions,
             rgb=self.rgb[frame_ids, rows, cols],
@@ -153,7 +153,7 @@ def backproject_depth(frame, pose, stride: int = 1, max_depth: Optional[float] =
     valid = depth > 0 if max_depth is None else (depth > 0) & (depth < max_depth)
     rows, cols = np.nonzero(valid)
     z = depth[rows, cols]
-    points_cam = np.stack([(cols * stride - cx) / fx * z, (rows * stride - cy) / fy * z, z], axis=-1)
+    points_cam = pixel_to_ray(cols * stride, rows * stride, fx, fy, cx, cy) * z[:, None]  # (M, 3)
     pose = np.asarray(pose, dtype=np.float64)
     return points_cam @ pose[:3, :3].T + pose[:3, 3]
 

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from .config import RenderConfig
+from .geometry import pixel_to_ray
 
 # Guard added to the weight sum before normalising (Co-SLAM sdf2weights); prevents 0/0 on rays
 # whose every sample was cut.
@@ -116,9 +117,7 @@ def pixel_directions(rows: torch.Tensor, cols: torch.Tensor, intrinsics) -> torc
     """
     fx, fy, cx, cy = _intrinsic_values(intrinsics)
     dtype = rows.dtype if rows.is_floating_point() else torch.float32
-    u = cols.to(dtype)
-    v = rows.to(dtype)
-    return torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)  # (R, 3)
+    return pixel_to_ray(cols.to(dtype), rows.to(dtype), fx, fy, cx, cy)  # (R, 3)
 
 
 def sample_pixels(

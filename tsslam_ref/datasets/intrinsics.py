@@ -30,6 +30,8 @@ from typing import Optional
 
 import numpy as np
 
+from tsslam_ref.geometry import pixel_to_ray
+
 INTRINSICS_JSON = "intrinsics.json"
 """Calibration file of the generic folder layout (also read in a TUM-layout folder)."""
 CALIBRATION_TXT = "calibration.txt"
@@ -200,7 +202,7 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
         (H, W, 3) float64, OpenCV camera axes; a point at depth z on pixel (u, v) is z * ray[v, u].
     """
     v, u = np.mgrid[: intrinsics.height, : intrinsics.width].astype(np.float64)  # (H, W) each
-    return np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones_like(u)], -1)
+    return pixel_to_ray(u, v, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
 
 
 def back_project(depth: np.ndarray, intrinsics: Intrinsics, pose_c2w: Optional[np.ndarray] = None) -> np.ndarray:
