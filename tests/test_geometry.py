@@ -109,7 +109,7 @@ def test_tum_rows_round_trip_and_pose_helpers():
     T = torch.as_tensor(poses)
     assert torch.allclose(geometry.invert_pose(T) @ T, torch.eye(4, dtype=F64).expand(6, 4, 4), atol=1e-12)
     rotvec = torch.as_tensor(Rotation.from_matrix(poses[:, :3, :3]).as_rotvec())
-    assert torch.allclose(geometry.pose_from_rotvec(rotvec, T[:, :3, 3]), T, atol=1e-12)
+    assert torch.allclose(geometry.make_pose(geometry.so3_exp(rotvec), T[:, :3, 3]), T, atol=1e-12)
     np.testing.assert_allclose(geometry.rotation_angle_deg(poses[:, :3, :3]), np.degrees(rotvec.norm(dim=-1).numpy()), atol=1e-10)
 
 

@@ -9,7 +9,8 @@ OneBlob coordinate encoding gamma(x) and a multi-resolution hash grid V(x) feedi
 
 ``s`` is Co-SLAM's *normalised* SDF: metric SDF = s * tr (shared/spec/coslam.md section 1.4).
 
-Layer 1 (math and map): imports torch and config only; knows nothing about rays or cameras.
+Layer 1 (math and map): imports torch, ``config`` and ``hash_kernel`` (the optional compiled hash-grid
+kernel); knows nothing about rays or cameras.
 Taught in notebooks/03_scene_representation.ipynb.
 
 Glossary
@@ -266,7 +267,6 @@ class HashGridEncoding(nn.Module):
         self.register_buffer("scales", torch.tensor(scales, dtype=torch.float64), persistent=False)
         self.register_buffer("resolutions", torch.tensor(resolutions), persistent=False)
         self.register_buffer("sizes", torch.tensor(sizes), persistent=False)
-        self.register_buffer("dense", torch.tensor(dense), persistent=False)
         self.register_buffer("offsets", torch.tensor(offsets[:-1]), persistent=False)
 
     @property

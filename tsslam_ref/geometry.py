@@ -142,11 +142,6 @@ def pixel_to_ray(u, v, fx, fy, cx, cy):
     return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
 
 
-def pose_from_rotvec(rotvec: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
-    """(..., 3) rotation vector and (..., 3) translation -> (..., 4, 4) pose."""
-    return make_pose(so3_exp(rotvec), translation)
-
-
 def quaternion_xyzw_to_matrix(quaternion: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4) in (qx, qy, qz, qw) order -> rotation matrices (..., 3, 3).
 

@@ -90,16 +90,6 @@ class FramePixels:
         )
 
 
-def sample_rays_from_frames(
-    frames: Sequence, n_rays: int, generator: Optional[torch.Generator] = None, device=None, ignore_edge: int = 0
-) -> RayBatch:
-    """n_rays rays uniformly over the frames' pixels; ``frame_ids`` = position in ``frames``.
-
-    Directions follow :func:`tsslam_ref.render.pixel_directions` (OpenCV, z = 1).
-    """
-    return FramePixels(frames, device).sample(n_rays, generator, ignore_edge)
-
-
 def fit_map(
     field,
     optimizer: torch.optim.Optimizer,
