@@ -6,7 +6,7 @@ The metrics live in :mod:`tsslam_ref.trajectory_metrics` (association, Horn alig
 and :mod:`tsslam_ref.reconstruction_metrics` (culling, Accuracy / Completion, Depth L1); this
 module re-exports their public names, so ``eval.ate(...)`` and ``eval.mesh_metrics(...)`` work.
 
-Layer: side (reads TUM files with :mod:`tsslam_ref.data`).  Taught in notebooks/08_evaluation.ipynb;
+Side layer (reads TUM files with :mod:`tsslam_ref.data`).  Taught in notebooks/08_evaluation.ipynb;
 protocol and deviations in docs/evaluation.md.
 """
 

@@ -7,7 +7,7 @@ Co-SLAM does this for frame 0 (spec section 5.2: ``first_iters`` iterations of
 Adam for the whole run (spec section 5.6).  The same function maps a sequence with ground-truth
 poses, which separates map quality from tracking quality.
 
-Layer 2/3: imports config, render and losses; not tracking or BA.
+Layer 2 (objective): imports config, geometry, render and losses; not tracking or BA.
 Taught in notebooks/04_rendering_and_losses.ipynb.
 
 Glossary

@@ -4,7 +4,7 @@ TS-SLAM §IV-A "Metrics" (table `tab:syn`): Depth L1, Accuracy, Completion and C
 (5 cm) on meshes culled "with the same strategy as Co-SLAM" (Co-SLAM's ``cull_mesh.py`` and
 ``eval_recon.py``).  A small z-buffer rasteriser stands in for Co-SLAM's pyrender depth.
 
-Layer: side (numpy, scipy, trimesh; input conversion from :mod:`tsslam_ref.trajectory_metrics`).
+Side layer (numpy, scipy, trimesh; input conversion from :mod:`tsslam_ref.trajectory_metrics`).
 Taught in notebooks/08_evaluation.ipynb; protocol and deviations in docs/evaluation.md;
 ``python -m tsslam_ref.eval mesh`` is the command line.
 

@@ -5,7 +5,8 @@ TS-SLAM §III-B, Eq. (5) ``eq:bspline_p`` (translation), Eq. (6) ``eq:bspline_r`
 ``eq_rot_jeck`` (the ω / ω̇ recursion).  Curve approximation, §III-D Eq. (11), is in
 :mod:`tsslam_ref.spline_fit`.
 
-Layer 1 (math).  Imports layer 0 (``geometry``) only.  Taught in notebooks/01_bspline_trajectory.ipynb.
+Layer 1 (math).  Imports layer 0 (``geometry``); looks the names moved to ``spline_fit`` up there
+on first use.  Taught in notebooks/01_bspline_trajectory.ipynb.
 Sources: Sommer et al. 2020 "Efficient derivative computation for cumulative B-splines on Lie groups";
 basalt-headers ``so3_spline.h`` / ``rd_spline.h`` @a585db3 (same recursion, body frame).  docs/spline.md is the user doc;
 the conformance kit's reference (tsslam_ref/assets/spline_kit.md) lists formulas and golden values.

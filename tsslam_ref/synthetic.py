@@ -1,8 +1,8 @@
 """A procedural indoor room (analytic SDF + smooth texture) rendered along real or built-in motion.
 
 Synthetic data for TS-SLAM experiments (paper §IV-A uses the NeuralRGBD synthetic scenes; this is a
-small, license-free stand-in with exact ground truth).  Side layer: imports layer 0 and
-:mod:`tsslam_ref.data` readers/writers.  Documented in docs/data.md; taught in
+small, license-free stand-in with exact ground truth).  Side layer: imports the
+:mod:`tsslam_ref.datasets` camera model and TUM readers/writers.  Documented in docs/data.md; taught in
 notebooks/00_data_and_cameras.ipynb.
 
 * **Scene.** World frame z up, metres.  A 4 x 3 x 2.5 m room seen from inside

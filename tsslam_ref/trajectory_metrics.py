@@ -4,7 +4,7 @@ TS-SLAM §IV-A "Metrics" (tables `tab:scannet_track`, `tab:tum_track`, `tab:syn`
 ATE RMSE after Horn alignment and RPE RMSE over a fixed interval of 1 frame.  Formulas follow the
 TUM RGB-D paper (Sturm et al., IROS 2012) in its notation.
 
-Layer: side (numpy; torch only to read tensors; :mod:`tsslam_ref.geometry` for pose inversion and
+Side layer (numpy; torch only to read tensors; :mod:`tsslam_ref.geometry` for pose inversion and
 rotation angles).  Taught in notebooks/08_evaluation.ipynb; protocol and deviations in
 docs/evaluation.md; ``python -m tsslam_ref.eval trajectory`` is the command line.
 

@@ -1,7 +1,7 @@
 """Pinhole intrinsics with exact crop and resize updates; calibration files.
 
 TS-SLAM §III-A Eq. (2) ``eq:cal_ray`` (x = t + d R K^-1 [u, v, 1]^T, the pixel ray) and §IV-A
-(datasets); Co-SLAM's dataset code (shared/spec/coslam.md section 7).  Side layer.
+(datasets); Co-SLAM's dataset code.  Side layer: imports ``geometry`` (the pixel ray).
 Taught in notebooks/00_data_and_cameras.ipynb.
 
 Pixel convention (used everywhere in tsslam_ref): **pixel centres lie at integer coordinates**.
