@@ -14,9 +14,8 @@ Conventions used everywhere in tsslam_ref
 * **Quaternions** in files (TUM format) are ``(qx, qy, qz, qw)``, scalar last.
 
 SO(3) Exp/Log go through kornia's ``axis_angle_to_rotation_matrix`` and
-``rotation_matrix_to_axis_angle`` (quaternion based): shared/spec/spline.md section 4 measured them
-stable at 0 and near pi in float32 and float64, with finite gradients at exactly 0 and a passing
-gradcheck.  The wrappers here add batching over any leading shape.
+``rotation_matrix_to_axis_angle`` (quaternion based): stable at 0 and near pi in float32 and
+float64, with finite gradients at exactly 0 (tests/test_geometry.py checks both and a gradcheck).  The wrappers here add batching over any leading shape.
 
 Glossary
 

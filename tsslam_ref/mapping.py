@@ -2,9 +2,9 @@
 
 TS-SLAM §III-A (``sec:rep_secene``): "once f_theta converges, the construction of the map is
 complete"; the map parameters theta minimise Eq. (4) (``eq:lossfuc``) over rays of posed frames.
-Co-SLAM does this for frame 0 (spec section 5.2: ``first_iters`` iterations of
+Co-SLAM does this for frame 0 (``coslam.py``, first-frame mapping: ``first_iters`` iterations of
 ``mapping.first_n_rays`` rays drawn from the whole frame, pose fixed, no smoothness term) with one
-Adam for the whole run (spec section 5.6).  The same function maps a sequence with ground-truth
+Adam for the whole run.  The same function maps a sequence with ground-truth
 poses, which separates map quality from tracking quality.
 
 Layer 2 (objective): imports config, geometry, render and losses; not tracking or BA.
@@ -28,15 +28,15 @@ from .geometry import pixel_to_ray
 from .losses import render_loss
 from .render import RayBatch, _as_tensor, _intrinsic_values
 
-# Adam betas of Co-SLAM's map optimiser (spec section 5.6).
+# Adam betas of Co-SLAM's map optimiser (``coslam.py``).
 MAP_ADAM_BETAS = (0.9, 0.99)
 
 
 def make_map_optimizer(field, mapping_cfg: MappingConfig) -> torch.optim.Adam:
     """Adam over the field: decoder lr_decoder + weight decay 1e-6, grid lr_embed + eps 1e-15.
 
-    ``fused=True`` where the parameters' device and dtype allow it (much faster on CPU,
-    shared/spec/cpu-budget.md); otherwise the default implementation.
+    ``fused=True`` where the parameters' device and dtype allow it (much faster on CPU); otherwise
+    the default implementation.
     """
     groups = field.parameter_groups(mapping_cfg)
     try:

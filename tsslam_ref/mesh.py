@@ -1,6 +1,6 @@
 """Marching-cubes meshes of the field's zero level set, with vertex colours.
 
-Co-SLAM section 6.1 (shared/spec/coslam.md): the normalised SDF is queried on a regular grid over
+Co-SLAM's ``utils.extract_mesh`` (from NeuralRGBD): the normalised SDF is queried on a regular grid over
 the box (N_axis = round(extent / voxel + 0.0005) cells per axis, chunks of 65,536 points), and
 marching cubes extracts the iso-0 surface; cells where a corner has |s| >= 3 (3 tr) are skipped,
 which removes spurious surfaces far from anything observed.  Vertex colours come from the

@@ -6,7 +6,7 @@ at x_i = t + d_i R K^-1 [u, v, 1]^T, and Eq. (3) renders colour and depth as wei
     c_hat = sum_i w_i c_i / sum_j w_j,     d_hat = sum_i w_i d_i / sum_j w_j,
     w_i   = sigmoid(s_i / tr) * sigmoid(-s_i / tr)
 
-with two Co-SLAM details kept (shared/spec/coslam.md sections 2.2-2.4): s_i is the *normalised*
+with two Co-SLAM details kept (``render_rays``, ``sdf2weights``): s_i is the *normalised*
 SDF (so in metric terms the logistic scale is tr^2, "double scaling"), and every weight beyond
 z_min + tr is cut, where z_min is the sample just before the first sign change of s.
 
@@ -198,7 +198,7 @@ def rays_to_world(directions_cam: torch.Tensor, c2w: torch.Tensor) -> Tuple[torc
 def sample_along_rays(
     target_depth: torch.Tensor, cfg: RenderConfig, generator: Optional[torch.Generator] = None
 ) -> torch.Tensor:
-    """Depths of the S = n_range_d + n_samples samples of each ray, sorted (spec section 2.2).
+    """Depths of the S = n_range_d + n_samples samples of each ray, sorted (Co-SLAM's ``render_rays``).
 
     n_range_d samples evenly in [D - range_d, D + range_d] (in [near, far] where D <= 0), plus
     n_samples evenly in [near, far]; sorted; with ``cfg.perturb`` each sample is redrawn
@@ -245,7 +245,8 @@ def sdf_to_weights(sdf: torch.Tensor, z_vals: torch.Tensor, truncation: float) -
         (R, S) weights; each row sums to 1 unless every weight underflowed.
 
     Differs from: the paper's formula reads s as metric; with Co-SLAM's normalised s this is a
-    double scaling (metric logistic scale tr^2), kept on purpose (spec section 2.3).
+    double scaling (metric logistic scale tr^2), kept as Co-SLAM's ``sdf2weights`` has it
+    (docs/map.md).
     """
     weights = torch.sigmoid(sdf / truncation) * torch.sigmoid(-sdf / truncation)  # (R, S)
     sign_change = (sdf[:, 1:] * sdf[:, :-1] < 0).to(sdf.dtype)  # (R, S - 1)

@@ -87,7 +87,7 @@ _FIRST_SEGMENT_OFFSET = {"paper": 2, "basalt": 0}
 """Knot index of the first valid time: segment i uses control points i − offset .. i − offset + 3."""
 
 _ROTATION_JUMP_WARN = 0.5 * math.pi
-"""Consecutive control rotations further apart than this (rad) are suspicious (spec §6): the
+"""Consecutive control rotations further apart than this (rad) are suspicious: the
 principal Log flips sign at π, so the spline becomes discontinuous in its control points."""
 
 TimesLike = Union[float, np.ndarray, torch.Tensor]

@@ -23,7 +23,7 @@ def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "pa
     """(N,) float64 time at which each control point dominates the curve (its basis peak).
 
     paper: t_{k+1} = t0 + (k+1)Δt; basalt: t_{k−1}.  Initialising R_k, t_k from the pose at these
-    times avoids the one-Δt lag of spec §2.3.
+    times avoids a one-Δt lag of the curve (docs/spline.md).
     """
     offset = _check_convention(convention)
     return float(t0) + dt * (np.arange(n_ctrl, dtype=np.float64) + offset - 1)
@@ -76,7 +76,7 @@ def fit_control_points(
 
     Initialisation (when no init is given): :func:`initial_control_points_from_poses`, i.e. each
     control point from the pose at the time it dominates (paper: t_{k+1}), not at its own knot
-    time t_k, which would make the curve lag by one Δt (spec §2.3).
+    time t_k, which would make the curve lag by one Δt.
 
     Args:
         times: (K,) float64 seconds, all inside the spline domain.
