@@ -112,17 +112,33 @@ def fit_control_points(
     target_R = target_poses[:, :3, :3].detach().to(work)
     target_p = target_poses[:, :3, 3].detach().to(work)
     free = (~fixed).nonzero().reshape(-1)  # (F,)
-    n_free = free.shape[0]
-    if n_free == 0:
-        return rotations.to(out_dtype), translations.to(out_dtype)
+    if free.shape[0] > 0:
+
+        def residuals(rotations: torch.Tensor, translations: torch.Tensor, increments: torch.Tensor) -> torch.Tensor:
+            """Control points and (F, 6) increments [δ, τ] of the free ones -> (K*6,) stacked
+            rotation and translation residuals."""
+            R = rotations.index_copy(0, free, so3_exp(increments[:, :3]) @ rotations[free])
+            p = translations.index_copy(0, free, translations[free] + increments[:, 3:])
+            sample = evaluate_segments(R, p, first, u, dt, 0)
+            rot_res = so3_log(target_R.transpose(-1, -2) @ sample.rotation)  # (K, 3)
+            return torch.cat([rot_res, target_p - sample.translation], dim=-1).reshape(-1)
+
+        rotations, translations = _levenberg_marquardt(residuals, rotations, translations, free, iters, tolerance)
+    return rotations.to(out_dtype), translations.to(out_dtype)
+
+
+def _levenberg_marquardt(residual_fn, rotations: torch.Tensor, translations: torch.Tensor, free: torch.Tensor,
+                         iters: int, tolerance: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Levenberg-Marquardt over the free control points' increments, left increments on SO(3).
+
+    ``residual_fn(rotations, translations, increments (F, 6))`` -> (K*6,).  Damping starts at 1e-6
+    (times diag(JᵀJ) + 1e-9 I), x10 on a rejected step, /10 on an accepted one; stops after
+    ``iters`` steps, when no step lowers the cost, or when the step norm is below ``tolerance``.
+    """
+    work, device, n_free = rotations.dtype, rotations.device, free.shape[0]
 
     def residuals(increments: torch.Tensor) -> torch.Tensor:
-        """(F, 6) increments [δ, τ] -> (K*6,) stacked rotation and translation residuals."""
-        R = rotations.index_copy(0, free, so3_exp(increments[:, :3]) @ rotations[free])
-        p = translations.index_copy(0, free, translations[free] + increments[:, 3:])
-        sample = evaluate_segments(R, p, first, u, dt, 0)
-        rot_res = so3_log(target_R.transpose(-1, -2) @ sample.rotation)  # (K, 3)
-        return torch.cat([rot_res, target_p - sample.translation], dim=-1).reshape(-1)
+        return residual_fn(rotations, translations, increments)
 
     damping = 1e-6
     zero = torch.zeros(n_free, 6, dtype=work, device=device)
@@ -145,7 +161,7 @@ def fit_control_points(
         translations = translations.index_copy(0, free, translations[free] + step[:, 3:])
         if float(torch.linalg.vector_norm(step)) < tolerance:
             break
-    return rotations.to(out_dtype), translations.to(out_dtype)
+    return rotations, translations
 
 
 def fit_trajectory(
