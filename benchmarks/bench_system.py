@@ -11,7 +11,7 @@ Prints, in the form of the paper's tables:
   the paper's schedule without our map update between intervals (``mapping.tsslam_map_every=0``)
   and a dt sweep (paper Table V);
 * a control row that is not a SLAM method: the spline of the preset's dt fitted offline to the
-  baseline's final trajectory (:func:`tsslam_ref.spline.fit_trajectory`).  It asks whether the
+  baseline's final trajectory (:func:`tsslam_ref.spline_fit.fit_trajectory`).  It asks whether the
   spline helps because TS-SLAM learns it with the map, or only because it smooths.
 
     python benchmarks/bench_system.py                              # bundled TUM slice, tum-cpu
@@ -35,7 +35,7 @@ from typing import Dict, List
 import numpy as np
 import torch
 
-from tsslam_ref import config, data, slam, spline
+from tsslam_ref import config, data, slam, spline_fit
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
 
 
@@ -51,7 +51,7 @@ def metrics_cm(sequence, timestamps: np.ndarray, poses: np.ndarray) -> Dict[str,
 
 def spline_fit_control(sequence, result: slam.SLAMResult, dt: float) -> Dict[str, float]:
     """Metrics of the spline (knot spacing ``dt``) fitted to a finished run's output poses."""
-    fitted = spline.fit_trajectory(result.timestamps, torch.as_tensor(result.poses, dtype=torch.float64), dt)
+    fitted = spline_fit.fit_trajectory(result.timestamps, torch.as_tensor(result.poses, dtype=torch.float64), dt)
     return metrics_cm(sequence, result.timestamps, fitted.pose(result.timestamps).numpy())
 
 

@@ -218,10 +218,10 @@ def test_cli_check_malformed_files_exit_2(tmp_path, capsys):
     assert "'R'" in capsys.readouterr().err
 
 
-def test_module_entry_point_runs_as_python_dash_m(tmp_path):
+def test_kit_runs_as_python_dash_m(tmp_path):
     source = _input_only(VECTOR_DIR / "basalt_golden_dt0.5.json", tmp_path)
     output = tmp_path / "out.json"
-    command = [sys.executable, "-m", "tsslam_ref.spline", "evaluate", str(source), "-o", str(output)]
+    command = [sys.executable, "-m", "tsslam_ref.spline_kit", "evaluate", str(source), "-o", str(output)]
     result = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert spline_kit.main(["check", str(VECTOR_DIR / "basalt_golden_dt0.5.json"), str(output)]) == 0

@@ -180,14 +180,6 @@ def test_rpe_sees_a_single_translation_jump_and_a_single_rotation_jump(fr2_desk)
     assert np.count_nonzero(result["trans_errors_m"] > 1e-9) == 1
 
 
-def test_rotation_angle_is_accurate_near_zero_and_pi():
-    angles = np.array([1e-9, 1e-5, 0.3, np.pi - 1e-7, np.pi])
-    axes = np.random.default_rng(7).normal(size=(5, 3))
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    matrices = Rotation.from_rotvec(axes * angles[:, None]).as_matrix()
-    np.testing.assert_allclose(ev.rotation_angle_deg(matrices), np.degrees(angles), rtol=1e-6, atol=1e-12)
-
-
 # ------------------------------------------------------------------------------------------
 # Cross-check against evo
 

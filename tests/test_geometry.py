@@ -109,8 +109,16 @@ def test_tum_rows_round_trip_and_pose_helpers():
     T = torch.as_tensor(poses)
     assert torch.allclose(geometry.invert_pose(T) @ T, torch.eye(4, dtype=F64).expand(6, 4, 4), atol=1e-12)
     rotvec = torch.as_tensor(Rotation.from_matrix(poses[:, :3, :3]).as_rotvec())
-    assert torch.allclose(geometry.pose_from_rotvec(rotvec, T[:, :3, 3]), T, atol=1e-12)
-    assert torch.allclose(geometry.rotation_angle(T[:, :3, :3]), rotvec.norm(dim=-1), atol=1e-12)
+    assert torch.allclose(geometry.make_pose(geometry.so3_exp(rotvec), T[:, :3, 3]), T, atol=1e-12)
+    np.testing.assert_allclose(geometry.rotation_angle_deg(poses[:, :3, :3]), np.degrees(rotvec.norm(dim=-1).numpy()), atol=1e-10)
+
+
+def test_rotation_angle_is_accurate_near_zero_and_pi():
+    angles = np.array([1e-9, 1e-5, 0.3, np.pi - 1e-7, np.pi])
+    axes = np.random.default_rng(7).normal(size=(5, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    matrices = Rotation.from_rotvec(axes * angles[:, None]).as_matrix()
+    np.testing.assert_allclose(geometry.rotation_angle_deg(matrices), np.degrees(angles), rtol=1e-6, atol=1e-12)
 
 
 def test_opengl_opencv_flip_is_an_involution_that_flips_y_and_z():
@@ -134,3 +142,16 @@ def test_orthonormalize_projects_onto_so3_and_keeps_rotations():
     # nearest in Frobenius norm: no other rotation close by is nearer
     for candidate in (so3_exp(0.01 * torch.randn(5, 3, generator=generator, dtype=torch.float64)) @ projected,):
         assert torch.all((candidate - noisy).norm(dim=(1, 2)) >= (projected - noisy).norm(dim=(1, 2)) - 1e-12)
+
+
+def test_pixel_to_ray_is_the_inverse_intrinsic_matrix_for_numpy_and_torch():
+    """Oracle: np.linalg.inv(K) @ [u, v, 1] with K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
+    fx, fy, cx, cy = 517.3, 516.5, 318.6, 255.3
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(11)
+    u, v = rng.uniform(0, 640, 50), rng.uniform(0, 480, 50)
+    expected = (np.linalg.inv(K) @ np.stack([u, v, np.ones_like(u)])).T  # (50, 3)
+    np.testing.assert_allclose(geometry.pixel_to_ray(u, v, fx, fy, cx, cy), expected, rtol=1e-12, atol=1e-15)
+    rays = geometry.pixel_to_ray(torch.as_tensor(u), torch.as_tensor(v), fx, fy, cx, cy)
+    assert isinstance(rays, torch.Tensor) and rays.shape == (50, 3)
+    np.testing.assert_allclose(rays.numpy(), expected, rtol=1e-12, atol=1e-15)

@@ -8,7 +8,7 @@ import torch
 from tsslam_ref import config
 from tsslam_ref.config import FieldConfig
 from tsslam_ref.field import SceneField
-from tsslam_ref.geometry import pose_from_rotvec
+from tsslam_ref.geometry import make_pose, so3_exp
 from tsslam_ref.losses import reconstruction_losses, render_loss, smoothness_lattice, smoothness_loss
 from tsslam_ref.render import RayBatch, pixel_directions, sample_pixels
 
@@ -95,7 +95,7 @@ def test_render_loss_pose_gradient_matches_central_differences():
     params = torch.tensor([0.02, -0.03, 0.01, 0.0517, -0.0213, 0.1234], dtype=torch.float64)
 
     def loss_of(p):
-        return render_loss(field, rays, pose_from_rotvec(p[:3], p[3:]), cfg)[0]
+        return render_loss(field, rays, make_pose(so3_exp(p[:3]), p[3:]), cfg)[0]
 
     p = params.clone().requires_grad_(True)
     loss_of(p).backward()

@@ -10,7 +10,7 @@ import torch
 from tsslam_ref import config
 from tsslam_ref.eval import cull_mesh, mesh_metrics
 from tsslam_ref.field import SceneField
-from tsslam_ref.mapping import estimate_bound, fit_map, make_map_optimizer, sample_rays_from_frames
+from tsslam_ref.mapping import FramePixels, estimate_bound, fit_map, make_map_optimizer
 from tsslam_ref.mesh import extract_mesh
 from tsslam_ref.render import render_image
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
@@ -37,9 +37,9 @@ def test_map_optimizer_uses_coslam_adam_settings():
     assert optimizer.defaults.get("fused") in (True, None)
 
 
-def test_sample_rays_from_frames_uniform_over_frames_and_consistent_targets():
+def test_frame_pixels_sample_uniform_over_frames_and_consistent_targets():
     frames = [_plane_frame(fill=0.1 * k) for k in range(3)]
-    rays = sample_rays_from_frames(frames, 1200, torch.Generator().manual_seed(0), "cpu", ignore_edge=2)
+    rays = FramePixels(frames, "cpu").sample(1200, torch.Generator().manual_seed(0), ignore_edge=2)
     assert len(rays) == 1200
     # each ray's blue channel identifies its frame, red/green its pixel: check against directions
     assert torch.allclose(rays.rgb[:, 2], 0.1 * rays.frame_ids.float())

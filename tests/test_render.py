@@ -8,7 +8,7 @@ import torch
 
 from tsslam_ref import config
 from tsslam_ref.field import SceneField
-from tsslam_ref.geometry import pose_from_rotvec
+from tsslam_ref.geometry import make_pose, so3_exp
 from tsslam_ref.render import (
     RayBatch,
     frame_rays,
@@ -67,7 +67,7 @@ def test_rays_to_world_single_and_per_ray_poses_and_pose_gradient():
     directions = torch.randn(6, 3, generator=generator, dtype=torch.float64)
     rotvec = torch.randn(6, 3, generator=generator, dtype=torch.float64)
     trans = torch.randn(6, 3, generator=generator, dtype=torch.float64)
-    poses = pose_from_rotvec(rotvec, trans)
+    poses = make_pose(so3_exp(rotvec), trans)
     origins, world = rays_to_world(directions, poses)
     for r in range(6):
         assert torch.allclose(world[r], poses[r, :3, :3] @ directions[r])
@@ -153,7 +153,7 @@ def test_planar_sdf_renders_the_plane_depth_within_one_sample_spacing(truncation
         metric = offset - points @ normal  # positive on the camera side
         return torch.full_like(points, 0.5), metric / truncation
 
-    pose = pose_from_rotvec(torch.tensor([0.05, -0.1, 0.02], dtype=torch.float64), torch.tensor([0.1, 0.2, -0.3], dtype=torch.float64))
+    pose = make_pose(so3_exp(torch.tensor([0.05, -0.1, 0.02], dtype=torch.float64)), torch.tensor([0.1, 0.2, -0.3], dtype=torch.float64))
     rows, cols = sample_pixels(48, 64, 200, generator=torch.Generator().manual_seed(0))
     origins, directions = rays_to_world(pixel_directions(rows, cols, INTRINSICS).double(), pose)
     true_depth = (offset - origins @ normal) / (directions @ normal)
@@ -169,7 +169,7 @@ def test_planar_sdf_renders_the_plane_depth_within_one_sample_spacing(truncation
 def test_chunked_image_render_equals_unchunked():
     cfg = config.tiny()
     field = SceneField(cfg.field, [[-1.0, 1.0], [-1.0, 1.0], [0.0, 3.0]], generator=torch.Generator().manual_seed(0))
-    pose = pose_from_rotvec(torch.tensor([0.0, 0.1, 0.0]), torch.tensor([0.0, 0.0, -0.5]))
+    pose = make_pose(so3_exp(torch.tensor([0.0, 0.1, 0.0])), torch.tensor([0.0, 0.0, -0.5]))
     depth = torch.rand(12, 16) * 2 + 0.5
     small = (12.0, 12.0, 7.5, 5.5)
     one = render_image(field, pose, small, cfg.render, depth=depth, chunk=10_000)

@@ -16,7 +16,7 @@ import scipy.interpolate
 import torch
 from scipy.spatial.transform import Rotation
 
-from tsslam_ref import spline
+from tsslam_ref import spline, spline_fit
 from tsslam_ref.geometry import make_pose, so3_exp, so3_log, vee
 
 F64 = torch.float64
@@ -586,8 +586,8 @@ def test_eq11_fit_recovers_control_points_of_a_sampled_spline(convention):
     t_min, t_max = spline.valid_time_range(n, dt, t0, convention)
     times = np.linspace(t_min, t_max, 60)
     s = spline.evaluate(R, P, times, dt, t0, convention)
-    fit_R, fit_P = spline.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n,
-                                             convention=convention)
+    fit_R, fit_P = spline_fit.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n,
+                                                 convention=convention)
     assert torch.allclose(fit_R, R, atol=1e-8)
     assert torch.allclose(fit_P, P, atol=1e-8)
 
@@ -600,12 +600,12 @@ def test_eq11_fit_new_control_point_with_the_others_fixed():
     init_R, init_P = R.clone(), P.clone()
     init_R[-1], init_P[-1] = R[-2], P[-2]  # new point starts at its neighbour
     fixed = torch.tensor([True] * (n - 1) + [False])
-    fit_R, fit_P = spline.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n,
-                                             init_rotations=init_R, init_translations=init_P, fixed=fixed)
+    fit_R, fit_P = spline_fit.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n,
+                                                 init_rotations=init_R, init_translations=init_P, fixed=fixed)
     assert torch.equal(fit_R[:-1], R[:-1]) and torch.equal(fit_P[:-1], P[:-1])
     assert torch.allclose(fit_R[-1], R[-1], atol=1e-8) and torch.allclose(fit_P[-1], P[-1], atol=1e-8)
     with pytest.raises(ValueError, match="fixed"):
-        spline.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n, fixed=fixed)
+        spline_fit.fit_control_points(times, make_pose(s.rotation, s.translation), dt, t0, n, fixed=fixed)
 
 
 @pytest.mark.parametrize("convention", ["paper", "basalt"])
@@ -617,7 +617,7 @@ def test_fit_trajectory_finds_the_layout_and_control_points_of_a_sampled_spline(
     _, t_max = spline.valid_time_range(n, dt, t0, convention)
     times = np.linspace(first_time, t_max, 61)  # 30 Hz-like, both ends of the domain
     s = spline.evaluate(R, P, times, dt, t0, convention)
-    fitted = spline.fit_trajectory(times, make_pose(s.rotation, s.translation), dt, convention=convention)
+    fitted = spline_fit.fit_trajectory(times, make_pose(s.rotation, s.translation), dt, convention=convention)
     assert fitted.n_ctrl == n and fitted.t0 == pytest.approx(t0, abs=1e-12) and fitted.convention == convention
     assert torch.allclose(fitted.control_rotations, R, atol=1e-8)
     assert torch.allclose(fitted.control_translations, P, atol=1e-8)
@@ -637,7 +637,7 @@ def test_fit_trajectory_removes_noise_from_real_hand_held_motion(shared_data):
     noisy = truth.copy()
     noisy[:, :3, 3] += rng.normal(scale=0.01, size=(60, 3))
     noisy[:, :3, :3] = Rotation.from_rotvec(np.radians(1.0) * rng.normal(size=(60, 3))).as_matrix() @ truth[:, :3, :3]
-    fitted = spline.fit_trajectory(times, torch.as_tensor(noisy), 0.3).pose(times).numpy()
+    fitted = spline_fit.fit_trajectory(times, torch.as_tensor(noisy), 0.3).pose(times).numpy()
 
     def errors(poses):
         """RMS position (cm) and rotation (deg) error against the motion capture."""
@@ -653,9 +653,9 @@ def test_fit_trajectory_removes_noise_from_real_hand_held_motion(shared_data):
 def test_fit_trajectory_rejects_times_that_do_not_increase():
     poses = torch.eye(4, dtype=F64).repeat(3, 1, 1)
     with pytest.raises(ValueError, match="strictly increasing"):
-        spline.fit_trajectory(np.array([0.0, 0.1, 0.1]), poses, 0.3)
+        spline_fit.fit_trajectory(np.array([0.0, 0.1, 0.1]), poses, 0.3)
     with pytest.raises(ValueError, match="dt must be > 0"):
-        spline.fit_trajectory(np.array([0.0, 0.1, 0.2]), poses, 0.0)
+        spline_fit.fit_trajectory(np.array([0.0, 0.1, 0.2]), poses, 0.0)
 
 
 @pytest.mark.parametrize("convention", ["paper", "basalt"])
@@ -667,11 +667,11 @@ def test_first_control_point_recovers_control_point_0_from_the_start_pose(conven
     start = spline.evaluate(R, P, np.array([t_min]), dt, t0, convention=convention)
     garbled_R, garbled_P = R.clone(), P.clone()
     garbled_R[0], garbled_P[0] = R[3], P[3] + 5.0
-    rotation_0, translation_0 = spline.first_control_point(garbled_R, garbled_P, start.rotation[0], start.translation[0])
+    rotation_0, translation_0 = spline_fit.first_control_point(garbled_R, garbled_P, start.rotation[0], start.translation[0])
     assert torch.allclose(rotation_0, R[0], atol=1e-10) and torch.allclose(translation_0, P[0], atol=1e-10)
-    pinned_R, pinned_P = spline.pin_first_control_point(garbled_R, garbled_P, make_pose(start.rotation[0], start.translation[0]))
+    pinned_R, pinned_P = spline_fit.pin_first_control_point(garbled_R, garbled_P, make_pose(start.rotation[0], start.translation[0]))
     assert torch.allclose(pinned_R, R, atol=1e-10) and torch.allclose(pinned_P, P, atol=1e-10)
-    assert spline.pin_first_control_point(garbled_R, garbled_P, None)[1] is garbled_P
+    assert spline_fit.pin_first_control_point(garbled_R, garbled_P, None)[1] is garbled_P
     with pytest.raises(ValueError, match="control points 1 and 2"):
-        spline.first_control_point(R[:2], P[:2], start.rotation[0], start.translation[0])
+        spline_fit.first_control_point(R[:2], P[:2], start.rotation[0], start.translation[0])
 

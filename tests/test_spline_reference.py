@@ -241,9 +241,6 @@ def test_kit_runs_from_a_folder_outside_the_checkout(tmp_path):
     result = kit("check-all", "mine")
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.stdout.count("PASS") >= len(VECTOR_PATHS)
-    old_entry = subprocess.run([sys.executable, "-m", "tsslam_ref.spline", "list"], cwd=tmp_path, env=env,
-                               capture_output=True, text=True, timeout=300)
-    assert old_entry.returncode == 0 and "basalt_golden_dt0.5" in old_entry.stdout
 
 
 def test_domain_ends_allow_only_their_own_float64_rounding_for_stamps_and_relative_times():

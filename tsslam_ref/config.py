@@ -369,40 +369,10 @@ def tum() -> Config:
     return cfg
 
 
-def tum_cpu() -> Config:
-    """TUM settings for 2 CPU cores: quarter-resolution images, fewer rays and samples (ours).
-
-    Same losses, weights, truncation and schedule structure as :func:`tum`.
-    """
-    cfg = tum()
-    cfg.name = "tum-cpu"
+def _two_core_budget(cfg: Config) -> Config:
+    """The settings ``tum-cpu`` and ``synthetic-cpu`` share for 2 CPU cores (ours): 160 px wide
+    images, a smaller hash table and fewer rays, samples and iterations.  Changes ``cfg`` in place."""
     cfg.data.resize_width = 160
-    cfg.data.crop_edge = 0  # in native pixels; the bundled slice is already 160 px wide
-    cfg.field.log2_hashmap_size = 16
-    cfg.field.voxel_sdf = 0.04
-    cfg.render.n_samples = 32
-    cfg.render.n_range_d = 11
-    cfg.tracking.n_rays = 512
-    cfg.tracking.iters = 20
-    cfg.tracking.lr_rot = cfg.tracking.lr_trans = 3e-3  # half the rays of Co-SLAM: smaller, steadier steps
-    cfg.tracking.best = True
-    cfg.tracking.ignore_edge = 5
-    cfg.mapping.first_iters = 200
-    cfg.mapping.first_n_rays = 1024
-    cfg.mapping.n_rays = 1024
-    cfg.mapping.iters = 20
-    cfg.loss.smooth_pts = 32
-    cfg.local_ba.n_rays = 512
-    cfg.mesh.voxel_final = 0.04
-    return cfg
-
-
-def synthetic_cpu() -> Config:
-    """Synthetic-scene settings for 2 CPU cores (ours), same structure as :func:`synthetic`."""
-    cfg = synthetic()
-    cfg.name = "synthetic-cpu"
-    cfg.data.resize_width = 160
-    cfg.tracking.ignore_edge = 5
     cfg.field.log2_hashmap_size = 16
     cfg.field.voxel_sdf = 0.04
     cfg.render.n_samples = 32
@@ -411,17 +381,37 @@ def synthetic_cpu() -> Config:
     cfg.tracking.iters = 20
     # Adam moves each parameter by at most about lr per iteration, so 20 x 1e-3 (Co-SLAM's Replica
     # rate) caps a frame's rotation correction near 1.1 deg per axis: too little for hand-held
-    # turns of 4-5 deg per frame (TUM-VI room2), since frame 1 has no motion to predict from and
-    # its lag carries into the next predictions.  3e-3, as tum-cpu (docs/system.md, "Tracking's
-    # step-size cap").
+    # turns of 4-5 deg per frame (TUM-VI room2); with half of Co-SLAM's rays, 3e-3 also keeps the
+    # steps steady (docs/system.md, "Tracking's step-size cap").
     cfg.tracking.lr_rot = cfg.tracking.lr_trans = 3e-3
+    cfg.tracking.ignore_edge = 5
     cfg.mapping.first_iters = 200
     cfg.mapping.first_n_rays = 1024
     cfg.mapping.n_rays = 1024
     cfg.mapping.iters = 20
-    cfg.mapping.lr_embed = 0.01
     cfg.local_ba.n_rays = 512
     cfg.mesh.voxel_final = 0.04
+    return cfg
+
+
+def tum_cpu() -> Config:
+    """TUM settings for 2 CPU cores: :func:`_two_core_budget` on :func:`tum` (ours).
+
+    Same losses, weights, truncation and schedule structure as :func:`tum`.
+    """
+    cfg = _two_core_budget(tum())
+    cfg.name = "tum-cpu"
+    cfg.data.crop_edge = 0  # in native pixels; the bundled slice is already 160 px wide
+    cfg.tracking.best = True
+    cfg.loss.smooth_pts = 32
+    return cfg
+
+
+def synthetic_cpu() -> Config:
+    """Synthetic-scene settings for 2 CPU cores: :func:`_two_core_budget` on :func:`synthetic` (ours)."""
+    cfg = _two_core_budget(synthetic())
+    cfg.name = "synthetic-cpu"
+    cfg.mapping.lr_embed = 0.01
     return cfg
 
 

@@ -6,10 +6,10 @@ TS-SLAM §III-C, the L_DR term of Eq. (10) ``eq:loss_ba``:
 
 with a_k from Eq. (8) ``eq_jeck`` and ω̇_k from Eq. (9) ``eq_rot_jeck`` at K times sampled uniformly
 in a window (see :mod:`tsslam_ref.spline`).  Norms are Euclidean; ‖ω̇‖ is the same in body and world
-frames (ω̇_world = R ω̇_body because ω × ω = 0).
+frames (ω̇_world = R ω̇_body, since ω × ω = 0).
 
 Layer 1 (math).  Imports ``spline`` and ``config`` (for the convenience wrapper's type only).
-Taught in notebooks/02_dynamics_regularization.ipynb.  Background: docs/spline.md (derivatives, the barrier).
+Taught in notebooks/02_dynamics_regularization.ipynb; docs/spline.md is the user doc.
 
 Beyond the barrier (ours).  The paper leaves x = ‖a‖/a_max ≥ 1 undefined: ln(1 − x) is NaN while
 autograd's gradient stays finite, so training would fail silently.  We use

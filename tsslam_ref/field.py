@@ -7,9 +7,10 @@ OneBlob coordinate encoding gamma(x) and a multi-resolution hash grid V(x) feedi
     s, h       = f_tau( V(x_n), gamma(x_n) )                         geometry MLP, 80 -> 32 -> 16
     c          = sigmoid( f_phi( gamma(x_n), h ) )                   colour MLP, 63 -> 32 -> 3
 
-``s`` is Co-SLAM's *normalised* SDF: metric SDF = s * tr (Co-SLAM's ``model/decoder.py``).
+``s`` is Co-SLAM's *normalised* SDF: metric SDF = s * tr.
 
-Layer 1 (math and map): imports torch and config only; knows nothing about rays or cameras.
+Layer 1 (math and map): imports torch, ``config`` and ``hash_kernel`` (the optional compiled hash-grid
+kernel); knows nothing about rays or cameras.
 Taught in notebooks/03_scene_representation.ipynb.
 
 Glossary
@@ -27,8 +28,7 @@ Glossary
 Sources: Co-SLAM @3bb904e ``model/encodings.py`` (16 levels x 2 features, base 16,
 per-level scale (res_max/16)^(1/15)), ``model/decoder.py`` (bias-free MLPs), ``model/scene_rep.py``
 (per-axis box normalisation); tiny-cuda-nn ``grid.h`` (level scale, +0.5 offset, dense/hashed
-storage, hash primes) and ``oneblob.h`` (quartic kernel) as Co-SLAM's configuration uses them
-(box normalisation, encodings, decoders).  Deviations are listed in docs/map.md.
+storage, hash primes) and ``oneblob.h`` (quartic kernel).  Deviations are listed in docs/map.md.
 """
 
 import itertools
@@ -64,7 +64,7 @@ def _check_points(points: torch.Tensor, name: str = "points") -> None:
 class OneBlobEncoding(nn.Module):
     """OneBlob coordinate encoding with tcnn's quartic kernel, periodic with period 1.
 
-    For one coordinate x in [0, 1] and bin k = 0..n_bins-1 (Co-SLAM's OneBlob, tiny-cuda-nn ``oneblob.h``), with v = n_bins * u:
+    For one coordinate x in [0, 1] and bin k = 0..n_bins-1 (tcnn ``oneblob.h``), with v = n_bins * u:
 
         F(u)     = clamp( (15/16) v (1 - (2/3) v^2 + (1/5) v^4) + 1/2, 0, 1 )   (kernel CDF)
         G(b)     = F(b - x) + F(b - x - 1) + F(b - x + 1)                         (wrap-around)
@@ -126,7 +126,7 @@ class _TrilinearLookup(torch.autograd.Function):
     Shapes: table (T, F), index (8, L, N) long (global rows, corner-major), fraction (L, N, 3)
     -> features (L, N, F).
 
-    Why a custom Function (our CPU measurements, docs/map.md): the hash grid is memory-bound, every pass
+    Why a custom Function: the hash grid is memory-bound, every pass
     over the (8, L, N, F) corner rows costs ~20 ms at 1024 rays on two cores, and autograd's own
     graph of this sum makes ~10 such passes plus the slow default backward of indexing.  Here:
 
@@ -192,7 +192,7 @@ def trilinear_lookup(table: torch.Tensor, index: torch.Tensor, fraction: torch.T
 
 
 class HashGridEncoding(nn.Module):
-    """Multi-resolution hash grid with tiny-cuda-nn's level geometry (``grid.h``).
+    """Multi-resolution hash grid with tiny-cuda-nn's level geometry (tcnn ``grid.h``).
 
     Level l = 0..n_levels-1, with b = (res_max / base)^(1 / (n_levels - 1)):
 
@@ -266,7 +266,6 @@ class HashGridEncoding(nn.Module):
         self.register_buffer("scales", torch.tensor(scales, dtype=torch.float64), persistent=False)
         self.register_buffer("resolutions", torch.tensor(resolutions), persistent=False)
         self.register_buffer("sizes", torch.tensor(sizes), persistent=False)
-        self.register_buffer("dense", torch.tensor(dense), persistent=False)
         self.register_buffer("offsets", torch.tensor(offsets[:-1]), persistent=False)
 
     @property

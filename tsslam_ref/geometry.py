@@ -14,9 +14,8 @@ Conventions used everywhere in tsslam_ref
 * **Quaternions** in files (TUM format) are ``(qx, qy, qz, qw)``, scalar last.
 
 SO(3) Exp/Log go through kornia's ``axis_angle_to_rotation_matrix`` and
-``rotation_matrix_to_axis_angle`` (quaternion based): we measured them (tests/test_geometry.py)
-stable at 0 and near pi in float32 and float64, with finite gradients at exactly 0 and a passing
-gradcheck.  The wrappers here add batching over any leading shape.
+``rotation_matrix_to_axis_angle`` (quaternion based): stable at 0 and near pi in float32 and
+float64, with finite gradients at exactly 0 (tests/test_geometry.py checks both and a gradcheck).  The wrappers here add batching over any leading shape.
 
 Glossary
 
@@ -129,9 +128,17 @@ def invert_pose(pose: torch.Tensor) -> torch.Tensor:
     return make_pose(rotation_t, translation)
 
 
-def pose_from_rotvec(rotvec: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
-    """(..., 3) rotation vector and (..., 3) translation -> (..., 4, 4) pose."""
-    return make_pose(so3_exp(rotvec), translation)
+def pixel_to_ray(u, v, fx, fy, cx, cy):
+    """Camera-frame ray K^-1 [u, v, 1]^T = ((u - cx) / fx, (v - cy) / fy, 1) through pixel (u, v).
+
+    OpenCV axes (z forward), so a point at depth z on pixel (u, v) is z times the ray.  u is the
+    column, v the row; pixel centres sit at integer coordinates.  Works on numpy arrays or torch
+    tensors (``u`` decides which) of any matching shape; fx, fy, cx, cy are numbers or arrays of
+    that shape.  -> (..., 3).
+    """
+    if isinstance(u, torch.Tensor):
+        return torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)
+    return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
 
 
 def quaternion_xyzw_to_matrix(quaternion: np.ndarray) -> np.ndarray:
@@ -214,6 +221,20 @@ def opengl_to_opencv_pose(pose_gl: np.ndarray) -> np.ndarray:
 opencv_to_opengl_pose = opengl_to_opencv_pose
 
 
-def rotation_angle(rotation: torch.Tensor) -> torch.Tensor:
-    """Angle in radians of rotations (..., 3, 3), computed through Log (stable near 0 and pi)."""
-    return torch.linalg.vector_norm(so3_log(rotation), dim=-1)
+def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
+    """Angle |Log(R)| in degrees of (..., 3, 3) rotations, atan2 form (accurate near 0 and pi).
+
+    angle = atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2).
+    """
+    rotations = np.asarray(rotations, np.float64)
+    skew_part = np.stack(
+        [
+            rotations[..., 2, 1] - rotations[..., 1, 2],
+            rotations[..., 0, 2] - rotations[..., 2, 0],
+            rotations[..., 1, 0] - rotations[..., 0, 1],
+        ],
+        -1,
+    )
+    sin_angle = 0.5 * np.linalg.norm(skew_part, axis=-1)
+    cos_angle = 0.5 * (np.trace(rotations, axis1=-2, axis2=-1) - 1.0)
+    return np.degrees(np.arctan2(sin_angle, cos_angle))

@@ -1,7 +1,7 @@
 """The reconstruction loss L_NeRF: Co-SLAM's five terms, and the one ``render_loss`` everyone uses.
 
 TS-SLAM §III-A, Eq. (4) (``eq:lossfuc``): L_NeRF = L_rgb + L_d + L_sdf + L_fs + L_smooth, each
-term weighted as in Co-SLAM (its ``get_sdf_loss`` and per-dataset YAML weights):
+term weighted as in Co-SLAM @3bb904e:
 
     L_rgb    = mean_{r, ch} (a_r C_hat_r - a_r C_r)^2,  a_r = 1 (valid depth) or rgb_missing
     L_d      = mean_{valid r} (D_hat_r - D_r)^2
@@ -93,7 +93,7 @@ def reconstruction_losses(
 
 
 def smoothness_lattice(bound: torch.Tensor, loss_cfg: LossConfig, generator=None) -> torch.Tensor:
-    """World points (n-1, n-1, n-1, 3) of Co-SLAM's random smoothness lattice (its global-BA smoothness term).
+    """World points (n-1, n-1, n-1, 3) of Co-SLAM's random smoothness lattice.
 
         o = m + U(0,1) (E - (n-1) v - 2m)  per axis;   delta ~ U(0,1)^3 shared
         p_ijk = bound_min + o + ((i, j, k) + delta) v,  i, j, k = 0..n-2

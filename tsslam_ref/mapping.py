@@ -2,12 +2,12 @@
 
 TS-SLAM §III-A (``sec:rep_secene``): "once f_theta converges, the construction of the map is
 complete"; the map parameters theta minimise Eq. (4) (``eq:lossfuc``) over rays of posed frames.
-Co-SLAM does this for frame 0 (its ``coslam.py``: ``first_iters`` iterations of
+Co-SLAM does this for frame 0 (``coslam.py``, first-frame mapping: ``first_iters`` iterations of
 ``mapping.first_n_rays`` rays drawn from the whole frame, pose fixed, no smoothness term) with one
-Adam for the whole run (Co-SLAM's ``coslam.py``).  The same function maps a sequence with ground-truth
+Adam for the whole run.  The same function maps a sequence with ground-truth
 poses, which separates map quality from tracking quality.
 
-Layer 2/3: imports config, render and losses; not tracking or BA.
+Layer 2 (objective): imports config, geometry, render and losses; not tracking or BA.
 Taught in notebooks/04_rendering_and_losses.ipynb.
 
 Glossary
@@ -24,18 +24,19 @@ import numpy as np
 import torch
 
 from .config import Config, MappingConfig
+from .geometry import pixel_to_ray
 from .losses import render_loss
 from .render import RayBatch, _as_tensor, _intrinsic_values
 
-# Adam betas of Co-SLAM's map optimiser (its ``coslam.py``).
+# Adam betas of Co-SLAM's map optimiser (``coslam.py``).
 MAP_ADAM_BETAS = (0.9, 0.99)
 
 
 def make_map_optimizer(field, mapping_cfg: MappingConfig) -> torch.optim.Adam:
     """Adam over the field: decoder lr_decoder + weight decay 1e-6, grid lr_embed + eps 1e-15.
 
-    ``fused=True`` where the parameters' device and dtype allow it (much faster on CPU,
-    measured with benchmarks/bench_field.py); otherwise the default implementation.
+    ``fused=True`` where the parameters' device and dtype allow it (much faster on CPU); otherwise
+    the default implementation.
     """
     groups = field.parameter_groups(mapping_cfg)
     try:
@@ -80,24 +81,13 @@ class FramePixels:
         rows = pixel // inner_w + ignore_edge
         cols = pixel % inner_w + ignore_edge
         fx, fy, cx, cy = self.intrinsics[frame_ids].unbind(-1)
-        u, v = cols.to(fx.dtype), rows.to(fx.dtype)
-        directions = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)  # (R, 3)
+        directions = pixel_to_ray(cols.to(fx.dtype), rows.to(fx.dtype), fx, fy, cx, cy)  # (R, 3)
         return RayBatch(
             directions_cam=directions,
             rgb=self.rgb[frame_ids, rows, cols],
             depth=self.depth[frame_ids, rows, cols],
             frame_ids=frame_ids,
         )
-
-
-def sample_rays_from_frames(
-    frames: Sequence, n_rays: int, generator: Optional[torch.Generator] = None, device=None, ignore_edge: int = 0
-) -> RayBatch:
-    """n_rays rays uniformly over the frames' pixels; ``frame_ids`` = position in ``frames``.
-
-    Directions follow :func:`tsslam_ref.render.pixel_directions` (OpenCV, z = 1).
-    """
-    return FramePixels(frames, device).sample(n_rays, generator, ignore_edge)
 
 
 def fit_map(
@@ -153,7 +143,7 @@ def backproject_depth(frame, pose, stride: int = 1, max_depth: Optional[float] =
     valid = depth > 0 if max_depth is None else (depth > 0) & (depth < max_depth)
     rows, cols = np.nonzero(valid)
     z = depth[rows, cols]
-    points_cam = np.stack([(cols * stride - cx) / fx * z, (rows * stride - cy) / fy * z, z], axis=-1)
+    points_cam = pixel_to_ray(cols * stride, rows * stride, fx, fy, cx, cy) * z[:, None]  # (M, 3)
     pose = np.asarray(pose, dtype=np.float64)
     return points_cam @ pose[:3, :3].T + pose[:3, 3]
 

@@ -1,12 +1,13 @@
 """Marching-cubes meshes of the field's zero level set, with vertex colours.
 
-Co-SLAM's ``utils.extract_mesh`` (adapted from NeuralRGBD): the normalised SDF is queried on a regular grid over
+Co-SLAM's ``utils.extract_mesh`` (from NeuralRGBD): the normalised SDF is queried on a regular grid over
 the box (N_axis = round(extent / voxel + 0.0005) cells per axis, chunks of 65,536 points), and
 marching cubes extracts the iso-0 surface; cells where a corner has |s| >= 3 (3 tr) are skipped,
 which removes spurious surfaces far from anything observed.  Vertex colours come from the
 colour head at the vertices.  Not an equation of TS-SLAM; it produces the meshes of §IV (Table III).
 
-Layer 1-2 (side): needs only ``field.sdf`` (and ``field(points)`` for colours) and ``field.bound``.
+Layer 2: imports no package module; needs only ``field.sdf`` (and ``field(points)`` for colours)
+and ``field.bound`` of the field it is given.
 Taught in notebooks/04_rendering_and_losses.ipynb.
 
 Differs from: Co-SLAM uses NeuralRGBD's C++ ``NumpyMarchingCubes``; we use scikit-image's

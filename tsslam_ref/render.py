@@ -6,7 +6,7 @@ at x_i = t + d_i R K^-1 [u, v, 1]^T, and Eq. (3) renders colour and depth as wei
     c_hat = sum_i w_i c_i / sum_j w_j,     d_hat = sum_i w_i d_i / sum_j w_j,
     w_i   = sigmoid(s_i / tr) * sigmoid(-s_i / tr)
 
-with two Co-SLAM details kept (its ``render_rays`` and ``sdf2weights``): s_i is the *normalised*
+with two Co-SLAM details kept (``render_rays``, ``sdf2weights``): s_i is the *normalised*
 SDF (so in metric terms the logistic scale is tr^2, "double scaling"), and every weight beyond
 z_min + tr is cut, where z_min is the sample just before the first sign change of s.
 
@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from .config import RenderConfig
+from .geometry import pixel_to_ray
 
 # Guard added to the weight sum before normalising (Co-SLAM sdf2weights); prevents 0/0 on rays
 # whose every sample was cut.
@@ -116,9 +117,7 @@ def pixel_directions(rows: torch.Tensor, cols: torch.Tensor, intrinsics) -> torc
     """
     fx, fy, cx, cy = _intrinsic_values(intrinsics)
     dtype = rows.dtype if rows.is_floating_point() else torch.float32
-    u = cols.to(dtype)
-    v = rows.to(dtype)
-    return torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)  # (R, 3)
+    return pixel_to_ray(cols.to(dtype), rows.to(dtype), fx, fy, cx, cy)  # (R, 3)
 
 
 def sample_pixels(
@@ -246,7 +245,8 @@ def sdf_to_weights(sdf: torch.Tensor, z_vals: torch.Tensor, truncation: float) -
         (R, S) weights; each row sums to 1 unless every weight underflowed.
 
     Differs from: the paper's formula reads s as metric; with Co-SLAM's normalised s this is a
-    double scaling (metric logistic scale tr^2), kept on purpose (Co-SLAM's ``sdf2weights``).
+    double scaling (metric logistic scale tr^2), kept as Co-SLAM's ``sdf2weights`` has it
+    (docs/map.md).
     """
     weights = torch.sigmoid(sdf / truncation) * torch.sigmoid(-sdf / truncation)  # (R, S)
     sign_change = (sdf[:, 1:] * sdf[:, :-1] < 0).to(sdf.dtype)  # (R, S - 1)

@@ -11,7 +11,7 @@ the reference (assets/spline_kit.md: conventions, formulas, golden values and th
     python -m tsslam_ref.spline_kit check REFERENCE CANDIDATE.json [--atol 1e-9] [--rtol 1e-7]
     python -m tsslam_ref.spline_kit check-all FOLDER           # FOLDER/<vector name>.json
 
-(``python -m tsslam_ref.spline ...`` still works and runs this.)  Exit codes: 0 pass, 1 a check
+Exit codes: 0 pass, 1 a check
 failed, 2 bad input (the message names the file, key and value), nothing overwritten.
 
 Overwrite rule: files this kit wrote carry ``"written_by": "tsslam_ref.spline_kit"`` and are

@@ -1,8 +1,8 @@
 """A procedural indoor room (analytic SDF + smooth texture) rendered along real or built-in motion.
 
 Synthetic data for TS-SLAM experiments (paper §IV-A uses the NeuralRGBD synthetic scenes; this is a
-small, license-free stand-in with exact ground truth).  Side layer: imports layer 0 and
-:mod:`tsslam_ref.data` readers/writers.  Documented in docs/data.md; taught in
+small, license-free stand-in with exact ground truth).  Side layer: imports the
+:mod:`tsslam_ref.datasets` camera model and TUM readers/writers.  Documented in docs/data.md; taught in
 notebooks/00_data_and_cameras.ipynb.
 
 * **Scene.** World frame z up, metres.  A 4 x 3 x 2.5 m room seen from inside
@@ -44,7 +44,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from tsslam_ref.datasets.intrinsics import Intrinsics
+from tsslam_ref.datasets.intrinsics import Intrinsics, pixel_rays
 from tsslam_ref.datasets.tum_format import interpolate_poses, read_tum_trajectory, write_tum_trajectory
 
 ROOM_MIN = (-2.0, -1.5, 0.0)
@@ -234,16 +234,6 @@ class ProceduralRoom:
         return mesh
 
 
-def pixel_rays_camera(intrinsics: Intrinsics, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Directions ((u - cx)/fx, (v - cy)/fy, 1) through every pixel centre.  -> (H, W, 3), camera frame."""
-    v, u = torch.meshgrid(
-        torch.arange(intrinsics.height, dtype=dtype, device=device),
-        torch.arange(intrinsics.width, dtype=dtype, device=device),
-        indexing="ij",
-    )
-    return torch.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, torch.ones_like(u)], -1)
-
-
 def trace(scene, origins: torch.Tensor, directions: torch.Tensor, max_steps: int = 256, epsilon: float = 1e-6,
           far: float = 20.0) -> Tuple[torch.Tensor, torch.Tensor]:
     """Sphere tracing: march t <- t + sdf(o + t d) until sdf < epsilon.
@@ -295,7 +285,7 @@ def render_rgbd(scene, c2w, intrinsics: Intrinsics, clean: bool = True, generato
     pose = torch.as_tensor(np.asarray(c2w.cpu() if isinstance(c2w, torch.Tensor) else c2w), dtype=torch.float64, device=device)
     if pose.shape != (4, 4):
         raise ValueError(f"c2w must be (4, 4), got {tuple(pose.shape)}")
-    rays_cam = pixel_rays_camera(intrinsics, torch.float64, device).reshape(-1, 3)  # (H*W, 3)
+    rays_cam = torch.as_tensor(pixel_rays(intrinsics), device=device).reshape(-1, 3)  # (H*W, 3) float64
     norms = torch.linalg.vector_norm(rays_cam, dim=-1)  # (H*W,)
     directions = (rays_cam / norms[:, None]) @ pose[:3, :3].T  # (H*W, 3) world
     origins = pose[:3, 3].expand_as(directions)

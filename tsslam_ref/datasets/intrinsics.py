@@ -1,7 +1,7 @@
 """Pinhole intrinsics with exact crop and resize updates; calibration files.
 
 TS-SLAM §III-A Eq. (2) ``eq:cal_ray`` (x = t + d R K^-1 [u, v, 1]^T, the pixel ray) and §IV-A
-(datasets); Co-SLAM's dataset code (``datasets/dataset.py``).  Side layer.
+(datasets); Co-SLAM's dataset code.  Side layer: imports ``geometry`` (the pixel ray).
 Taught in notebooks/00_data_and_cameras.ipynb.
 
 Pixel convention (used everywhere in tsslam_ref): **pixel centres lie at integer coordinates**.
@@ -29,6 +29,8 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+
+from tsslam_ref.geometry import pixel_to_ray
 
 INTRINSICS_JSON = "intrinsics.json"
 """Calibration file of the generic folder layout (also read in a TUM-layout folder)."""
@@ -200,7 +202,7 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
         (H, W, 3) float64, OpenCV camera axes; a point at depth z on pixel (u, v) is z * ray[v, u].
     """
     v, u = np.mgrid[: intrinsics.height, : intrinsics.width].astype(np.float64)  # (H, W) each
-    return np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones_like(u)], -1)
+    return pixel_to_ray(u, v, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
 
 
 def back_project(depth: np.ndarray, intrinsics: Intrinsics, pose_c2w: Optional[np.ndarray] = None) -> np.ndarray:

@@ -1,0 +1,257 @@
+"""Curve approximation (TS-SLAM §III-D, Eq. (11)): spline control points from discrete poses.
+
+:func:`fit_control_points` solves Eq. (11) for the free control points of a spline layout,
+:func:`fit_trajectory` lays a spline over a whole discrete trajectory, and
+:func:`first_control_point` / :func:`pin_first_control_point` hold the curve's start pose fixed
+(the gauge of local and global BA).
+
+Layer 1 (math).  Imports :mod:`tsslam_ref.spline` (the curve) and :mod:`tsslam_ref.geometry`.
+Taught in notebooks/01_bspline_trajectory.ipynb; docs/spline.md is the user doc.
+"""
+
+import math
+from typing import Optional, Tuple
+
+import numpy as np
+import torch
+
+from tsslam_ref.geometry import so3_exp, so3_log
+from tsslam_ref.spline import BSplineTrajectory, _check_convention, _locate, evaluate_segments
+
+
+def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "paper") -> np.ndarray:
+    """(N,) float64 time at which each control point dominates the curve (its basis peak).
+
+    paper: t_{k+1} = t0 + (k+1)Δt; basalt: t_{k−1}.  Initialising R_k, t_k from the pose at these
+    times avoids a one-Δt lag of the curve (docs/spline.md).
+    """
+    offset = _check_convention(convention)
+    return float(t0) + dt * (np.arange(n_ctrl, dtype=np.float64) + offset - 1)
+
+
+def initial_control_points_from_poses(
+    times: np.ndarray, target_poses: torch.Tensor, dt: float, t0: float, n_ctrl: int, convention: str = "paper"
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Initial control points from discrete poses: nearest-in-time rotation, linearly interpolated
+    translation, both at :func:`control_point_times` (constant extrapolation beyond the data).
+
+    Args:
+        times: (K,) float64 seconds; target_poses: (K, 4, 4) camera-to-world.
+
+    Returns:
+        rotations (N, 3, 3), translations (N, 3) in target_poses' dtype and device.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    order = np.argsort(times)
+    ctrl_times = control_point_times(n_ctrl, dt, t0, convention)
+    nearest = order[np.abs(times[order][None, :] - ctrl_times[:, None]).argmin(axis=1)]  # (N,)
+    rotations = target_poses[torch.as_tensor(nearest, device=target_poses.device), :3, :3]
+    positions = target_poses[:, :3, 3].detach().cpu().double().numpy()[order]  # (K, 3)
+    translations = np.stack([np.interp(ctrl_times, times[order], positions[:, c]) for c in range(3)], -1)
+    return rotations.clone(), torch.as_tensor(translations).to(target_poses)
+
+
+def fit_control_points(
+    times: np.ndarray,
+    target_poses: torch.Tensor,
+    dt: float,
+    t0: float,
+    n_ctrl: int,
+    init_rotations: Optional[torch.Tensor] = None,
+    init_translations: Optional[torch.Tensor] = None,
+    fixed: Optional[torch.Tensor] = None,
+    iters: int = 100,
+    convention: str = "paper",
+    tolerance: float = 1e-12,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Curve approximation, Eq. (11): control points whose spline best matches discrete poses.
+
+    minimise Σ_k ‖Log(R_kᵀ R(t_k))‖² + ‖t_k − t(t_k)‖² over the free control points.
+
+    Method: Levenberg-Marquardt on a tangent increment per free control point, R_j ← Exp(δ_j) R_j
+    (left increment) and t_j ← t_j + τ_j, Jacobian by ``torch.func.jacrev``, in float64.  The
+    split spline decouples rotation and translation; the translation part is linear, so one step
+    solves it exactly.  A control point that no time touches stays at its initial value (the
+    damping keeps it).  Stops after ``iters`` steps or when the step norm is below ``tolerance``.
+
+    Initialisation (when no init is given): :func:`initial_control_points_from_poses`, i.e. each
+    control point from the pose at the time it dominates (paper: t_{k+1}), not at its own knot
+    time t_k, which would make the curve lag by one Δt.
+
+    Args:
+        times: (K,) float64 seconds, all inside the spline domain.
+        target_poses: (K, 4, 4) camera-to-world poses.
+        dt, t0, n_ctrl, convention: the spline layout.
+        init_rotations, init_translations: (N, 3, 3), (N, 3) starting values (required for
+            fixed points); missing ones come from the poses.
+        fixed: (N,) bool mask of control points kept at their initial value.
+        iters: maximum LM iterations.
+
+    Returns:
+        rotations (N, 3, 3), translations (N, 3) in target_poses' dtype and device (detached).
+
+    Differs from: Eq. (11) sums unsquared norms; we use squared norms (smooth least squares with
+    the same minimiser for exact data; less robust to outliers).
+    """
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    if target_poses.shape != (times.shape[0], 4, 4):
+        raise ValueError(f"target_poses must be ({times.shape[0]}, 4, 4) to match times, got {tuple(target_poses.shape)}")
+    out_dtype, device = target_poses.dtype, target_poses.device
+    work = torch.float64
+    first, u, _ = _locate(times, n_ctrl, dt, t0, convention)  # raises on out-of-domain times
+    if fixed is None:
+        fixed = torch.zeros(n_ctrl, dtype=torch.bool)
+    fixed = torch.as_tensor(fixed, dtype=torch.bool).reshape(-1).to(device)
+    if fixed.shape[0] != n_ctrl:
+        raise ValueError(f"fixed mask must have n_ctrl={n_ctrl} entries, got {fixed.shape[0]}")
+    guess_R, guess_p = initial_control_points_from_poses(times, target_poses.detach(), dt, t0, n_ctrl, convention)
+    if bool(fixed.any()) and (init_rotations is None or init_translations is None):
+        raise ValueError("fixed control points need init_rotations and init_translations")
+    rotations = (init_rotations if init_rotations is not None else guess_R).detach().to(device, work).clone()
+    translations = (init_translations if init_translations is not None else guess_p).detach().to(device, work).clone()
+    target_R = target_poses[:, :3, :3].detach().to(work)
+    target_p = target_poses[:, :3, 3].detach().to(work)
+    free = (~fixed).nonzero().reshape(-1)  # (F,)
+    if free.shape[0] > 0:
+
+        def residuals(rotations: torch.Tensor, translations: torch.Tensor, increments: torch.Tensor) -> torch.Tensor:
+            """Control points and (F, 6) increments [δ, τ] of the free ones -> (K*6,) stacked
+            rotation and translation residuals."""
+            R = rotations.index_copy(0, free, so3_exp(increments[:, :3]) @ rotations[free])
+            p = translations.index_copy(0, free, translations[free] + increments[:, 3:])
+            sample = evaluate_segments(R, p, first, u, dt, 0)
+            rot_res = so3_log(target_R.transpose(-1, -2) @ sample.rotation)  # (K, 3)
+            return torch.cat([rot_res, target_p - sample.translation], dim=-1).reshape(-1)
+
+        rotations, translations = _levenberg_marquardt(residuals, rotations, translations, free, iters, tolerance)
+    return rotations.to(out_dtype), translations.to(out_dtype)
+
+
+def _levenberg_marquardt(residual_fn, rotations: torch.Tensor, translations: torch.Tensor, free: torch.Tensor,
+                         iters: int, tolerance: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Levenberg-Marquardt over the free control points' increments, left increments on SO(3).
+
+    ``residual_fn(rotations, translations, increments (F, 6))`` -> (K*6,).  Damping starts at 1e-6
+    (times diag(JᵀJ) + 1e-9 I), x10 on a rejected step, /10 on an accepted one; stops after
+    ``iters`` steps, when no step lowers the cost, or when the step norm is below ``tolerance``.
+    """
+    work, device, n_free = rotations.dtype, rotations.device, free.shape[0]
+
+    def residuals(increments: torch.Tensor) -> torch.Tensor:
+        return residual_fn(rotations, translations, increments)
+
+    damping = 1e-6
+    zero = torch.zeros(n_free, 6, dtype=work, device=device)
+    for _ in range(iters):
+        r = residuals(zero)
+        J = torch.func.jacrev(residuals)(zero).reshape(r.shape[0], -1)  # (K*6, F*6)
+        JtJ, Jtr = J.T @ J, J.T @ r
+        cost = float(r @ r)
+        while True:
+            H = JtJ + damping * (torch.diag(torch.diagonal(JtJ)) + 1e-9 * torch.eye(JtJ.shape[0], dtype=work, device=device))
+            step = -torch.linalg.solve(H, Jtr).reshape(n_free, 6)
+            new_cost = float((residuals(step) ** 2).sum())
+            if new_cost <= cost or damping > 1e10:
+                break
+            damping *= 10.0
+        if new_cost > cost:
+            break
+        damping = max(damping / 10.0, 1e-12)
+        rotations = rotations.index_copy(0, free, so3_exp(step[:, :3]) @ rotations[free])
+        translations = translations.index_copy(0, free, translations[free] + step[:, 3:])
+        if float(torch.linalg.vector_norm(step)) < tolerance:
+            break
+    return rotations, translations
+
+
+def fit_trajectory(
+    times: np.ndarray, poses: torch.Tensor, dt: float, convention: str = "paper", iters: int = 100
+) -> BSplineTrajectory:
+    """The spline of knot spacing ``dt`` closest to a whole discrete trajectory (Eq. (11), every point free).
+
+    Layout as in the system: the domain starts at the first time, t0 = t_first − 2Δt (paper
+    convention; basalt t0 = t_first), and N = 3 + ⌈(t_last − t_first)/Δt⌉ control points (at least 4)
+    so that it reaches the last time.  Puts any discrete trajectory - the Co-SLAM baseline's, ground
+    truth - on the curve TS-SLAM uses (benchmarks/bench_system.py's offline control row).  The
+    Levenberg-Marquardt system is dense, (6K x 6N) for K poses: meant for hundreds of frames.
+
+    Args:
+        times: (K,) float64 seconds, increasing; poses: (K, 4, 4) camera-to-world.
+
+    Returns:
+        the fitted :class:`BSplineTrajectory` (poses' dtype and device).
+    """
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    if times.shape[0] < 2 or not np.all(np.diff(times) > 0):
+        raise ValueError(f"fit_trajectory needs at least 2 strictly increasing times, got {times.shape[0]} "
+                         f"({'not increasing' if times.shape[0] >= 2 else 'too few'})")
+    offset = _check_convention(convention)
+    if not dt > 0:
+        raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
+    intervals = max(1, math.ceil((times[-1] - times[0]) / dt - 1e-9))
+    n_ctrl, t0 = 3 + intervals, float(times[0]) - offset * dt
+    rotations, translations = fit_control_points(times, poses, dt, t0, n_ctrl, iters=iters, convention=convention)
+    return BSplineTrajectory(rotations, translations, dt, t0, convention)
+
+
+def first_control_point(
+    control_rotations: torch.Tensor,
+    control_translations: torch.Tensor,
+    start_rotation: torch.Tensor,
+    start_translation: torch.Tensor,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Control point 0 that makes the curve start at a given pose, from control points 1 and 2.
+
+    At the start of the domain (first segment, u = 0) the cumulative weights are
+    B̃(0) = (1, 5/6, 1/6, 0), so with d_j = Log(R_{j−1}ᵀ R_j)
+
+        t(t_min) = (t_0 + 4 t_1 + t_2) / 6,   R(t_min) = R_0 Exp(5/6 d_1) Exp(1/6 d_2).
+
+    Solving for control point 0 (R_0 = R_1 Exp(−d_1), so R_0 Exp(5/6 d_1) = R_1 Exp(−d_1 / 6)):
+
+        t_0 = 6 t_start − 4 t_1 − t_2,   R_0 = R_1 Exp(6 Log(R_1ᵀ R_start Exp(−d_2 / 6))).
+
+    Same formula for both index conventions (it is the first segment's start either way).  The
+    Log in it is −d_1/6, so the factor 6 inverts Exp while |d_1| < π, i.e. while control points 0
+    and 1 are less than 180° apart (a knot interval's rotation is far less).  Differentiable in
+    control points 1 and 2, which is how local and global BA keep frame 0's pose fixed while every
+    other control point moves (the gauge Co-SLAM fixes by holding keyframe 0).
+
+    Args:
+        control_rotations: (N, 3, 3), N >= 3 (only rows 1 and 2 are read).
+        control_translations: (N, 3).
+        start_rotation: (3, 3) and start_translation: (3,), the pose the curve must start at.
+
+    Returns:
+        R_0 (3, 3), t_0 (3,) in the control points' dtype.
+    """
+    if control_rotations.shape[0] < 3:
+        raise ValueError(f"first_control_point needs control points 1 and 2, got {control_rotations.shape[0]} points")
+    rotation_1, rotation_2 = control_rotations[1], control_rotations[2]
+    start_rotation = start_rotation.to(control_rotations)
+    d_2 = so3_log(rotation_1.transpose(-1, -2) @ rotation_2)  # (3,)
+    target = start_rotation @ so3_exp(-d_2 / 6.0)  # = R_1 Exp(-d_1 / 6)
+    rotation_0 = rotation_1 @ so3_exp(6.0 * so3_log(rotation_1.transpose(-1, -2) @ target))
+    translation_0 = 6.0 * start_translation.to(control_translations) - 4.0 * control_translations[1] - control_translations[2]
+    return rotation_0, translation_0
+
+
+def pin_first_control_point(
+    control_rotations: torch.Tensor, control_translations: torch.Tensor, start_pose: Optional[torch.Tensor]
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The control points with point 0 replaced by :func:`first_control_point` for ``start_pose``.
+
+    Args:
+        control_rotations: (N, 3, 3); control_translations: (N, 3).
+        start_pose: (4, 4) camera-to-world pose the curve must start at, or None (nothing changes;
+            neither does anything with fewer than 3 points).
+
+    Returns:
+        (N, 3, 3), (N, 3), differentiable in control points 1 and 2.
+    """
+    if start_pose is None or control_rotations.shape[0] < 3:
+        return control_rotations, control_translations
+    rotation_0, translation_0 = first_control_point(control_rotations, control_translations,
+                                                    start_pose[:3, :3], start_pose[:3, 3])
+    return (torch.cat([rotation_0.unsqueeze(0), control_rotations[1:]], dim=0),
+            torch.cat([translation_0.unsqueeze(0), control_translations[1:]], dim=0))
