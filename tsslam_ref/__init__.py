@@ -8,7 +8,7 @@ Modules, by layer (a module imports modules of its own layer or lower ones, neve
 and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks every import):
 
 * 0 base: ``config`` (settings), ``geometry`` (SO(3), poses, pixel rays), ``files`` (atomic
-  writes), ``checkpoint``
+  writes), ``cli_args`` (command-line value parsing shared by the command lines)
 * 1 math and map: ``spline`` (the curve, Eq. 5-9), ``spline_fit`` (curve approximation, Eq. 11),
   ``spline_jacobians``, ``se3_spline`` (joint SE(3) variant), ``trajectory`` (the spline
   trajectory type), ``dynamics`` (L_DR), ``hash_kernel`` (compiled hash-grid kernel), ``field``
@@ -21,7 +21,7 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
 * 2.5 shared optimisation: ``bundle`` (pose models, keyframe rays, the joint loop)
 * 3 optimisers: ``tracking``, ``local_ba``, ``global_ba``
 * 4 system: ``slam`` (the loop), ``parallel`` (tracking and mapping in two threads), ``run``
-  (command line), and their support ``device``, ``timings``, ``export``
+  (command line), and their support ``device``, ``timings``, ``export``, ``checkpoint`` (the run's state on disk)
 
 Importing the package imports nothing heavy; import the module you need.
 """
@@ -33,7 +33,7 @@ LAYERS = {
     "config": 0,
     "geometry": 0,
     "files": 0,
-    "checkpoint": 0,
+    "cli_args": 0,
     # 1 math and map
     "spline": 1,
     "spline_fit": 1,
@@ -75,6 +75,7 @@ LAYERS = {
     "device": 4,
     "timings": 4,
     "export": 4,
+    "checkpoint": 4,
 }
 """Layer of every module (dotted name below the package); an import may point to the same or a
 lower number only."""
