@@ -259,6 +259,14 @@ def test_a_folder_of_random_files_is_named(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_broken_calibration_and_ground_truth_mesh_are_named_before_the_run(dataset, tmp_path, capsys):
+    (dataset / "gt_mesh.ply").write_bytes(np.random.default_rng(4).bytes(700))
+    refused_in_process(capsys, run.main, ["--data", dataset, "--out", tmp_path / "out", "--frames", "0:3"], "gt_mesh.ply")
+    assert not (tmp_path / "out").exists()
+    (dataset / "intrinsics.json").write_bytes(np.random.default_rng(5).bytes(300))
+    refused_in_process(capsys, data.main, ["info", dataset], "intrinsics.json", "not a text file")
+
+
 # ------------------------------------------------------------------------------------------------
 # eval and the spline kit
 
