@@ -147,13 +147,23 @@ def test_config_files_and_output_paths_are_named(tmp_path, capsys):
 # Checkpoints cannot run code
 
 
+def _system_pickle(command: str) -> bytes:
+    """A protocol-2 pickle whose loading calls os.system(command)."""
+    return (b"\x80\x02cposix\nsystem\nq\x00X" + len(command).to_bytes(4, "little") + command.encode()
+            + b"q\x01\x85q\x02Rq\x03.")
+
+
 def test_a_planted_pickle_checkpoint_never_runs(tmp_path):
+    import pickle
+
+    live = tmp_path / "live"
+    pickle.loads(_system_pickle(f"touch '{live}'"))  # the payload is live under plain unpickling
+    assert live.exists()
+    live.unlink()
     marker = tmp_path / "marker"
     out = tmp_path / "out"
     out.mkdir()
-    payload = (b"\x80\x02cposix\nsystem\nq\x00X" + len(f"touch {marker}").to_bytes(4, "little")
-               + f"touch {marker}".encode() + b"q\x01\x85q\x02Rq\x03.")  # pickle of os.system("touch marker")
-    (out / "checkpoint.pt").write_bytes(payload)
+    (out / "checkpoint.pt").write_bytes(_system_pickle(f"touch '{marker}'"))
     before = snapshot(tmp_path)
     refused(cli("run", "--resume", "--out", "out", cwd=tmp_path), "checkpoint.pt", "not a readable tsslam_ref checkpoint")
     assert not marker.exists()
@@ -247,6 +257,14 @@ def test_a_folder_of_random_files_is_named(tmp_path, capsys):
     refused_in_process(capsys, data.main, ["info", folder], "rgb.txt:1:", "not text")
     refused(cli("run", "--data", folder, "--out", "out", cwd=tmp_path), "rgb.txt:1:", "not text")
     assert not (tmp_path / "out").exists()
+
+
+def test_broken_calibration_and_ground_truth_mesh_are_named_before_the_run(dataset, tmp_path, capsys):
+    (dataset / "gt_mesh.ply").write_bytes(np.random.default_rng(4).bytes(700))
+    refused_in_process(capsys, run.main, ["--data", dataset, "--out", tmp_path / "out", "--frames", "0:3"], "gt_mesh.ply")
+    assert not (tmp_path / "out").exists()
+    (dataset / "intrinsics.json").write_bytes(np.random.default_rng(5).bytes(300))
+    refused_in_process(capsys, data.main, ["info", dataset], "intrinsics.json", "not a text file")
 
 
 # ------------------------------------------------------------------------------------------------

@@ -35,3 +35,20 @@ def number_in(name: str, low: float, high: float, integer: bool = False, low_ope
         return value
 
     return parse
+
+
+EXIT_INTERRUPTED = 130
+
+
+def interruptible(main, prog: str) -> int:
+    """Run ``main()``; Ctrl-C prints one line and returns 130 instead of a traceback.
+
+    For commands whose writes are atomic (a new file or folder renamed into place at the end),
+    so an interruption leaves nothing half-written."""
+    import sys
+
+    try:
+        return main()
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; nothing was left half-written", file=sys.stderr)
+        return EXIT_INTERRUPTED

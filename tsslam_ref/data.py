@@ -287,14 +287,17 @@ def main(argv=None) -> int:
     synth.add_argument("--size", type=_parse_size, default=(160, 120), help="WxH, each 8 to 4096 pixels")
     synth.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
     synth.add_argument("--fps", type=number_in("--fps", 0, 1000, low_open=True), default=30.0, help="(0, 1000]")
-    synth.add_argument("--start", type=number_in("--start", 0, 1e6), default=0.0,
+    synth.add_argument("--start", type=float, default=0.0,
                        help="seconds after the trajectory's first pose at which frame 0 is taken (default 0); "
                             "for a shipped stretch, after the first pose of the full recording it was cut from")
     synth.add_argument("--clean-depth", action="store_true")
     synth.add_argument("--mesh-voxel", type=number_in("--mesh-voxel", 0.005, 1.0), default=0.03,
                        help="marching-cubes voxel of gt_mesh.ply (m), 0.005 to 1")
     synth.add_argument("--force", action="store_true", help="replace a non-empty --out folder written by this command")
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as stop:  # a usage error (one line already printed) or --help
+        return int(stop.code or 0)
     if args.command == "info":
         try:
             sequence = load_sequence(args.path, require_gt=False)
@@ -321,8 +324,8 @@ def main(argv=None) -> int:
         if args.start != 0.0:
             if args.trajectory is None:
                 raise ValueError("--start needs --trajectory (the built-in path starts at 0 s)")
-            if not args.start >= 0.0:
-                raise ValueError(f"--start must be >= 0 seconds, got {args.start}")
+            if not (args.start >= 0.0 and np.isfinite(args.start)):
+                raise ValueError(f"--start must be >= 0 seconds and finite, got {args.start}")
         if trajectory is not None:
             start_time = trajectory_origin(trajectory) + args.start
         out = synthetic.synthesize(
@@ -338,4 +341,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tsslam_ref.cli_args import interruptible
+
+    sys.exit(interruptible(main, "python -m tsslam_ref.data"))

@@ -98,7 +98,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if args.command == "trajectory":
             gt_times, gt_poses = read_tum_trajectory(args.gt)
-            est_times, est_poses = read_tum_trajectory(args.est)
+            est_times, est_poses = read_tum_trajectory(args.est, unique_stamps=True)  # one pose per frame
             result = evaluate_trajectory(
                 gt_times, gt_poses, est_times, est_poses, args.max_diff, args.scale, args.delta
             )
@@ -114,4 +114,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tsslam_ref.cli_args import interruptible
+
+    sys.exit(interruptible(main, "python -m tsslam_ref.eval"))

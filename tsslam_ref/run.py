@@ -275,6 +275,21 @@ class Plan:
     device: torch.device
     state: Any = None  # the resumed loop state, or None
     finished: bool = False  # --resume of a run that already finished
+    gt_mesh: Any = None  # the ground-truth mesh beside the data (gt_mesh.ply), read before the run
+
+
+def _read_gt_mesh(path: Path):
+    """The ground-truth mesh for the reconstruction metrics; ValueError naming a broken file."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as error:  # trimesh raises many kinds of errors for bad files
+        raise BadInput(f"{path}: cannot read the ground-truth mesh ({str(error)[:200] or type(error).__name__}); "
+                       f"expected a triangle mesh (.ply), or remove it to skip the reconstruction metrics") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise BadInput(f"{path}: the ground-truth mesh holds no triangles; expected a triangle mesh (.ply)")
+    return mesh
 
 
 def _finished_run(out: Path) -> bool:
@@ -314,6 +329,9 @@ def prepare(args: argparse.Namespace) -> Plan:
     out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
     _check_output_folder(out, args.overwrite, args.resume)
     plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)
+    gt_mesh_path = Path(sequence.path) / "gt_mesh.ply"
+    if not args.no_mesh and gt_mesh_path.exists():
+        plan.gt_mesh = _read_gt_mesh(gt_mesh_path)  # a broken file is named now, not after the run
     if args.resume:
         path = out / "checkpoint.pt"
         if not path.is_file():
@@ -501,10 +519,8 @@ def execute(plan: Plan) -> int:
         mesh = extract_mesh(result.state.field, None, cfg.mesh.voxel_final, sdf_cutoff=cfg.mesh.sdf_cutoff)
         with atomic_path(out / "mesh.ply") as temporary:
             temporary.write_bytes(trimesh.exchange.ply.export_ply(mesh))
-        gt_mesh_path = Path(sequence.path) / "gt_mesh.ply"
-        if gt_mesh_path.exists() and len(mesh.faces) > 0:
-            gt_mesh = trimesh.load(gt_mesh_path, force="mesh")
-            metrics.update(reconstruction_metrics(mesh, gt_mesh, sequence, cfg.seed))
+        if plan.gt_mesh is not None and len(mesh.faces) > 0:
+            metrics.update(reconstruction_metrics(mesh, plan.gt_mesh, sequence, cfg.seed))
     if args.export_rate is not None:
         with atomic_path(out / f"trajectory_{args.export_rate:g}hz.txt") as temporary:
             slam.export_continuous(result.state, args.export_rate, temporary)

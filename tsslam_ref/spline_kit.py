@@ -200,4 +200,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tsslam_ref.cli_args import interruptible
+
+    sys.exit(interruptible(main, "python -m tsslam_ref.spline_kit"))

@@ -157,9 +157,11 @@ def read_calibration(folder: Path) -> Optional[dict]:
     json_path = Path(folder) / INTRINSICS_JSON
     if json_path.is_file():
         try:
-            values = json.loads(json_path.read_text())
+            values = json.loads(json_path.read_text(encoding="utf-8"))
+        except UnicodeDecodeError:
+            raise ValueError(f"{json_path}: not a text file; expected a JSON object with fx, fy, cx, cy") from None
         except json.JSONDecodeError as error:
-            raise ValueError(f"{json_path}: not valid JSON ({error})") from error
+            raise ValueError(f"{json_path}: not valid JSON ({error})") from None
         if not isinstance(values, dict):
             raise ValueError(f"{json_path}: expected a JSON object with fx, fy, cx, cy")
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
@@ -168,13 +170,17 @@ def read_calibration(folder: Path) -> Optional[dict]:
         out = {}
         for key in ("fx", "fy", "cx", "cy", "width", "height", "depth_scale"):
             if key in values:
-                if not isinstance(values[key], (int, float)) or isinstance(values[key], bool):
-                    raise ValueError(f"{json_path}: '{key}' must be a number, got {values[key]!r}")
+                if not isinstance(values[key], (int, float)) or isinstance(values[key], bool) or not math.isfinite(values[key]):
+                    raise ValueError(f"{json_path}: '{key}' must be a finite number, got {values[key]!r}")
                 out[key] = values[key]
         return out
     text_path = Path(folder) / CALIBRATION_TXT
     if text_path.is_file():
-        for number, line in enumerate(text_path.read_text().splitlines(), start=1):
+        try:
+            text = text_path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise ValueError(f"{text_path}: not a text file; expected a line 'fx fy cx cy [width height]'") from None
+        for number, line in enumerate(text.splitlines(), start=1):
             stripped = line.strip()
             if not stripped or stripped.startswith("#"):
                 continue

@@ -77,7 +77,7 @@ def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
     return np.asarray(stamps, dtype=np.float64), names, numbers
 
 
-def read_tum_trajectory(path) -> Tuple[np.ndarray, np.ndarray]:
+def read_tum_trajectory(path, unique_stamps: bool = False) -> Tuple[np.ndarray, np.ndarray]:
     """Read a TUM trajectory: ``timestamp tx ty tz qx qy qz qw`` per line, '#' comments.
 
     Returns:
@@ -86,7 +86,9 @@ def read_tum_trajectory(path) -> Tuple[np.ndarray, np.ndarray]:
     Raises:
         FileNotFoundError: the file does not exist.
         ValueError: '<file>:<line>: ...' for a line without 8 numbers, a zero quaternion, a
-            decreasing or repeated timestamp, or a file with no poses.
+            decreasing timestamp, a repeated one when ``unique_stamps`` (an estimate: one pose
+            per frame; recorded ground truth such as TUM fr2/desk repeats a few stamps), or a
+            file with no poses.
     """
     stamps, rows, numbers = [], [], []
     for number, fields in _data_lines(path):
@@ -100,7 +102,7 @@ def read_tum_trajectory(path) -> Tuple[np.ndarray, np.ndarray]:
             raise ValueError(f"{path}:{number}: non-finite value in '{' '.join(fields)}'")
         if np.linalg.norm(values[4:8]) < 1e-12:
             raise ValueError(f"{path}:{number}: zero quaternion")
-        if stamps and values[0] == stamps[-1]:
+        if unique_stamps and stamps and values[0] == stamps[-1]:
             raise ValueError(f"{path}:{number}: timestamp {fields[0]} repeats line {numbers[-1]}'s; expected one pose per time stamp")
         if stamps and values[0] < stamps[-1]:
             raise ValueError(f"{path}:{number}: timestamp {fields[0]} is earlier than the previous line's (timestamps out of order)")
