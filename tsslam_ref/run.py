@@ -141,8 +141,8 @@ def save_checkpoint(state, path: Path) -> None:
 def load_checkpoint(path: Path):
     payload = torch.load(path, weights_only=False)
     state = payload["state"]
-    if not hasattr(state, "tracking_results"):  # a checkpoint written before the field existed
-        state.tracking_results = {}
+    if not hasattr(state, "tracking_output"):  # a checkpoint written before the field existed
+        state.tracking_output = {}
     state.generator = torch.Generator(device="cpu")
     if payload["generator_state"] is not None:
         state.generator.set_state(payload["generator_state"])
@@ -150,7 +150,7 @@ def load_checkpoint(path: Path):
 
 
 def write_partial_trajectory(state, out: Path) -> None:
-    from .slam import estimated_trajectory
+    from .export import estimated_trajectory
 
     poses = estimated_trajectory(state).detach().cpu().double().numpy()
     data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
@@ -228,7 +228,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (ValueError, FileExistsError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    from . import slam
+    from . import device as device_module
+    from . import parallel, slam
     from .mesh import extract_mesh, save_mesh
 
     config_module.save(cfg, str(out / "config.json"))
@@ -241,8 +242,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         state = load_checkpoint(checkpoint_path)
         print(f"resuming at frame {state.done} of {len(sequence)}")
 
-    device = slam.resolve_device(cfg.device)
-    slam.tune_cpu_allocator()
+    device = device_module.resolve_device(cfg.device)
+    device_module.tune_cpu_allocator()
     progress = None
     if not args.quiet:
         from tqdm import tqdm
@@ -259,7 +260,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}), preset {cfg.name}, device {device}, output {out}")
     try:
-        result = slam.run_slam(sequence, cfg, device=device, state=state, on_frame=on_frame)
+        run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
+        result = run_loop(sequence, cfg, device=device, state=state, on_frame=on_frame)
     except slam.TrackingFailure as failure:
         if progress is not None:
             progress.close()
@@ -286,7 +288,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if cfg.method != "tsslam":
             print("warning: --export-rate needs --method tsslam (a continuous trajectory); skipped", file=sys.stderr)
         else:
-            from .slam import export_continuous
+            from .export import export_continuous
 
             export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
