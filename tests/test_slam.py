@@ -262,6 +262,31 @@ def test_the_parallel_flag_reaches_the_config_and_the_default_stays_sequential()
     assert run.resolve_config(parser.parse_args(["--config", "tiny"])).parallel is False
 
 
+def test_run_cli_hands_a_parallel_run_to_the_two_thread_loop(synthetic_sequence, tmp_path, monkeypatch):
+    """The caller chooses the schedule: run.py calls parallel.run_slam_in_two_threads with
+    --parallel and slam.run_slam without (each replaced here by a recorder that stops the run)."""
+
+    class Stop(Exception):
+        pass
+
+    calls = []
+
+    def recorder(name):
+        def runner(sequence, cfg, **kwargs):
+            calls.append((name, cfg.parallel))
+            raise Stop
+
+        return runner
+
+    monkeypatch.setattr(parallel, "run_slam_in_two_threads", recorder("two threads"))
+    monkeypatch.setattr(slam, "run_slam", recorder("sequential"))
+    for n, flags in enumerate((["--parallel"], [])):
+        with pytest.raises(Stop):
+            run.main(["--data", str(synthetic_sequence), "--config", "tiny", "--quiet", "--frames", "0:4",
+                      "--out", str(tmp_path / str(n)), *flags])
+    assert calls == [("two threads", True), ("sequential", False)]
+
+
 def test_global_ba_names_a_fixed_mask_of_the_wrong_length():
     from tsslam_ref import global_ba
     from tsslam_ref.bundle import KeyframeDatabase

@@ -599,7 +599,7 @@ def test_fit_trajectory_removes_noise_from_real_hand_held_motion(shared_data):
     noisy = truth.copy()
     noisy[:, :3, 3] += rng.normal(scale=0.01, size=(60, 3))
     noisy[:, :3, :3] = Rotation.from_rotvec(np.radians(1.0) * rng.normal(size=(60, 3))).as_matrix() @ truth[:, :3, :3]
-    fitted = spline.fit_trajectory(times, torch.as_tensor(noisy), 0.3).pose(times).numpy()
+    fitted = spline.fit_trajectory(times, torch.as_tensor(noisy), 0.3).poses(times).numpy()
 
     def errors(poses):
         """RMS position (cm) and rotation (deg) error against the motion capture."""

@@ -12,13 +12,15 @@ differ only in which parameters move and which rays are used:
 
 This module holds the pieces: :class:`PoseIncrement` (a pose as a tangent increment around a base
 pose), :class:`DiscretePoses` (Co-SLAM: one pose per slot), :class:`SplinePoses` (TS-SLAM: poses
-are spline evaluations, Eq. 5-6, of control points R_k = Exp(delta_k) R_k^0, t_k), the
-:class:`KeyframeDatabase`, and :func:`joint_optimization`, the one loop all BA stages run.
+are evaluations, Eq. 5-6, of a :class:`trajectory.BSplineTrajectory` whose control points are
+R_k = Exp(delta_k) R_k^0, t_k), :func:`dynamics_term` (L_DR of that trajectory, for local and
+global BA), the :class:`KeyframeDatabase`, and :func:`joint_optimization`, the one loop all BA
+stages run.
 
 Rays carry a *slot* in ``frame_ids``; a pose model returns one (4, 4) pose per slot.
 
-Layer 2.5 (shared optimisation pieces): imports config, geometry, render, losses, spline; never the
-optimisers (tracking, local_ba, global_ba) or the system.
+Layer 2.5 (shared optimisation pieces): imports config, geometry, render, losses, spline,
+trajectory, dynamics; never the optimisers (tracking, local_ba, global_ba) or the system.
 """
 
 import contextlib

@@ -3,7 +3,7 @@
 TS-SLAM Sec. III-D "Global Bundle Adjustment": the map and "the control points corresponding to all
 keyframes outside the sliding window" are optimised with the loss of local BA (Eq. 10), the dynamics
 regulariser being applied outside the window.  It keeps Co-SLAM's global BA
-(shared/spec/coslam.md sections 5.3-5.6): per iteration ``mapping.n_rays`` rays drawn uniformly from
+(its single-process ``coslam.py``): per iteration ``mapping.n_rays`` rays drawn uniformly from
 the union of the keyframe rays plus ``max(n_rays // n_kf, min_pixels_cur)`` rays of the current
 frame, the feature-smoothness term, one map step per iteration, pose steps every
 ``pose_accum_step`` iterations.

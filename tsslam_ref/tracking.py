@@ -3,7 +3,7 @@
 TS-SLAM Sec. III-D "Tracking Thread": each new frame's camera-to-world pose is initialised with a
 constant-velocity model and optimised on its own by minimising Eq. (10) with lambda_1 = lambda_2 = 0,
 i.e. the reconstruction loss L_NeRF of Eq. (4), while the map f_theta stays fixed.  The behaviour
-follows Co-SLAM's ``tracking_render`` (shared/spec/coslam.md section 4):
+follows Co-SLAM's ``tracking_render``:
 
 * one pixel set per frame (uniform, away from the border), reused for every iteration;
 * a fresh Adam per frame with separate rotation / translation learning rates;
