@@ -134,3 +134,18 @@ def test_dynamics_term_is_off_for_an_empty_range_or_no_free_point():
     term = dynamics_term(free, (0.5, 1.5), cfg, torch.Generator().manual_seed(2))
     expected = trajectory_dynamics_loss(traj, 0.5, 1.5, cfg, torch.Generator().manual_seed(2))
     assert torch.allclose(term(), expected, atol=1e-12)
+
+
+def test_pose_models_use_the_same_domain_rule_as_the_trajectory():
+    """A slot at the domain's end is not covered (it belongs to the next, unfitted interval) and
+    keeps its fallback pose, as does one before the start; covered slots get the spline's pose."""
+    R, P = random_controls(11, 6)
+    traj = BSplineTrajectory(R, P, 0.25, 0.0)
+    start, end = traj.domain()
+    times = np.array([start - 0.01, start, 0.5 * (start + end), end])
+    fallback = torch.eye(4, dtype=F64).repeat(4, 1, 1) * 3.0
+    model = SplinePoses(traj, free=[3], slot_times=times, fallback_poses=fallback, lr_rot=1e-3, lr_trans=1e-3)
+    poses = model.poses()
+    assert traj.covers(times).tolist() == [False, True, True, False]
+    assert torch.equal(poses[0], fallback[0]) and torch.equal(poses[3], fallback[3])
+    assert torch.allclose(poses[1:3], traj.poses(times[1:3]), atol=1e-14)

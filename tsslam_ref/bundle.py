@@ -123,8 +123,8 @@ class SplinePoses(torch.nn.Module):
 
     Control point k is R_k = Exp(delta_k) R_k^0 and t_k (world frame, m); only the indices in
     ``free`` get parameters, the rest are constants.  Slot s has time ``slot_times[s]`` (float64
-    s); slots whose time lies outside the trajectory's closed domain use ``fallback_poses[s]``
-    (constant, e.g. the tracked pose of a frame the spline does not reach yet).
+    s); slots whose time the trajectory does not cover (:meth:`trajectory.BSplineTrajectory.covers`)
+    use ``fallback_poses[s]`` (constant, e.g. the tracked pose of a frame the spline does not reach yet).
 
     When the trajectory has a ``start_pose``, control point 0 is not a parameter but follows
     control points 1 and 2 so that the curve keeps starting at that pose
@@ -156,8 +156,7 @@ class SplinePoses(torch.nn.Module):
         self.translation_delta = torch.nn.Parameter(torch.zeros_like(translations))
         self.dt, self.t0, self.convention = trajectory.dt, trajectory.t0, trajectory.convention
         self.slot_times = np.asarray(slot_times, dtype=np.float64)
-        t_min, t_max = spline_module.valid_time_range(trajectory.n_ctrl, self.dt, self.t0, self.convention)
-        self.slot_valid = (self.slot_times >= t_min) & (self.slot_times <= t_max)
+        self.slot_valid = trajectory.covers(self.slot_times)
         self.register_buffer("fallback", fallback_poses.detach().clone())
         self.lr_rot, self.lr_trans = lr_rot, lr_trans
 
@@ -182,7 +181,7 @@ class SplinePoses(torch.nn.Module):
         return BSplineTrajectory(rotations, translations, self.dt, self.t0, self.convention, self.start_pose)
 
     def poses(self) -> torch.Tensor:
-        """(P, 4, 4) slot poses: the spline's inside the domain, the fallback outside."""
+        """(P, 4, 4) slot poses: the spline's where it covers the slot's time, the fallback elsewhere."""
         if not self.slot_valid.any():
             return self.fallback
         inside = torch.as_tensor(self.slot_valid, device=self.fallback.device)
