@@ -23,7 +23,7 @@ import torch
 from tsslam_ref import config, hash_kernel
 from tsslam_ref.field import SceneField
 from tsslam_ref.mapping import make_map_optimizer
-from tsslam_ref.slam import tune_cpu_allocator
+from tsslam_ref.device import tune_cpu_allocator
 
 BOX = [[-3.5, 3.0], [-3.0, 3.0], [-3.0, 3.0]]  # TUM fr1_desk (Co-SLAM), 6.5 m
 

@@ -35,7 +35,8 @@ from typing import Dict, List
 import numpy as np
 import torch
 
-from tsslam_ref import config, data, slam, spline_fit
+from tsslam_ref import config, data, parallel, slam, spline_fit
+from tsslam_ref.device import tune_cpu_allocator
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
 
 
@@ -52,7 +53,7 @@ def metrics_cm(sequence, timestamps: np.ndarray, poses: np.ndarray) -> Dict[str,
 def spline_fit_control(sequence, result: slam.SLAMResult, dt: float) -> Dict[str, float]:
     """Metrics of the spline (knot spacing ``dt``) fitted to a finished run's output poses."""
     fitted = spline_fit.fit_trajectory(result.timestamps, torch.as_tensor(result.poses, dtype=torch.float64), dt)
-    return metrics_cm(sequence, result.timestamps, fitted.pose(result.timestamps).numpy())
+    return metrics_cm(sequence, result.timestamps, fitted.poses(result.timestamps).numpy())
 
 
 def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
@@ -61,7 +62,8 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
     torch.manual_seed(cfg.seed)
     start = time.perf_counter()
     try:
-        result = slam.run_slam(sequence, cfg, device=torch.device(cfg.device if cfg.device != "auto" else "cpu"))
+        run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
+        result = run_loop(sequence, cfg, device=torch.device(cfg.device if cfg.device != "auto" else "cpu"))
     except slam.TrackingFailure as failure:
         return {"failed": str(failure)}
     wall = time.perf_counter() - start
@@ -117,7 +119,7 @@ def main() -> None:
     if args.json and os.path.exists(args.json) and not args.overwrite:
         parser.error(f"--json {args.json} exists; pass --overwrite to replace it")
     torch.set_num_threads(args.threads)
-    slam.tune_cpu_allocator()
+    tune_cpu_allocator()
 
     base = config.apply_overrides(config.load(args.config), args.overrides)
     base.data.path = args.data

@@ -69,7 +69,7 @@ def _flat(value, prefix=""):
 def test_a_saved_state_reads_back_identically(state, tmp_path):
     path = tmp_path / "checkpoint.pt"
     checkpoint.save(state, path)
-    assert state.spline is not None and state.spline.n_ctrl >= 4 and len(state.keyframes) >= 1 and state.frame_rays
+    assert state.trajectory is not None and state.trajectory.n_ctrl >= 4 and len(state.keyframes) >= 1 and state.window_rays
     before, after = _flat(checkpoint.to_plain(state)), _flat(checkpoint.to_plain(checkpoint.load(path)))
     assert before.keys() == after.keys()
     for key in before:
@@ -115,7 +115,7 @@ def test_damaged_and_foreign_files_are_refused_naming_the_file(state, tmp_path):
     with pytest.raises(checkpoint.CheckpointError, match=f"newer.pt: checkpoint version {checkpoint.VERSION + 1}"):
         checkpoint.load(tmp_path / "newer.pt")
     plain = checkpoint.to_plain(state)
-    del plain["tracked_poses"]
+    del plain["frame_poses"]
     torch.save(plain, tmp_path / "partial.pt")
-    with pytest.raises(checkpoint.CheckpointError, match="partial.pt: checkpoint entry 'tracked_poses' is missing"):
+    with pytest.raises(checkpoint.CheckpointError, match="partial.pt: checkpoint entry 'frame_poses' is missing"):
         checkpoint.load(tmp_path / "partial.pt")

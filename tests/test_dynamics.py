@@ -13,6 +13,7 @@ import torch
 from tsslam_ref import dynamics, spline
 from tsslam_ref.config import DynamicsConfig
 from tsslam_ref.geometry import so3_exp
+from tsslam_ref.trajectory import BSplineTrajectory
 
 F64 = torch.float64
 
@@ -127,10 +128,11 @@ def test_trajectory_dynamics_loss_matches_direct_evaluation():
     rng = np.random.default_rng(2)
     R = so3_exp(torch.as_tensor(rng.normal(scale=0.2, size=(8, 3))))
     P = torch.as_tensor(rng.normal(scale=0.01, size=(8, 3)))
-    traj = spline.BSplineTrajectory(R, P, 0.25, 0.0)
+    traj = BSplineTrajectory(R, P, 0.25, 0.0)
+    start, end = traj.domain()
     cfg = DynamicsConfig(lambda_acc=0.3, lambda_ang=0.4, a_max=5.0, omegadot_max=40.0, n_samples=16)
-    value = dynamics.trajectory_dynamics_loss(traj, traj.min_time, traj.max_time, cfg, torch.Generator().manual_seed(3))
-    times = dynamics.sample_times(traj.min_time, traj.max_time, 16, torch.Generator().manual_seed(3))
+    value = dynamics.trajectory_dynamics_loss(traj, start, end, cfg, torch.Generator().manual_seed(3))
+    times = dynamics.sample_times(start, end, 16, torch.Generator().manual_seed(3))
     sample = traj.evaluate(times, derivatives=2)
     acc = sample.acceleration_world.norm(dim=-1).numpy() / cfg.a_max
     ang = sample.omegadot_body.norm(dim=-1).numpy() / cfg.omegadot_max

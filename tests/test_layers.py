@@ -16,13 +16,6 @@ import tsslam_ref
 PACKAGE = Path(tsslam_ref.__file__).resolve().parent
 LAYERS = tsslam_ref.LAYERS
 
-KNOWN_CYCLE = ("parallel", "slam")
-"""slam imports parallel (inside a function) and parallel imports slam; a pending restructuring
-removes the cycle (then drop the xfail below)."""
-
-LAZY_RE_EXPORTS = {("spline", "spline_fit")}
-"""spline looks the curve-approximation names up in spline_fit on first use, for callers that
-still say ``spline.fit_control_points``; not counted as a cycle until those callers are moved."""
 
 
 def module_name(path: Path) -> str:
@@ -137,14 +130,8 @@ def test_imports_point_to_the_same_or_a_lower_layer(name):
     assert not upward, f"{name} (layer {LAYERS[name]}) imports {upward}"
 
 
-def test_no_import_cycle_besides_slam_and_parallel():
-    graph = import_graph(ignore=LAZY_RE_EXPORTS | {KNOWN_CYCLE})
-    assert cycles(graph) == []
-
-
-@pytest.mark.xfail(strict=True, reason="slam <-> parallel: the cycle is removed by a pending restructuring")
 def test_no_import_cycle():
-    assert cycles(import_graph(ignore=LAZY_RE_EXPORTS)) == []
+    assert cycles(import_graph()) == []
 
 
 def test_cycle_finder_finds_a_planted_cycle():

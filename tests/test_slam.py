@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import config, data, eval as evaluation, run, slam, synthetic
+from tsslam_ref import config, data, eval as evaluation, parallel, run, slam, synthetic
 
 
 @pytest.fixture(scope="module")
@@ -46,9 +46,9 @@ def test_slam_tracks_a_synthetic_sequence(synthetic_sequence, method):
     if method == "coslam":
         assert np.allclose(result.poses[0], sequence.gt_poses[0], atol=1e-5)  # frame 0 anchors the map
     else:
-        track = result.state.spline
-        assert track.covers(sequence.timestamps).all()
-        spline_poses = track.poses(sequence.timestamps).double().numpy()
+        trajectory = result.state.trajectory
+        assert trajectory.covers(sequence.timestamps).all()
+        spline_poses = trajectory.poses(sequence.timestamps).double().numpy()
         assert np.allclose(result.poses, spline_poses, atol=1e-6)  # outputs are the spline's poses
 
 
@@ -63,15 +63,16 @@ def test_tsslam_map_update_between_intervals_moves_only_the_map(synthetic_sequen
     original = slam.tsslam_map_update
 
     def checked(state, frame):
-        poses = state.tracked_poses.clone()
-        controls = (state.spline.rotations.clone(), state.spline.translations.clone())
+        poses = state.frame_poses.clone()
+        controls = (state.trajectory.control_rotations.clone(), state.trajectory.control_translations.clone())
         weights = [p.detach().clone() for p in state.field.parameters()]
         original(state, frame)
-        reached = np.flatnonzero(state.spline.covers(state.timestamps))
-        assert torch.equal(state.tracked_poses[reached], poses[reached]) and torch.equal(state.tracked_poses[0], poses[0])
-        assert torch.equal(state.spline.rotations, controls[0]) and torch.equal(state.spline.translations, controls[1])
+        reached = np.flatnonzero(state.trajectory.covers(state.timestamps))
+        assert torch.equal(state.frame_poses[reached], poses[reached]) and torch.equal(state.frame_poses[0], poses[0])
+        assert torch.equal(state.trajectory.control_rotations, controls[0])
+        assert torch.equal(state.trajectory.control_translations, controls[1])
         assert any(not torch.equal(p, w) for p, w in zip(state.field.parameters(), weights))
-        assert not torch.equal(state.tracked_poses[frame.index], poses[frame.index])  # optim_cur
+        assert not torch.equal(state.frame_poses[frame.index], poses[frame.index])  # optim_cur
         seen.append(frame.index)
 
     monkeypatch.setattr(slam, "tsslam_map_update", checked)
@@ -106,27 +107,27 @@ def test_a_spline_that_leaves_tracking_stops_the_run_with_a_message():
     from types import SimpleNamespace
 
     from tsslam_ref import local_ba
-    from tsslam_ref.geometry import make_pose
+    from tsslam_ref.trajectory import BSplineTrajectory
 
     cfg = small_config("tsslam")
     cfg.local_ba.enabled = False
     times = 0.5 + np.arange(12) / 30.0
     poses = torch.eye(4, dtype=torch.float64).repeat(12, 1, 1)
     poses[:, 0, 3] = torch.as_tensor(times)  # 1 m/s along x
-    track = local_ba.SplineTrack.empty(float(times[0]), 0.2, poses)
-    track = local_ba.curve_approximation(track, times[:6], poses[:6], cfg)
-    state = SimpleNamespace(cfg=cfg, tracked_poses=poses)
-    slam.check_spline_follows_tracking(state, track, times[:6], np.arange(6))  # follows: no error
-    displaced = local_ba.SplineTrack(track.dt, track.t0, track.rotations, track.translations + 0.5)
+    trajectory = BSplineTrajectory.empty(float(times[0]), 0.2, poses)
+    trajectory = local_ba.curve_approximation(trajectory, times[:6], poses[:6], cfg)
+    state = SimpleNamespace(cfg=cfg, frame_poses=poses)
+    slam.check_spline_follows_tracking(state, trajectory, times[:6], np.arange(6))  # follows: no error
+    displaced = trajectory.with_controls(trajectory.control_rotations, trajectory.control_translations + 0.5)
     with pytest.raises(slam.TrackingFailure, match="local BA is switched off"):
         slam.check_spline_follows_tracking(state, displaced, times[:6], np.arange(6))
 
 
-def test_tsslam_motion_prediction_measures_motion_between_tracking_results_not_stored_poses():
+def test_tsslam_motion_prediction_measures_motion_between_tracking_outputs_not_stored_poses():
     """Oracle: a camera under a constant world-frame motion M (0.02 rad and 2 cm per frame), for
     which the constant-velocity prediction of frame 3 is exactly M T_2.  Frame 1's stored pose is
     then replaced, as a spline pose replaces it when an interval ends: Co-SLAM's rule measures the
-    motion between the stored poses and is thrown off; TS-SLAM's uses the tracking results."""
+    motion between the stored poses and is thrown off; TS-SLAM's uses the tracking outputs."""
     from types import SimpleNamespace
 
     from tsslam_ref.geometry import make_pose, so3_exp
@@ -140,10 +141,10 @@ def test_tsslam_motion_prediction_measures_motion_between_tracking_results_not_s
         tracked.append(motion @ tracked[-1])
     stored = torch.stack(tracked[:3])
     stored[1, :3, 3] += torch.tensor([0.015, -0.01, 0.0], dtype=torch.float64)  # the spline's pose of frame 1
-    results = {1: tracked[1].clone(), 2: tracked[2].clone()}
+    outputs = {1: tracked[1].clone(), 2: tracked[2].clone()}
     for method in ("coslam", "tsslam"):
         cfg = small_config(method)
-        state = SimpleNamespace(cfg=cfg, tracked_poses=stored, tracking_results=results)
+        state = SimpleNamespace(cfg=cfg, frame_poses=stored, tracking_output=outputs)
         prediction = slam.motion_prediction(state, 3)
         error_m = float(torch.linalg.vector_norm(prediction[:3, 3] - tracked[3][:3, 3]))
         if method == "tsslam":
@@ -153,9 +154,9 @@ def test_tsslam_motion_prediction_measures_motion_between_tracking_results_not_s
             assert torch.allclose(prediction, slam.constant_velocity_init(stored[2], stored[1]), atol=0)
     cfg = small_config("tsslam")
     cfg.tracking.const_speed = False
-    state = SimpleNamespace(cfg=cfg, tracked_poses=stored, tracking_results=results)
+    state = SimpleNamespace(cfg=cfg, frame_poses=stored, tracking_output=outputs)
     assert torch.equal(slam.motion_prediction(state, 3), stored[2])
-    state = SimpleNamespace(cfg=small_config("tsslam"), tracked_poses=stored, tracking_results={2: tracked[2]})
+    state = SimpleNamespace(cfg=small_config("tsslam"), frame_poses=stored, tracking_output={2: tracked[2]})
     assert torch.allclose(slam.motion_prediction(state, 3), slam.constant_velocity_init(stored[2], stored[1]), atol=0)
 
 
@@ -234,14 +235,15 @@ def test_parallel_tracking_and_mapping_tracks_like_the_sequential_loop(synthetic
     cfg.parallel = True
     sequence = data.load_sequence(synthetic_sequence)
     seen = []
-    result = slam.run_slam(sequence, cfg, device=torch.device("cpu"), on_frame=lambda state: seen.append(state.done))
+    result = parallel.run_slam_in_two_threads(sequence, cfg, device=torch.device("cpu"),
+                                              on_frame=lambda state: seen.append(state.done))
     assert result.state.done == len(sequence) and seen == sorted(seen) and seen[-1] == len(sequence)
     metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
     assert metrics["n_matched"] == len(sequence) and metrics["ate_rmse_m"] < 0.06, metrics
     runtime = result.state.timings.table()
     assert runtime["tracking"]["calls"] == len(sequence) - 1 and runtime["global_ba"]["calls"] >= 2
     if method == "tsslam":
-        assert result.state.spline.covers(sequence.timestamps).all()
+        assert result.state.trajectory.covers(sequence.timestamps).all()
 
 
 def test_parallel_mode_hands_a_mapping_failure_to_the_caller(synthetic_sequence):
@@ -249,7 +251,7 @@ def test_parallel_mode_hands_a_mapping_failure_to_the_caller(synthetic_sequence)
     cfg.parallel = True
     cfg.local_ba.max_deviation = 1e-9  # the spline check in the mapping thread must fail
     with pytest.raises(slam.TrackingFailure, match="max_deviation"):
-        slam.run_slam(data.load_sequence(synthetic_sequence), cfg, device=torch.device("cpu"))
+        parallel.run_slam_in_two_threads(data.load_sequence(synthetic_sequence), cfg, device=torch.device("cpu"))
 
 
 def test_the_parallel_flag_reaches_the_config_and_the_default_stays_sequential():
@@ -260,10 +262,36 @@ def test_the_parallel_flag_reaches_the_config_and_the_default_stays_sequential()
     assert run.resolve_config(parser.parse_args(["--config", "tiny"])).parallel is False
 
 
-def test_global_ba_names_a_held_mask_of_the_wrong_length():
+def test_run_cli_hands_a_parallel_run_to_the_two_thread_loop(synthetic_sequence, tmp_path, monkeypatch):
+    """The caller chooses the schedule: run.py calls parallel.run_slam_in_two_threads with
+    --parallel and slam.run_slam without (each replaced here by a recorder that stops the run)."""
+
+    class Stop(Exception):
+        pass
+
+    calls = []
+
+    def recorder(name):
+        def runner(sequence, cfg, **kwargs):
+            calls.append((name, cfg.parallel))
+            raise Stop
+
+        return runner
+
+    monkeypatch.setattr(parallel, "run_slam_in_two_threads", recorder("two threads"))
+    monkeypatch.setattr(slam, "run_slam", recorder("sequential"))
+    for n, flags in enumerate((["--parallel"], [])):
+        with pytest.raises(Stop):
+            run.main(["--data", str(synthetic_sequence), "--config", "tiny", "--quiet", "--frames", "0:4",
+                      "--out", str(tmp_path / str(n)), *flags])
+    assert calls == [("two threads", True), ("sequential", False)]
+
+
+def test_global_ba_names_a_fixed_mask_of_the_wrong_length():
     from tsslam_ref import global_ba
     from tsslam_ref.bundle import KeyframeDatabase
 
+    current = global_ba.CurrentFrame(rays=None, timestamp=0.0, pose=torch.eye(4))
     with pytest.raises(ValueError, match=r"one entry per keyframe plus the current frame \(1\), got 2"):
-        global_ba.coslam_global_ba(None, None, KeyframeDatabase(), torch.zeros(0, 4, 4), None, torch.eye(4),
-                                   config.tiny(), held=torch.tensor([True, False]))
+        global_ba.coslam_global_ba(None, None, KeyframeDatabase(), torch.zeros(0, 4, 4), current,
+                                   config.tiny(), fixed=torch.tensor([True, False]))

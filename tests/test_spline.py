@@ -538,44 +538,6 @@ def test_float32_matches_float64():
 
 
 # ------------------------------------------------------------------------------------------
-# BSplineTrajectory
-
-
-def test_trajectory_accessors_and_pose():
-    R, P = random_spline(26, n_ctrl=7)
-    traj = spline.BSplineTrajectory.from_rotvecs(so3_log(R), P, 0.2, 1.0)
-    assert len(traj) == traj.n_ctrl == 7
-    assert np.allclose(traj.knot_times(), 1.0 + 0.2 * np.arange(7), atol=1e-15)
-    assert (traj.min_time, traj.max_time) == spline.valid_time_range(7, 0.2, 1.0)
-    assert traj.valid(np.array([traj.min_time, traj.max_time, 1.0, 3.0])).tolist() == [True, True, False, False]
-    times = np.array([1.45, 1.9])
-    s = spline.evaluate(R, P, times, 0.2, 1.0)
-    assert torch.allclose(traj.pose(times), make_pose(s.rotation, s.translation), atol=1e-14)
-    assert traj.to(torch.float32).control_translations.dtype == torch.float32
-    assert "n_ctrl=7" in repr(traj)
-
-
-def test_trajectory_pop_front_window_and_append_keep_the_curve():
-    R, P = random_spline(27, n_ctrl=9)
-    traj = spline.BSplineTrajectory(R, P, 0.3, 0.0)
-    times = np.linspace(traj.min_time + 0.3, traj.max_time, 11)
-    reference = traj.evaluate(times, derivatives=2)
-    window = traj.window(1, 9)
-    popped = traj.clone()
-    popped.pop_front()
-    for other in (window, popped):
-        assert other.t0 == pytest.approx(0.3)
-        for a, b in zip(other.evaluate(times, derivatives=2), reference):
-            assert torch.allclose(a, b, atol=1e-14)
-    short = spline.BSplineTrajectory(R[:8], P[:8], 0.3, 0.0)
-    short.append(R[8], P[8])
-    assert short.max_time == pytest.approx(traj.max_time)
-    assert torch.allclose(short.pose(times), traj.pose(times), atol=1e-14)
-    with pytest.raises(ValueError):
-        traj.window(5, 8)
-
-
-# ------------------------------------------------------------------------------------------
 # Curve approximation, Eq. (11)
 
 
@@ -637,7 +599,7 @@ def test_fit_trajectory_removes_noise_from_real_hand_held_motion(shared_data):
     noisy = truth.copy()
     noisy[:, :3, 3] += rng.normal(scale=0.01, size=(60, 3))
     noisy[:, :3, :3] = Rotation.from_rotvec(np.radians(1.0) * rng.normal(size=(60, 3))).as_matrix() @ truth[:, :3, :3]
-    fitted = spline_fit.fit_trajectory(times, torch.as_tensor(noisy), 0.3).pose(times).numpy()
+    fitted = spline_fit.fit_trajectory(times, torch.as_tensor(noisy), 0.3).poses(times).numpy()
 
     def errors(poses):
         """RMS position (cm) and rotation (deg) error against the motion capture."""

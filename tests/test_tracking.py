@@ -15,6 +15,7 @@ from tsslam_ref import config, spline
 from tsslam_ref.bundle import DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, joint_optimization
 from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
 from tsslam_ref.render import frame_rays, sample_pixels
+from tsslam_ref.trajectory import BSplineTrajectory
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
 from tsslam_ref.tracking import constant_velocity_init, track_frame
 
@@ -148,8 +149,8 @@ def test_spline_poses_are_local_and_fall_back_outside_the_domain():
     translations = torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64)
     fallback = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1) * 7.0
     times = np.array([0.55, 1.3, 5.0])  # the domain is [0.5, 1.5]
-    model = SplinePoses(rotations, translations, free=range(n_ctrl), dt=dt, t0=t0, convention="paper",
-                        slot_times=times, fallback_poses=fallback, lr_rot=1e-3, lr_trans=1e-3)
+    trajectory = BSplineTrajectory(rotations, translations, dt, t0)
+    model = SplinePoses(trajectory, free=range(n_ctrl), slot_times=times, fallback_poses=fallback, lr_rot=1e-3, lr_trans=1e-3)
     poses = model.poses()
     assert torch.equal(poses[2], fallback[2])
     # t = 0.55 lies in [t_2, t_3): control points 0..3; t = 1.3 in [t_5, t_6): control points 3..6
@@ -158,8 +159,8 @@ def test_spline_poses_are_local_and_fall_back_outside_the_domain():
         for grad in grads:
             touched = sorted(set(torch.nonzero(grad.abs().sum(-1)).reshape(-1).tolist()))
             assert set(touched) <= set(active) and len(touched) >= 2, (slot, touched)
-    fixed_model = SplinePoses(rotations, translations, free=[5, 6], dt=dt, t0=t0, convention="paper",
-                              slot_times=times, fallback_poses=fallback, lr_rot=1e-3, lr_trans=1e-3)
+    fixed_model = SplinePoses(trajectory, free=[5, 6], slot_times=times, fallback_poses=fallback, lr_rot=1e-3,
+                              lr_trans=1e-3)
     grad = torch.autograd.grad(fixed_model.poses()[1].sum(), [fixed_model.translation_delta])[0]
     assert float(grad[:5].abs().max()) == 0.0 and float(grad[5:].abs().max()) > 0.0
 
@@ -174,9 +175,9 @@ def test_spline_poses_with_a_start_pose_keep_frame_0_while_points_1_and_2_move()
     times = np.linspace(0.5, 1.25, 7)  # the domain is [0.5, 1.25]; times[0] is the start
     first = spline.evaluate(rotations, translations, times[:1], dt, t0)
     start_pose = make_pose(first.rotation[0], first.translation[0])
-    model = SplinePoses(rotations, translations, free=range(1, n_ctrl), dt=dt, t0=t0, convention="paper",
-                        slot_times=times, fallback_poses=torch.eye(4, dtype=torch.float64).repeat(7, 1, 1),
-                        lr_rot=1e-2, lr_trans=1e-2, start_pose=start_pose)
+    trajectory = BSplineTrajectory(rotations, translations, dt, t0, start_pose=start_pose)
+    model = SplinePoses(trajectory, free=range(1, n_ctrl), slot_times=times,
+                        fallback_poses=torch.eye(4, dtype=torch.float64).repeat(7, 1, 1), lr_rot=1e-2, lr_trans=1e-2)
     optimizer = torch.optim.Adam(model.parameter_groups())
     for _ in range(20):
         optimizer.zero_grad()
@@ -186,9 +187,8 @@ def test_spline_poses_with_a_start_pose_keep_frame_0_while_points_1_and_2_move()
     assert float((moved_translations[1:3] - translations[1:3]).norm()) > 0.1
     assert torch.allclose(model.poses()[0], start_pose, atol=1e-10)
     with pytest.raises(ValueError, match="control point 0"):
-        SplinePoses(rotations, translations, free=range(n_ctrl), dt=dt, t0=t0, convention="paper", slot_times=times,
-                    fallback_poses=torch.eye(4, dtype=torch.float64).repeat(7, 1, 1), lr_rot=1e-2, lr_trans=1e-2,
-                    start_pose=start_pose)
+        SplinePoses(trajectory, free=range(n_ctrl), slot_times=times,
+                    fallback_poses=torch.eye(4, dtype=torch.float64).repeat(7, 1, 1), lr_rot=1e-2, lr_trans=1e-2)
 
 
 def test_constant_velocity_init_stays_on_so3_over_many_frames():

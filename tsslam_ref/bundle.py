@@ -12,13 +12,15 @@ differ only in which parameters move and which rays are used:
 
 This module holds the pieces: :class:`PoseIncrement` (a pose as a tangent increment around a base
 pose), :class:`DiscretePoses` (Co-SLAM: one pose per slot), :class:`SplinePoses` (TS-SLAM: poses
-are spline evaluations, Eq. 5-6, of control points R_k = Exp(delta_k) R_k^0, t_k), the
-:class:`KeyframeDatabase`, and :func:`joint_optimization`, the one loop all BA stages run.
+are evaluations, Eq. 5-6, of a :class:`trajectory.BSplineTrajectory` whose control points are
+R_k = Exp(delta_k) R_k^0, t_k), :func:`dynamics_term` (L_DR of that trajectory, for local and
+global BA), the :class:`KeyframeDatabase`, and :func:`joint_optimization`, the one loop all BA
+stages run.
 
 Rays carry a *slot* in ``frame_ids``; a pose model returns one (4, 4) pose per slot.
 
-Layer 2.5 (shared optimisation pieces): imports config, geometry, render, losses, spline; never the
-optimisers (tracking, local_ba, global_ba) or the system.
+Layer 2.5 (shared optimisation pieces): imports config, geometry, render, losses, spline,
+trajectory, dynamics; never the optimisers (tracking, local_ba, global_ba) or the system.
 """
 
 import contextlib
@@ -29,11 +31,13 @@ from typing import Callable, Dict, Iterator, List, Optional, Protocol, Sequence,
 import numpy as np
 import torch
 
-from . import spline as spline_module
-from .config import Config
+from . import spline_fit
+from .config import Config, DynamicsConfig
+from .dynamics import trajectory_dynamics_loss
 from .geometry import make_pose, orthonormalize, so3_exp
 from .losses import render_loss
 from .render import RayBatch
+from .trajectory import BSplineTrajectory
 
 
 @contextlib.contextmanager
@@ -119,31 +123,30 @@ class SplinePoses(torch.nn.Module):
 
     Control point k is R_k = Exp(delta_k) R_k^0 and t_k (world frame, m); only the indices in
     ``free`` get parameters, the rest are constants.  Slot s has time ``slot_times[s]`` (float64
-    s); slots whose time lies outside the spline's valid domain use ``fallback_poses[s]``
-    (constant, e.g. the tracked pose of a frame the spline does not reach yet).
+    s); slots whose time the trajectory does not cover (:meth:`trajectory.BSplineTrajectory.covers`)
+    use ``fallback_poses[s]`` (constant, e.g. the tracked pose of a frame the spline does not reach yet).
 
-    With ``start_pose`` given, control point 0 is not a parameter but follows control points 1
-    and 2 so that the curve keeps starting at that pose (:func:`spline.first_control_point`):
-    TS-SLAM's gauge, frame 0's pose held as Co-SLAM holds keyframe 0.
+    When the trajectory has a ``start_pose``, control point 0 is not a parameter but follows
+    control points 1 and 2 so that the curve keeps starting at that pose
+    (:func:`spline_fit.first_control_point`): TS-SLAM's gauge, frame 0's pose fixed as Co-SLAM fixes
+    keyframe 0.
 
     Args:
-        rotations: (N, 3, 3) control rotations; translations: (N, 3).
-        free: indices of the control points to optimise (not 0 when ``start_pose`` is given).
-        dt, t0, convention: the spline's knot spacing, origin and index convention.
+        trajectory: the :class:`trajectory.BSplineTrajectory` to start from (N control points).
+        free: indices of the control points to optimise (not 0 when it has a start pose).
         slot_times: (P,) float64 seconds.
         fallback_poses: (P, 4, 4) used outside the domain.
         lr_rot, lr_trans: Adam learning rates for the increments.
-        start_pose: optional (4, 4) camera-to-world pose the curve must start at.
     """
 
-    def __init__(self, rotations: torch.Tensor, translations: torch.Tensor, free: Sequence[int], dt: float,
-                 t0: float, convention: str, slot_times: np.ndarray, fallback_poses: torch.Tensor,
-                 lr_rot: float, lr_trans: float, start_pose: Optional[torch.Tensor] = None):
+    def __init__(self, trajectory: BSplineTrajectory, free: Sequence[int], slot_times: np.ndarray,
+                 fallback_poses: torch.Tensor, lr_rot: float, lr_trans: float):
         super().__init__()
-        n_ctrl = rotations.shape[0]
+        rotations, translations = trajectory.control_rotations, trajectory.control_translations
+        start_pose = trajectory.start_pose
         if start_pose is not None and 0 in list(free):
             raise ValueError("SplinePoses: control point 0 follows start_pose and cannot also be free")
-        free_mask = torch.zeros(n_ctrl, dtype=torch.bool, device=rotations.device)
+        free_mask = torch.zeros(trajectory.n_ctrl, dtype=torch.bool, device=rotations.device)
         free_mask[list(free)] = True
         self.register_buffer("free_mask", free_mask)
         self.start_pose = None if start_pose is None else start_pose.detach().to(translations)
@@ -151,10 +154,9 @@ class SplinePoses(torch.nn.Module):
         self.register_buffer("translations0", translations.detach().clone())
         self.rotation_delta = torch.nn.Parameter(torch.zeros_like(translations))
         self.translation_delta = torch.nn.Parameter(torch.zeros_like(translations))
-        self.dt, self.t0, self.convention = float(dt), float(t0), convention
+        self.dt, self.t0, self.convention = trajectory.dt, trajectory.t0, trajectory.convention
         self.slot_times = np.asarray(slot_times, dtype=np.float64)
-        t_min, t_max = spline_module.valid_time_range(n_ctrl, self.dt, self.t0, convention)
-        self.slot_valid = (self.slot_times >= t_min) & (self.slot_times <= t_max)
+        self.slot_valid = trajectory.covers(self.slot_times)
         self.register_buffer("fallback", fallback_poses.detach().clone())
         self.lr_rot, self.lr_trans = lr_rot, lr_trans
 
@@ -170,28 +172,34 @@ class SplinePoses(torch.nn.Module):
         rotations = so3_exp(self.rotation_delta * mask) @ self.rotations0
         translations = self.translations0 + self.translation_delta * mask
         if bool(self.free_mask[1:3].any()):  # point 0 only changes when point 1 or 2 can
-            rotations, translations = spline_module.pin_first_control_point(rotations, translations, self.start_pose)
+            rotations, translations = spline_fit.pin_first_control_point(rotations, translations, self.start_pose)
         return rotations, translations
 
-    def trajectory(self) -> "spline_module.BSplineTrajectory":
-        """The current spline (differentiable in the free control points), for L_DR."""
+    def trajectory(self) -> BSplineTrajectory:
+        """The current trajectory, differentiable in the free control points (detach it to keep it)."""
         rotations, translations = self.control_points()
-        return spline_module.BSplineTrajectory(rotations, translations, self.dt, self.t0, self.convention)
-
-    def poses_at(self, times: np.ndarray) -> torch.Tensor:
-        """(M, 4, 4) spline poses at ``times`` (all inside the domain)."""
-        rotations, translations = self.control_points()
-        sample = spline_module.evaluate(rotations, translations, np.asarray(times, dtype=np.float64),
-                                        self.dt, self.t0, convention=self.convention, derivatives=0)
-        return make_pose(sample.rotation, sample.translation)
+        return BSplineTrajectory(rotations, translations, self.dt, self.t0, self.convention, self.start_pose)
 
     def poses(self) -> torch.Tensor:
+        """(P, 4, 4) slot poses: the spline's where it covers the slot's time, the fallback elsewhere."""
         if not self.slot_valid.any():
             return self.fallback
         inside = torch.as_tensor(self.slot_valid, device=self.fallback.device)
         spline_poses = self.fallback.clone()
-        spline_poses[inside] = self.poses_at(self.slot_times[self.slot_valid]).to(self.fallback.dtype)
+        spline_poses[inside] = self.trajectory().poses(self.slot_times[self.slot_valid]).to(self.fallback.dtype)
         return spline_poses
+
+
+def dynamics_term(poses: SplinePoses, time_range: Optional[Tuple[float, float]], cfg: DynamicsConfig,
+                  generator: Optional[torch.Generator]) -> Optional[Callable[[], torch.Tensor]]:
+    """L_DR (Eq. 10) of the pose model's current trajectory over ``time_range`` = (start, end) s.
+
+    Returns a callable for :func:`joint_optimization`'s ``extra_loss``, or None when the range is
+    None (the regulariser is off) or empty, or when no control point is free."""
+    if time_range is None or time_range[1] <= time_range[0] or not bool(poses.free_mask.any()):
+        return None
+    start, end = time_range
+    return lambda: trajectory_dynamics_loss(poses.trajectory(), start, end, cfg, generator)
 
 
 def with_slot(rays: RayBatch, slot: int) -> RayBatch:

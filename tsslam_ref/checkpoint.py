@@ -42,13 +42,14 @@ def _rays_from_plain(values: Dict[str, torch.Tensor]):
 
 def to_plain(state) -> Dict[str, Any]:
     """The state of ``slam.SLAMState`` as nested dicts / lists of tensors, numbers and strings."""
-    spline = None
-    if state.spline is not None:
-        track = state.spline
-        spline = {"dt": float(track.dt), "t0": float(track.t0), "rotations": track.rotations.detach(),
-                  "translations": track.translations.detach(), "intervals_done": int(track.intervals_done),
-                  "convention": str(track.convention),
-                  "start_pose": None if track.start_pose is None else track.start_pose.detach()}
+    trajectory = None
+    if state.trajectory is not None:
+        spline = state.trajectory
+        trajectory = {"dt": float(spline.dt), "t0": float(spline.t0),
+                      "control_rotations": spline.control_rotations.detach(),
+                      "control_translations": spline.control_translations.detach(),
+                      "convention": str(spline.convention),
+                      "start_pose": None if spline.start_pose is None else spline.start_pose.detach()}
     keyframes = state.keyframes
     return {
         "format": FORMAT,
@@ -60,13 +61,14 @@ def to_plain(state) -> Dict[str, Any]:
                       "frame_indices": [int(i) for i in keyframes.frame_indices],
                       "timestamps": [float(t) for t in keyframes.timestamps]},
         "timestamps": torch.from_numpy(np.asarray(state.timestamps, dtype=np.float64).copy()),
-        "tracked_poses": state.tracked_poses.detach(),
-        "tracking_results": {int(k): v.detach() for k, v in state.tracking_results.items()},
+        "frame_poses": state.frame_poses.detach(),
+        "tracking_output": {int(k): v.detach() for k, v in state.tracking_output.items()},
         "done": int(state.done),
         "keyframe_of_frame": {int(k): int(v) for k, v in state.keyframe_of_frame.items()},
         "relative_to_keyframe": {int(k): v.detach() for k, v in state.relative_to_keyframe.items()},
-        "spline": spline,
-        "frame_rays": {int(k): _rays_to_plain(v) for k, v in state.frame_rays.items()},
+        "trajectory": trajectory,
+        "intervals_done": int(state.intervals_done),
+        "window_rays": {int(k): _rays_to_plain(v) for k, v in state.window_rays.items()},
         "generator_state": None if state.generator is None else state.generator.get_state(),
         "timings": {"seconds": dict(state.timings.seconds), "iterations": dict(state.timings.iterations),
                     "calls": dict(state.timings.calls)},
@@ -78,12 +80,13 @@ def from_plain(values: Dict[str, Any], device=None):
     """Rebuild a ``slam.SLAMState`` from :func:`to_plain`'s dict (tensors moved to ``device``)."""
     from .bundle import KeyframeDatabase
     from .field import SceneField
-    from .local_ba import SplineTrack
     from .mapping import make_map_optimizer
-    from .slam import SLAMState, Timings
+    from .slam import SLAMState
+    from .timings import Timings
+    from .trajectory import BSplineTrajectory
 
     cfg = config_module.from_dict(json.loads(values["config"]), source="the checkpoint's config")
-    device = torch.device(device) if device is not None else values["tracked_poses"].device
+    device = torch.device(device) if device is not None else values["frame_poses"].device
     dtype = getattr(torch, cfg.dtype)
     field_model = SceneField(cfg.field, values["field"]["bound"]).to(device=device, dtype=dtype)
     field_model.load_state_dict(values["field"])
@@ -93,13 +96,12 @@ def from_plain(values: Dict[str, Any], device=None):
     for rays, index, stamp in zip(values["keyframes"]["rays"], values["keyframes"]["frame_indices"],
                                   values["keyframes"]["timestamps"]):
         keyframes.add(index, stamp, _rays_from_plain({k: v.to(device) for k, v in rays.items()}))
-    spline = None
-    if values["spline"] is not None:
-        plain = values["spline"]
-        spline = SplineTrack(dt=plain["dt"], t0=plain["t0"], rotations=plain["rotations"].to(device),
-                             translations=plain["translations"].to(device), intervals_done=plain["intervals_done"],
-                             convention=plain["convention"],
-                             start_pose=None if plain["start_pose"] is None else plain["start_pose"].to(device))
+    trajectory = None
+    if values["trajectory"] is not None:
+        plain = values["trajectory"]
+        trajectory = BSplineTrajectory(plain["control_rotations"].to(device), plain["control_translations"].to(device),
+                                       plain["dt"], plain["t0"], plain["convention"],
+                                       None if plain["start_pose"] is None else plain["start_pose"].to(device))
     generator = torch.Generator(device="cpu")
     if values["generator_state"] is not None:
         generator.set_state(values["generator_state"])
@@ -111,14 +113,15 @@ def from_plain(values: Dict[str, Any], device=None):
         map_optimizer=optimizer,
         keyframes=keyframes,
         timestamps=values["timestamps"].numpy().astype(np.float64),
-        tracked_poses=values["tracked_poses"].to(device),
-        tracking_results={int(k): v.to(device) for k, v in values["tracking_results"].items()},
+        frame_poses=values["frame_poses"].to(device),
+        tracking_output={int(k): v.to(device) for k, v in values["tracking_output"].items()},
         done=int(values["done"]),
         keyframe_of_frame={int(k): int(v) for k, v in values["keyframe_of_frame"].items()},
         relative_to_keyframe={int(k): v.to(device) for k, v in values["relative_to_keyframe"].items()},
-        spline=spline,
-        frame_rays={int(k): _rays_from_plain({n: t.to(device) for n, t in v.items()})
-                    for k, v in values["frame_rays"].items()},
+        trajectory=trajectory,
+        intervals_done=int(values["intervals_done"]),
+        window_rays={int(k): _rays_from_plain({n: t.to(device) for n, t in v.items()})
+                     for k, v in values["window_rays"].items()},
         generator=generator,
         timings=timings,
         log=[dict(entry) for entry in values["log"]],
@@ -155,8 +158,9 @@ def read(path) -> Dict[str, Any]:
         raise CheckpointError(f"{path}: checkpoint version {values.get('version')!r}; this version of tsslam_ref "
                               f"reads version {VERSION} (start the run again with --overwrite)")
     expected = {"config": str, "field": dict, "map_optimizer": dict, "keyframes": dict, "timestamps": torch.Tensor,
-                "tracked_poses": torch.Tensor, "tracking_results": dict, "done": int, "keyframe_of_frame": dict,
-                "relative_to_keyframe": dict, "frame_rays": dict, "timings": dict, "log": list}
+                "frame_poses": torch.Tensor, "tracking_output": dict, "done": int, "keyframe_of_frame": dict,
+                "relative_to_keyframe": dict, "intervals_done": int, "window_rays": dict, "timings": dict,
+                "log": list}
     for key, kind in expected.items():
         if not isinstance(values.get(key), kind):
             raise CheckpointError(f"{path}: checkpoint entry '{key}' is missing or not a {kind.__name__}")

@@ -8,7 +8,7 @@ with a_k from Eq. (8) ``eq_jeck`` and ω̇_k from Eq. (9) ``eq_rot_jeck`` at K t
 in a window (see :mod:`tsslam_ref.spline`).  Norms are Euclidean; ‖ω̇‖ is the same in body and world
 frames (ω̇_world = R ω̇_body, since ω × ω = 0).
 
-Layer 1 (math).  Imports ``spline`` and ``config`` (for the convenience wrapper's type only).
+Layer 1 (math).  Imports ``spline``, ``trajectory`` and ``config`` (the last two for types only).
 Taught in notebooks/02_dynamics_regularization.ipynb; docs/spline.md is the user doc.
 
 Beyond the barrier (ours).  The paper leaves x = ‖a‖/a_max ≥ 1 undefined: ln(1 − x) is NaN while
@@ -39,7 +39,8 @@ from typing import Optional, Union
 import torch
 
 from tsslam_ref.config import DynamicsConfig
-from tsslam_ref.spline import BSplineTrajectory, SplineSample
+from tsslam_ref.spline import SplineSample
+from tsslam_ref.trajectory import BSplineTrajectory
 
 
 def log_barrier(ratio: torch.Tensor, barrier_limit: float = 0.95) -> torch.Tensor:

@@ -10,26 +10,39 @@ frame, the feature-smoothness term, one map step per iteration, pose steps every
 
 * :func:`coslam_global_ba` - one free pose per keyframe, keyframe 0 fixed, the current frame's pose
   optimised iff ``optim_cur`` (with fewer than two keyframes only the map moves).  This is the
-  Co-SLAM baseline and the "w/o B-S." ablation; ``held`` chooses other held poses (TS-SLAM's
+  Co-SLAM baseline and the "w/o B-S." ablation; ``fixed`` chooses other fixed poses (TS-SLAM's
   map update between spline intervals, ours).
 * :func:`tsslam_global_ba` - the keyframes' poses are spline evaluations; only the control points
   older than the sliding window move (control point 0 follows control points 1 and 2 so that frame 0
   keeps its pose, the gauge Co-SLAM fixes by holding keyframe 0); L_DR is sampled over the time
   outside the window.
 
-Layer 3 (optimiser): uses bundle, dynamics; never tracking or local_ba.
+Layer 3 (optimiser): uses bundle, trajectory; never tracking or local_ba.
 Taught in notebooks/07_global_ba.ipynb.
 """
 
+from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
-from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, joint_optimization, with_slot
+from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, dynamics_term, joint_optimization, with_slot
 from .config import Config
-from .dynamics import trajectory_dynamics_loss
 from .render import RayBatch
+from .trajectory import BSplineTrajectory
+
+
+@dataclass
+class CurrentFrame:
+    """The frame whose arrival triggered global BA: all its rays, its time and its pose."""
+
+    rays: RayBatch
+    """(H*W,) camera-frame rays of every pixel (any ``frame_ids``)."""
+    timestamp: float
+    """Seconds (float64)."""
+    pose: torch.Tensor
+    """(4, 4) camera-to-world pose (tracked, or as the last BA left it)."""
 
 
 def current_frame_share(cfg: Config, n_keyframes: int, n_available: int) -> int:
@@ -37,45 +50,51 @@ def current_frame_share(cfg: Config, n_keyframes: int, n_available: int) -> int:
     return min(n_available, max(cfg.mapping.n_rays // max(n_keyframes, 1), cfg.mapping.min_pixels_cur))
 
 
+def ray_sources(keyframes: KeyframeDatabase, current: CurrentFrame, cfg: Config):
+    """Per-iteration ray draws: ``mapping.n_rays`` from all keyframes (slots 0..K-1) and the
+    current frame's share (slot K)."""
+    n_kf = len(keyframes)
+    return [(keyframes.rays(), cfg.mapping.n_rays),
+            (with_slot(current.rays, n_kf), current_frame_share(cfg, n_kf, len(current.rays)))]
+
+
 def coslam_global_ba(
     field_model: torch.nn.Module,
     map_optimizer: torch.optim.Optimizer,
     keyframes: KeyframeDatabase,
     keyframe_poses: torch.Tensor,
-    current_rays: RayBatch,
-    current_pose: torch.Tensor,
+    current: CurrentFrame,
     cfg: Config,
     generator: Optional[torch.Generator] = None,
-    held: Optional[np.ndarray] = None,
+    fixed: Optional[np.ndarray] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor, BAStats]:
     """Co-SLAM global BA.
 
     Args:
         keyframe_poses: (K, 4, 4) camera-to-world poses of the keyframe slots.
-        current_rays: rays of the whole current frame (any ``frame_ids``).
-        current_pose: (4, 4) its camera-to-world pose.
-        held: (K + 1,) bool, the slots (keyframes, then the current frame) whose poses stay as
-            given, replacing Co-SLAM's rule above (TS-SLAM's map update between two spline
-            intervals, ``mapping.tsslam_map_every``, holds the keyframes the spline reaches).
+        current: the current frame (its pose is slot K).
+        fixed: (K + 1,) bool, the slots (keyframes, then the current frame) whose poses stay as
+            given, replacing Co-SLAM's rule (keyframe 0, and the current frame unless
+            ``optim_cur``); TS-SLAM's map update between two spline intervals fixes the keyframes
+            the spline reaches.
 
     Returns:
         ((K, 4, 4) keyframe poses, (4, 4) current pose, stats), poses detached.
     """
     n_kf = len(keyframes)
-    initial = torch.cat([keyframe_poses, current_pose.unsqueeze(0)], dim=0)
-    fixed = torch.ones(n_kf + 1, dtype=torch.bool)
-    if held is not None:
-        fixed = torch.as_tensor(held, dtype=torch.bool).reshape(-1).clone()
-        if fixed.shape[0] != n_kf + 1:
-            raise ValueError(f"held must have one entry per keyframe plus the current frame ({n_kf + 1}), got {fixed.shape[0]}")
+    initial = torch.cat([keyframe_poses, current.pose.unsqueeze(0)], dim=0)
+    fixed_slots = torch.ones(n_kf + 1, dtype=torch.bool)
+    if fixed is not None:
+        fixed_slots = torch.as_tensor(fixed, dtype=torch.bool).reshape(-1).clone()
+        if fixed_slots.shape[0] != n_kf + 1:
+            raise ValueError(f"fixed must have one entry per keyframe plus the current frame ({n_kf + 1}), "
+                             f"got {fixed_slots.shape[0]}")
     elif n_kf >= 2:
-        fixed[1:n_kf] = False
-        fixed[n_kf] = not cfg.mapping.optim_cur
-    poses = DiscretePoses(initial, fixed, cfg.mapping.lr_rot, cfg.mapping.lr_trans)
-    sources = [(keyframes.rays(), cfg.mapping.n_rays),
-               (with_slot(current_rays, n_kf), current_frame_share(cfg, n_kf, len(current_rays)))]
-    stats = joint_optimization(field_model, map_optimizer, sources, poses, cfg, cfg.mapping.iters, generator,
-                               pose_accum_step=cfg.mapping.pose_accum_step)
+        fixed_slots[1:n_kf] = False
+        fixed_slots[n_kf] = not cfg.mapping.optim_cur
+    poses = DiscretePoses(initial, fixed_slots, cfg.mapping.lr_rot, cfg.mapping.lr_trans)
+    stats = joint_optimization(field_model, map_optimizer, ray_sources(keyframes, current, cfg), poses, cfg,
+                               cfg.mapping.iters, generator, pose_accum_step=cfg.mapping.pose_accum_step)
     result = poses.poses().detach()
     return result[:n_kf], result[n_kf], stats
 
@@ -84,49 +103,34 @@ def tsslam_global_ba(
     field_model: torch.nn.Module,
     map_optimizer: torch.optim.Optimizer,
     keyframes: KeyframeDatabase,
-    keyframe_fallback_poses: torch.Tensor,
-    control_rotations: torch.Tensor,
-    control_translations: torch.Tensor,
+    keyframe_poses: torch.Tensor,
+    trajectory: BSplineTrajectory,
     free_controls: Sequence[int],
-    dt: float,
-    t0: float,
-    convention: str,
-    current_rays: RayBatch,
-    current_time: float,
-    current_pose: torch.Tensor,
+    current: CurrentFrame,
     cfg: Config,
     dynamics_range: Optional[Tuple[float, float]] = None,
     generator: Optional[torch.Generator] = None,
-    start_pose: Optional[torch.Tensor] = None,
-) -> Tuple[torch.Tensor, torch.Tensor, BAStats]:
+) -> Tuple[BSplineTrajectory, BAStats]:
     """TS-SLAM global BA over the map and the control points ``free_controls``.
 
     Args:
-        keyframe_fallback_poses: (K, 4, 4) poses for keyframes the spline does not reach yet.
-        control_rotations, control_translations: (N, 3, 3), (N, 3) current control points.
+        keyframe_poses: (K, 4, 4) poses used for keyframes the trajectory does not reach yet.
+        trajectory: the current trajectory (its start pose, if any, keeps frame 0's pose:
+            control point 0 then follows points 1 and 2, :class:`bundle.SplinePoses`).
         free_controls: indices of the control points to optimise (outside the window).
-        dt, t0, convention: the spline's timing.
-        current_rays, current_time, current_pose: the current frame (its pose is the spline's if
-            its time is inside the domain, else the given tracked pose; it is never a free pose).
+        current: the current frame (its pose is the spline's if its time is inside the domain,
+            else the given one; it is never a free pose).
         dynamics_range: (t_start, t_end) seconds where L_DR is sampled (outside the window), or
             None for no regulariser.
-        start_pose: (4, 4) frame 0's pose the curve must keep starting at (control point 0 then
-            follows points 1 and 2, :class:`bundle.SplinePoses`); None leaves point 0 as it is.
 
     Returns:
-        ((N, 3, 3) rotations, (N, 3) translations, stats), detached.
+        (the optimised trajectory, detached; stats).
     """
-    n_kf = len(keyframes)
-    slot_times = np.asarray(list(keyframes.timestamps) + [current_time], dtype=np.float64)
-    fallback = torch.cat([keyframe_fallback_poses, current_pose.unsqueeze(0)], dim=0)
-    poses = SplinePoses(control_rotations, control_translations, free_controls, dt, t0, convention,
-                        slot_times, fallback, cfg.mapping.lr_rot, cfg.mapping.lr_trans, start_pose)
-    extra = None
-    if dynamics_range is not None and dynamics_range[1] > dynamics_range[0] and len(free_controls) > 0:
-        extra = lambda: trajectory_dynamics_loss(poses.trajectory(), dynamics_range[0], dynamics_range[1], cfg.dynamics, generator)
-    sources = [(keyframes.rays(), cfg.mapping.n_rays),
-               (with_slot(current_rays, n_kf), current_frame_share(cfg, n_kf, len(current_rays)))]
-    stats = joint_optimization(field_model, map_optimizer, sources, poses, cfg, cfg.mapping.iters, generator,
-                               extra_loss=extra, pose_accum_step=cfg.mapping.pose_accum_step)
-    rotations, translations = poses.control_points()
-    return rotations.detach(), translations.detach(), stats
+    slot_times = np.asarray(list(keyframes.timestamps) + [current.timestamp], dtype=np.float64)
+    fallback = torch.cat([keyframe_poses, current.pose.unsqueeze(0)], dim=0)
+    poses = SplinePoses(trajectory, free_controls, slot_times, fallback, cfg.mapping.lr_rot, cfg.mapping.lr_trans)
+    stats = joint_optimization(field_model, map_optimizer, ray_sources(keyframes, current, cfg), poses, cfg,
+                               cfg.mapping.iters, generator,
+                               extra_loss=dynamics_term(poses, dynamics_range, cfg.dynamics, generator),
+                               pose_accum_step=cfg.mapping.pose_accum_step)
+    return poses.trajectory().detach(), stats

@@ -3,8 +3,9 @@
 TS-SLAM Sec. III-D (and Co-SLAM's ``coslam.py``) run a tracking thread and a mapping thread side
 by side: tracking estimates every frame against the latest finished map while mapping (global BA
 for Co-SLAM; local + global BA per ``dt`` interval for TS-SLAM) works on the frames already
-tracked.  The sequential loop of ``slam.run_slam`` is the default because it is deterministic; this
-module is the optional concurrent schedule.
+tracked.  The sequential loop of ``slam.run_slam`` is the default because it is deterministic;
+:func:`run_slam_in_two_threads` is the optional concurrent schedule, chosen by the caller
+(``run.py`` with ``--parallel``).
 
 How the two threads share the state (``slam.SLAMState``):
 
@@ -13,9 +14,9 @@ How the two threads share the state (``slam.SLAMState``):
   never read while it changes.  Tracking may run at most ``lag`` frames ahead of mapping (Co-SLAM: ``map_every``;
   TS-SLAM: the frames of one ``dt`` interval), then it waits.
 * The mapping thread runs, frame after frame, what the sequential loop does after tracking
-  (``coslam_after_tracking`` / ``tsslam_after_tracking``) on a *view* of the state: its own copy of
-  the pose table and of the recent-frame rays.  It commits the poses of the frames it has seen, the
-  spline and the rays it dropped back under the lock, then publishes a new map snapshot if the
+  (``slam.after_tracking``) on a *view* of the state: its own copy of the pose table and of the
+  recent-frame rays.  It commits the poses of the frames it has seen, the spline, its interval
+  count and the rays it dropped back under the lock, then publishes a new map snapshot if the
   job changed the map.
 * One ``threading.Lock`` guards every read and write of shared state; no optimisation runs while
   holding it.  An exception in either thread stops both and is raised in the caller.
@@ -25,7 +26,7 @@ cores both threads share the cores, so the gain is small; on a GPU the threads o
 ``on_frame`` is called from the mapping thread (under the lock) when a frame's whole step is done,
 so a checkpoint written there is consistent.
 
-Layer 4 (system): uses slam; nothing below imports it.
+Layer 4 (system): uses slam and device; only ``run`` imports it.
 """
 
 import copy
@@ -33,12 +34,15 @@ import dataclasses
 import math
 import queue
 import threading
+import time
 from typing import Callable, Optional
 
 import numpy as np
 import torch
 
 from . import slam
+from .config import Config
+from .device import frame_to_device
 
 
 def tracking_lag(state: "slam.SLAMState") -> int:
@@ -64,18 +68,38 @@ def mapping_view(state: "slam.SLAMState", frame_index: int) -> "slam.SLAMState":
     frames up to ``frame_index`` (as the sequential loop would hold them), everything else shared.
 
     Shared objects are only touched by the mapping thread (map, optimizer, keyframes, spline,
-    keyframe bookkeeping) or are append-only (timings, log)."""
-    rays = {j: batch for j, batch in state.frame_rays.items() if j <= frame_index}
-    return dataclasses.replace(state, tracked_poses=state.tracked_poses.clone(), frame_rays=rays)
+    keyframe bookkeeping) or are append-only (timings, log); the spline and its interval count
+    are replaced, never changed in place, so the view's own copies go back in :func:`commit`."""
+    rays = {j: batch for j, batch in state.window_rays.items() if j <= frame_index}
+    return dataclasses.replace(state, frame_poses=state.frame_poses.clone(), window_rays=rays)
 
 
 def commit(state: "slam.SLAMState", view: "slam.SLAMState", frame_index: int) -> None:
     """Copy the mapping thread's results for frames <= ``frame_index`` into the shared state."""
-    state.tracked_poses[: frame_index + 1] = view.tracked_poses[: frame_index + 1]
-    for dropped in [j for j in state.frame_rays if j <= frame_index and j not in view.frame_rays]:
-        del state.frame_rays[dropped]
-    state.spline = view.spline
+    state.frame_poses[: frame_index + 1] = view.frame_poses[: frame_index + 1]
+    for dropped in [j for j in state.window_rays if j <= frame_index and j not in view.window_rays]:
+        del state.window_rays[dropped]
+    state.trajectory = view.trajectory
+    state.intervals_done = view.intervals_done
     state.done = frame_index + 1
+
+
+def run_slam_in_two_threads(sequence, cfg: Config, device: Optional[torch.device] = None,
+                            state: Optional["slam.SLAMState"] = None,
+                            on_frame: Optional[Callable[["slam.SLAMState"], None]] = None) -> "slam.SLAMResult":
+    """:func:`slam.run_slam` with tracking and mapping in two threads (same arguments and result).
+
+    Frame 0 (the first map) runs first, alone; then :func:`run_tracking_and_mapping`."""
+    state, device, dtype = slam.prepare_run(sequence, cfg, device, state)
+    start, first_new = time.perf_counter(), state.done
+    if state.done == 0:
+        slam.start_map(state, frame_to_device(sequence[0], device, dtype))
+        state.done = 1
+        if on_frame is not None:
+            on_frame(state)
+    if state.done < len(sequence):
+        run_tracking_and_mapping(sequence, state, device, dtype, on_frame)
+    return slam.finish_run(sequence, state, device, dtype, time.perf_counter() - start, first_new)
 
 
 def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.device, dtype: torch.dtype,
@@ -86,8 +110,7 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
     committed (``state.done == len(sequence)``); raises what either thread raised.
     """
     if state.done < 1:
-        raise ValueError("run_tracking_and_mapping starts after frame 0 (first_frame_mapping)")
-    after_tracking = slam.coslam_after_tracking if state.cfg.method == "coslam" else slam.tsslam_after_tracking
+        raise ValueError("run_tracking_and_mapping starts after frame 0 (slam.start_map)")
     lock = threading.Lock()
     progress = threading.Condition(lock)  # notified when a mapping job is committed or fails
     jobs: "queue.Queue" = queue.Queue()
@@ -104,7 +127,7 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
                 with lock:
                     view = mapping_view(state, frame.index)
                     map_updates = global_ba_calls(state)
-                after_tracking(view, frame)  # the slow part, outside the lock
+                slam.after_tracking(view, frame)  # the slow part, outside the lock
                 # A new snapshot only when this job optimised the map (most frames only keyframe).
                 field_copy = copy.deepcopy(state.field) if global_ba_calls(state) != map_updates else None
                 with lock:
@@ -129,7 +152,7 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
                 if failures:
                     break
                 field_model = snapshot["field"]
-            frame = slam.frame_to_device(sequence[i], device, dtype)
+            frame = frame_to_device(sequence[i], device, dtype)
             slam.track(state, frame, field_model=field_model, lock=lock)
             jobs.put(frame)
     finally:

@@ -316,7 +316,7 @@ def prepare(args: argparse.Namespace) -> Plan:
     from . import slam
 
     try:
-        device = slam.resolve_device(cfg.device)
+        device = device_module.resolve_device(cfg.device)
     except RuntimeError as error:  # torch's own message for a device it does not know
         raise BadInput(f"device {cfg.device!r} cannot be used ({error})") from None
     sequence = data_module.load_from_config(cfg.data)
@@ -378,7 +378,7 @@ def load_checkpoint(path: Path, device=None):
 
 
 def write_partial_trajectory(state, out: Path) -> None:
-    from .slam import estimated_trajectory
+    from .export import estimated_trajectory
 
     poses = estimated_trajectory(state).detach().cpu().double().numpy()
     data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
@@ -450,7 +450,9 @@ def execute(plan: Plan) -> int:
     if plan.finished:
         print(f"{out} holds a finished run (metrics.json); nothing to resume. Use --overwrite to run it again.")
         return EXIT_OK
-    from . import slam
+    from . import device as device_module
+    from . import parallel, slam
+    from .export import export_continuous
     from .mesh import extract_mesh
 
     out.mkdir(parents=True, exist_ok=True)
@@ -464,7 +466,7 @@ def execute(plan: Plan) -> int:
     if state is not None:
         print(f"resuming at frame {state.done} of {len(sequence)}")
     device = plan.device
-    slam.tune_cpu_allocator()
+    device_module.tune_cpu_allocator()
     progress = None
     if not args.quiet:
         from tqdm import tqdm
@@ -484,7 +486,8 @@ def execute(plan: Plan) -> int:
 
     print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}), preset {cfg.name}, device {device}, output {out}")
     try:
-        result = slam.run_slam(sequence, cfg, device=device, state=state, on_frame=on_frame)
+        run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
+        result = run_loop(sequence, cfg, device=device, state=state, on_frame=on_frame)
     except KeyboardInterrupt:
         if progress is not None:
             progress.close()
@@ -523,7 +526,7 @@ def execute(plan: Plan) -> int:
             metrics.update(reconstruction_metrics(mesh, plan.gt_mesh, sequence, cfg.seed))
     if args.export_rate is not None:
         with atomic_path(out / f"trajectory_{args.export_rate:g}hz.txt") as temporary:
-            slam.export_continuous(result.state, args.export_rate, temporary)
+            export_continuous(result.state, args.export_rate, temporary)
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
     if checkpoint_path.exists() and not args.checkpoint_every:

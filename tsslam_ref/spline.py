@@ -67,7 +67,7 @@ from typing import NamedTuple, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from tsslam_ref.geometry import make_pose, so3_exp, so3_log
+from tsslam_ref.geometry import so3_exp, so3_log
 
 # Cumulative cubic basis matrix C of §III-B (rows: B_0..B_3, columns: powers 1, u, u², u³).
 _C = (
@@ -85,10 +85,6 @@ CONVENTIONS = ("paper", "basalt")
 
 _FIRST_SEGMENT_OFFSET = {"paper": 2, "basalt": 0}
 """Knot index of the first valid time: segment i uses control points i − offset .. i − offset + 3."""
-
-_ROTATION_JUMP_WARN = 0.5 * math.pi
-"""Consecutive control rotations further apart than this (rad) are suspicious: the
-principal Log flips sign at π, so the spline becomes discontinuous in its control points."""
 
 TimesLike = Union[float, np.ndarray, torch.Tensor]
 
@@ -182,15 +178,6 @@ def _times_float64(times: TimesLike) -> torch.Tensor:
     if isinstance(times, torch.Tensor):
         return times.to(torch.float64)
     return torch.as_tensor(np.asarray(times, dtype=np.float64))
-
-
-def _snap_tolerance(times64, dt: float, t0: float):
-    """Domain-end tolerance in units of Δt: the float64 rounding of the ends t0 + kΔt, i.e.
-    4 ulps at the magnitude of |t| and |t0| (a TUM stamp of 1.3e9 s has an ulp of 2.4e-7 s).
-
-    Kept for ``BSplineTrajectory.valid``; :func:`time_in_domain` is the rule itself.  Segments are
-    located exactly (:func:`_exact_floor_quotient`), with no tolerance."""
-    return END_ULPS * np.finfo(np.float64).eps * (abs(times64) + abs(float(t0))) / float(dt)
 
 
 def _end_tolerance(t_end: float, t0: float) -> float:
@@ -431,157 +418,3 @@ def evaluate(
         _reshape(sample.rotation, (3, 3)),
         *(_reshape(value, (3,)) for value in sample[1:]),
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Trajectory object
-
-
-class BSplineTrajectory:
-    """A cubic B-spline trajectory: control points plus Δt, t0 and the index convention.
-
-    Holds plain tensors (not an nn.Module): callers that optimise control points keep their own
-    parametrisation (e.g. tangent increments) and call the functional :func:`evaluate`.
-    Methods return new objects except :meth:`append` and :meth:`pop_front`, which edit the
-    sliding window in place (basalt's ``knots_push_back`` / ``knots_pop_front``).
-
-    Args:
-        control_rotations: (N, 3, 3); control_translations: (N, 3), same dtype and device.
-        dt, t0: knot spacing and time of control point 0 in seconds.
-        convention: "paper" or "basalt" (module docstring).
-    """
-
-    def __init__(
-        self,
-        control_rotations: torch.Tensor,
-        control_translations: torch.Tensor,
-        dt: float,
-        t0: float,
-        convention: str = "paper",
-    ):
-        _check_control_points(control_rotations, control_translations)
-        if control_rotations.dim() != 3:
-            raise ValueError(f"BSplineTrajectory takes unbatched (N, 3, 3) rotations, got {tuple(control_rotations.shape)}")
-        _check_convention(convention)
-        if not dt > 0:
-            raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
-        self.control_rotations = control_rotations
-        self.control_translations = control_translations
-        self.dt = float(dt)
-        self.t0 = float(t0)
-        self.convention = convention
-
-    @classmethod
-    def from_rotvecs(cls, rotvecs: torch.Tensor, translations: torch.Tensor, dt: float, t0: float,
-                     convention: str = "paper") -> "BSplineTrajectory":
-        """Build from (N, 3) rotation vectors (rad) and (N, 3) translations (m)."""
-        return cls(so3_exp(rotvecs), translations, dt, t0, convention)
-
-    # --- sizes and domain
-    @property
-    def n_ctrl(self) -> int:
-        return self.control_translations.shape[0]
-
-    def __len__(self) -> int:
-        return self.n_ctrl
-
-    @property
-    def min_time(self) -> float:
-        """First valid time in s (included)."""
-        return valid_time_range(self.n_ctrl, self.dt, self.t0, self.convention)[0]
-
-    @property
-    def max_time(self) -> float:
-        """Last valid time in s (included: the domain is closed)."""
-        return valid_time_range(self.n_ctrl, self.dt, self.t0, self.convention)[1]
-
-    def knot_times(self) -> np.ndarray:
-        """(N,) float64 times t0 + kΔt of the control points, seconds."""
-        return self.t0 + self.dt * np.arange(self.n_ctrl, dtype=np.float64)
-
-    def valid(self, times: TimesLike) -> np.ndarray:
-        """Boolean numpy array (times' shape): inside the closed domain (same rule as evaluate)."""
-        times64 = np.asarray(times.detach().cpu() if isinstance(times, torch.Tensor) else times, dtype=np.float64)
-        if self.n_ctrl < 4:
-            return np.zeros(times64.shape, dtype=bool)
-        offset = _FIRST_SEGMENT_OFFSET[self.convention]
-        s = (times64 - self.t0) / self.dt - offset
-        snap = _snap_tolerance(times64, self.dt, self.t0)
-        return (s >= -snap) & (s <= self.n_ctrl - 3 + snap)
-
-    # --- evaluation
-    def evaluate(self, times: TimesLike, derivatives: int = 0) -> SplineSample:
-        """See :func:`evaluate`."""
-        return evaluate(self.control_rotations, self.control_translations, times, self.dt, self.t0,
-                        self.convention, derivatives)
-
-    def pose(self, times: TimesLike) -> torch.Tensor:
-        """(*times.shape, 4, 4) camera-to-world poses T_wc(t)."""
-        sample = self.evaluate(times)
-        return make_pose(sample.rotation, sample.translation)
-
-    # --- sliding window
-    def append(self, rotation: torch.Tensor, translation: torch.Tensor) -> None:
-        """Add control point N at t0 + NΔt (in place).  rotation (3, 3), translation (3,)."""
-        if rotation.shape != (3, 3) or translation.shape != (3,):
-            raise ValueError(f"append expects (3, 3) and (3,), got {tuple(rotation.shape)} and {tuple(translation.shape)}")
-        rotation = rotation.to(self.control_rotations)
-        translation = translation.to(self.control_translations)
-        if self.n_ctrl > 0:
-            angle = float(torch.linalg.vector_norm(so3_log(self.control_rotations[-1].T @ rotation)))
-            if angle > _ROTATION_JUMP_WARN:
-                import warnings
-
-                warnings.warn(f"appended control rotation is {angle:.3f} rad from the previous one (> pi/2)")
-        self.control_rotations = torch.cat([self.control_rotations, rotation[None]], dim=0)
-        self.control_translations = torch.cat([self.control_translations, translation[None]], dim=0)
-
-    def pop_front(self) -> None:
-        """Drop control point 0 and advance t0 by Δt (in place); the curve is unchanged where defined."""
-        if self.n_ctrl <= 4:
-            raise ValueError(f"pop_front would leave {self.n_ctrl - 1} control points; a cubic spline needs 4")
-        self.control_rotations = self.control_rotations[1:]
-        self.control_translations = self.control_translations[1:]
-        self.t0 += self.dt
-
-    def window(self, first: int, stop: int) -> "BSplineTrajectory":
-        """Control points [first, stop) as a new trajectory (views), t0 moved to knot ``first``."""
-        if not 0 <= first < stop <= self.n_ctrl or stop - first < 4:
-            raise ValueError(f"window [{first}, {stop}) must lie in [0, {self.n_ctrl}] with >= 4 points")
-        return BSplineTrajectory(self.control_rotations[first:stop], self.control_translations[first:stop],
-                                 self.dt, self.t0 + first * self.dt, self.convention)
-
-    # --- tensor helpers
-    def to(self, *args, **kwargs) -> "BSplineTrajectory":
-        """Copy with tensors moved/cast as ``Tensor.to(*args, **kwargs)``."""
-        return BSplineTrajectory(self.control_rotations.to(*args, **kwargs),
-                                 self.control_translations.to(*args, **kwargs), self.dt, self.t0, self.convention)
-
-    def detach(self) -> "BSplineTrajectory":
-        return BSplineTrajectory(self.control_rotations.detach(), self.control_translations.detach(),
-                                 self.dt, self.t0, self.convention)
-
-    def clone(self) -> "BSplineTrajectory":
-        return BSplineTrajectory(self.control_rotations.clone(), self.control_translations.clone(),
-                                 self.dt, self.t0, self.convention)
-
-    def __repr__(self) -> str:
-        return (f"BSplineTrajectory(n_ctrl={self.n_ctrl}, dt={self.dt}, t0={self.t0}, "
-                f"convention={self.convention!r}, domain=[{self.min_time}, {self.max_time}], "
-                f"dtype={self.control_translations.dtype})")
-
-
-# --------------------------------------------------------------------------------------------
-# Curve approximation moved to tsslam_ref.spline_fit
-
-_MOVED_TO_SPLINE_FIT = ("control_point_times", "initial_control_points_from_poses", "fit_control_points",
-                        "fit_trajectory", "first_control_point", "pin_first_control_point")
-
-
-def __getattr__(name: str):
-    """re-exported for callers; import from spline_fit (looked up lazily, so no import cycle)."""
-    if name in _MOVED_TO_SPLINE_FIT:
-        from tsslam_ref import spline_fit
-
-        return getattr(spline_fit, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

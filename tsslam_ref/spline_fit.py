@@ -16,7 +16,8 @@ import numpy as np
 import torch
 
 from tsslam_ref.geometry import so3_exp, so3_log
-from tsslam_ref.spline import BSplineTrajectory, _check_convention, _locate, evaluate_segments
+from tsslam_ref.spline import _check_convention, _locate, evaluate_segments
+from tsslam_ref.trajectory import BSplineTrajectory
 
 
 def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "paper") -> np.ndarray:
@@ -179,7 +180,7 @@ def fit_trajectory(
         times: (K,) float64 seconds, increasing; poses: (K, 4, 4) camera-to-world.
 
     Returns:
-        the fitted :class:`BSplineTrajectory` (poses' dtype and device).
+        the fitted :class:`trajectory.BSplineTrajectory` (poses' dtype and device).
     """
     times = np.asarray(times, dtype=np.float64).reshape(-1)
     if times.shape[0] < 2 or not np.all(np.diff(times) > 0):

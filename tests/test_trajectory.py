@@ -1,0 +1,151 @@
+"""The trajectory type (trajectory.py): timing, the covered domain, growing and shrinking, pose models.
+
+Oracles: the functional spline (:func:`spline.evaluate`, itself checked against independent
+formulas in test_spline.py), the knot arithmetic t_k = t0 + k dt written out by hand, and local
+support (a control point moves only the four segments it shapes).
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from tsslam_ref import spline
+from tsslam_ref.bundle import SplinePoses, dynamics_term
+from tsslam_ref.config import DynamicsConfig
+from tsslam_ref.geometry import make_pose, so3_exp, so3_log
+from tsslam_ref.trajectory import BSplineTrajectory
+
+F64 = torch.float64
+
+
+def random_controls(seed: int, n_ctrl: int):
+    """(N, 3, 3) rotations a random walk of <= 0.3 rad steps, (N, 3) translations a random walk."""
+    generator = torch.Generator().manual_seed(seed)
+    steps = 0.3 * torch.rand(n_ctrl, 1, generator=generator, dtype=F64) * torch.nn.functional.normalize(
+        torch.randn(n_ctrl, 3, generator=generator, dtype=F64), dim=-1)
+    rotations = [so3_exp(steps[0])]
+    for k in range(1, n_ctrl):
+        rotations.append(rotations[-1] @ so3_exp(steps[k]))
+    translations = torch.cumsum(torch.randn(n_ctrl, 3, generator=generator, dtype=F64), dim=0)
+    return torch.stack(rotations), translations
+
+
+def test_accessors_and_poses_match_the_functional_spline():
+    R, P = random_controls(26, 7)
+    traj = BSplineTrajectory.from_rotvecs(so3_log(R), P, 0.2, 1.0)
+    assert len(traj) == traj.n_ctrl == 7
+    assert np.allclose(traj.knot_times(), 1.0 + 0.2 * np.arange(7), atol=1e-15)
+    assert traj.knot_time(3) == 1.0 + 3 * 0.2
+    assert traj.domain() == spline.valid_time_range(7, 0.2, 1.0)  # [t0 + 2 dt, t0 + 6 dt]
+    times = np.array([1.45, 1.9])
+    sample = spline.evaluate(R, P, times, 0.2, 1.0)
+    assert torch.allclose(traj.poses(times), make_pose(sample.rotation, sample.translation), atol=1e-14)
+    assert traj.to(torch.float32).control_translations.dtype == torch.float32
+    assert "n_ctrl=7" in repr(traj)
+    with pytest.raises(ValueError, match="dt must be > 0"):
+        BSplineTrajectory(R, P, 0.0, 1.0)
+    with pytest.raises(ValueError, match=r"\(N, 3\) translations"):
+        BSplineTrajectory(R, P[:5], 0.2, 1.0)
+
+
+def test_intervals_start_at_the_first_frame_and_the_domain_is_half_open():
+    first, dt = 10.0, 0.25
+    traj = BSplineTrajectory.empty(first, dt, torch.zeros(1, dtype=F64))
+    assert traj.n_ctrl == 0 and traj.t0 == first - 2 * dt
+    assert traj.interval(0) == (first, first + dt) and traj.interval(3) == (first + 3 * dt, first + 4 * dt)
+    assert traj.domain() == (first, first) and not traj.covers([first, first + 0.1]).any()
+    R, P = random_controls(3, 5)
+    grown = traj.with_controls(R, P)  # 5 points: intervals 0 and 1
+    start, end = grown.domain()
+    assert (start, end) == (first, traj.knot_time(4))
+    times = np.array([start - 1e-9, start, 0.5 * (start + end), np.nextafter(end, 0.0), end, end + 1e-9])
+    assert grown.covers(times).tolist() == [False, True, True, True, False, False]
+    assert grown.covers(times.reshape(2, 3)).shape == (2, 3)
+    basalt = BSplineTrajectory.empty(first, dt, torch.zeros(1, dtype=F64), convention="basalt")
+    assert basalt.t0 == first and basalt.interval(0) == (first, first + dt)
+
+
+def test_push_back_pop_front_and_window_keep_the_curve():
+    R, P = random_controls(27, 9)
+    traj = BSplineTrajectory(R, P, 0.3, 0.0)
+    start, end = traj.domain()
+    times = np.linspace(start + 0.3, end, 11)
+    reference = traj.evaluate(times, derivatives=2)
+    window = traj.window(1, 9)
+    popped = traj.clone()
+    popped.pop_front()
+    for other in (window, popped):
+        assert other.t0 == pytest.approx(0.3)
+        for a, b in zip(other.evaluate(times, derivatives=2), reference):
+            assert torch.allclose(a, b, atol=1e-14)
+    short = BSplineTrajectory(R[:8], P[:8], 0.3, 0.0)
+    short.push_back(R[8], P[8])
+    assert short.domain() == pytest.approx(traj.domain())
+    assert torch.allclose(short.poses(times), traj.poses(times), atol=1e-14)
+    with pytest.raises(ValueError):
+        traj.window(5, 8)
+    tiny = BSplineTrajectory(R[:4], P[:4], 0.3, 0.0)
+    with pytest.raises(ValueError, match="needs 4"):
+        tiny.pop_front()
+    with pytest.warns(UserWarning, match="pi/2"):
+        tiny.push_back(R[3] @ so3_exp(torch.tensor([2.0, 0.0, 0.0], dtype=F64)), P[3])
+
+
+def test_with_controls_keeps_timing_and_start_pose_and_detaches():
+    R, P = random_controls(5, 6)
+    start_pose = make_pose(R[1], P[1])
+    traj = BSplineTrajectory(R, P, 0.2, 1.0, start_pose=start_pose)
+    moved = P.clone().requires_grad_(True)
+    other = traj.with_controls(R, moved + 1.0)
+    assert (other.dt, other.t0, other.convention) == (traj.dt, traj.t0, traj.convention)
+    assert other.start_pose is start_pose and not other.control_translations.requires_grad
+    assert torch.equal(other.control_translations, P + 1.0)
+
+
+def test_spline_poses_build_from_the_trajectory_and_return_one():
+    """The pose model holds the trajectory's control points; its trajectory() is differentiable in
+    the free points only and, untouched, equals the trajectory it was built from."""
+    R, P = random_controls(8, 7)
+    traj = BSplineTrajectory(R, P, 0.25, 0.0)
+    times = np.array([0.55, 1.3])
+    model = SplinePoses(traj, free=[4, 5], slot_times=times, fallback_poses=traj.poses(times),
+                        lr_rot=1e-3, lr_trans=1e-3)
+    current = model.trajectory()
+    assert torch.allclose(current.control_translations, P, atol=0) and torch.allclose(current.poses(times), traj.poses(times))
+    grad = torch.autograd.grad(current.control_translations.sum(), [model.translation_delta])[0]
+    assert grad[[4, 5]].abs().min() == 1.0 and grad[[0, 1, 2, 3, 6]].abs().max() == 0.0
+
+
+def test_dynamics_term_is_off_for_an_empty_range_or_no_free_point():
+    """One L_DR closure for local and global BA: None where nothing can be regularised, else the
+    regulariser of the model's current trajectory over the range."""
+    from tsslam_ref.dynamics import trajectory_dynamics_loss
+
+    R, P = random_controls(9, 8)
+    traj = BSplineTrajectory(R, 0.01 * P, 0.25, 0.0)
+    cfg = DynamicsConfig(n_samples=8)
+    free = SplinePoses(traj, free=[5, 6], slot_times=np.array([1.0]), fallback_poses=torch.eye(4, dtype=F64)[None],
+                       lr_rot=1e-3, lr_trans=1e-3)
+    none_free = SplinePoses(traj, free=[], slot_times=np.array([1.0]), fallback_poses=torch.eye(4, dtype=F64)[None],
+                            lr_rot=1e-3, lr_trans=1e-3)
+    assert dynamics_term(free, None, cfg, None) is None
+    assert dynamics_term(free, (1.0, 1.0), cfg, None) is None
+    assert dynamics_term(none_free, (0.5, 1.5), cfg, None) is None
+    term = dynamics_term(free, (0.5, 1.5), cfg, torch.Generator().manual_seed(2))
+    expected = trajectory_dynamics_loss(traj, 0.5, 1.5, cfg, torch.Generator().manual_seed(2))
+    assert torch.allclose(term(), expected, atol=1e-12)
+
+
+def test_pose_models_use_the_same_domain_rule_as_the_trajectory():
+    """A slot at the domain's end is not covered (it belongs to the next, unfitted interval) and
+    keeps its fallback pose, as does one before the start; covered slots get the spline's pose."""
+    R, P = random_controls(11, 6)
+    traj = BSplineTrajectory(R, P, 0.25, 0.0)
+    start, end = traj.domain()
+    times = np.array([start - 0.01, start, 0.5 * (start + end), end])
+    fallback = torch.eye(4, dtype=F64).repeat(4, 1, 1) * 3.0
+    model = SplinePoses(traj, free=[3], slot_times=times, fallback_poses=fallback, lr_rot=1e-3, lr_trans=1e-3)
+    poses = model.poses()
+    assert traj.covers(times).tolist() == [False, True, True, False]
+    assert torch.equal(poses[0], fallback[0]) and torch.equal(poses[3], fallback[3])
+    assert torch.allclose(poses[1:3], traj.poses(times[1:3]), atol=1e-14)

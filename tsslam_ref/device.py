@@ -1,0 +1,93 @@
+"""The compute device: choosing it, the CPU allocator setting, and frames as tensors on it.
+
+Layer 4 (system support): imports ``render`` only; used by ``slam``, ``parallel`` and ``run``.
+"""
+
+import ctypes
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .render import RayBatch, frame_rays, sample_pixels
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> cuda when available, else cpu; 'cpu' / 'cuda' / 'cuda:1' as given."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda was asked for but torch.cuda.is_available() is False")
+    return device
+
+
+def tune_cpu_allocator() -> bool:
+    """Keep freed buffers in the process instead of returning them to the OS (glibc only).
+
+    The map's iterations allocate and free the same ~50 MB buffers again and again; with glibc's
+    defaults each is a fresh mmap that page-faults on first touch (20-40 % of an iteration on our
+    2-core machine).  Raising the mmap and trim thresholds (``mallopt``, the same as the
+    ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` / ``MALLOC_TOP_PAD_`` environment
+    variables) avoids that.  Process-wide, so only the command-line entry points call it.
+    Returns False (and changes nothing) where glibc is not available.
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # glibc malloc.h
+    ok = mallopt(m_mmap_threshold, 1 << 30) and mallopt(m_trim_threshold, 1 << 30)
+    return bool(ok and mallopt(m_top_pad, 1 << 28))
+
+
+@dataclass
+class FrameTensors:
+    """One RGB-D frame on the compute device."""
+
+    index: int
+    timestamp: float
+    """Seconds (float64)."""
+    rgb: torch.Tensor
+    """(H, W, 3) colour in [0, 1]."""
+    depth: torch.Tensor
+    """(H, W) depth in m (0 = missing)."""
+    intrinsics: object
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.depth.shape[1])
+
+    def rays(self, rows: torch.Tensor, cols: torch.Tensor, frame_id: int = 0) -> RayBatch:
+        """(R,) camera-frame rays of the pixels (rows[r], cols[r]) with their colour and depth."""
+        return frame_rays(self.rgb, self.depth, self.intrinsics, rows, cols, frame_id=frame_id)
+
+    def all_rays(self) -> RayBatch:
+        """Every pixel as a camera-frame ray, (H*W,)."""
+        rows, cols = torch.meshgrid(
+            torch.arange(self.height, device=self.depth.device),
+            torch.arange(self.width, device=self.depth.device),
+            indexing="ij",
+        )
+        return self.rays(rows.reshape(-1), cols.reshape(-1))
+
+    def sampled_rays(self, n: int, generator: torch.Generator, ignore_edge: int = 0) -> RayBatch:
+        """(n,) rays of pixels drawn uniformly ``ignore_edge`` pixels away from the border."""
+        rows, cols = sample_pixels(self.height, self.width, n, ignore_edge=ignore_edge, generator=generator)
+        return self.rays(rows.to(self.depth.device), cols.to(self.depth.device))
+
+
+def frame_to_device(frame, device: torch.device, dtype: torch.dtype) -> FrameTensors:
+    """:class:`tsslam_ref.data.Frame` (numpy) -> :class:`FrameTensors` on ``device``."""
+    return FrameTensors(
+        index=frame.index,
+        timestamp=float(frame.timestamp),
+        rgb=torch.as_tensor(np.ascontiguousarray(frame.rgb), dtype=dtype, device=device),
+        depth=torch.as_tensor(np.ascontiguousarray(frame.depth), dtype=dtype, device=device),
+        intrinsics=frame.intrinsics,
+    )

@@ -1,0 +1,73 @@
+"""The run's outputs: each method's per-frame trajectory and TS-SLAM's continuous trajectory file.
+
+* TS-SLAM reports the spline's pose at every frame's timestamp (:func:`spline_output_poses`).
+* The Co-SLAM baseline reports keyframes as global BA left them and every other frame re-anchored on
+  its preceding keyframe (Co-SLAM's ``pose_relative``, :func:`coslam_output_poses`).
+* :func:`export_continuous` samples the spline at any rate with velocities (``--export-rate``).
+
+Every pose is camera-to-world, OpenCV axes; times are float64 seconds.  The functions read a
+``slam.SLAMState`` (fields ``cfg``, ``done``, ``timestamps``, ``frame_poses``, ``trajectory``,
+``keyframe_of_frame``, ``relative_to_keyframe``) and change nothing in it.
+
+Layer 4 (system support): imports ``geometry`` only; used by ``slam`` and ``run``.
+"""
+
+import os
+import tempfile
+
+import numpy as np
+import torch
+
+from .geometry import make_pose, pose_to_tum
+
+
+def spline_output_poses(state) -> torch.Tensor:
+    """(done, 4, 4): the spline's poses where it reaches, the frame poses elsewhere."""
+    poses = state.frame_poses[: state.done].clone()
+    if state.trajectory is None or not state.cfg.local_ba.use_spline:
+        return poses
+    times = state.timestamps[: state.done]
+    covered = np.nonzero(state.trajectory.covers(times))[0]
+    if len(covered) > 0:
+        poses[covered] = state.trajectory.poses(times[covered]).to(poses.dtype)
+    return poses
+
+
+def coslam_output_poses(state) -> torch.Tensor:
+    """(done, 4, 4) Co-SLAM's reported trajectory: keyframes as optimised, others re-anchored on
+    their preceding keyframe with the relative pose they had after tracking (pose_relative)."""
+    poses = state.frame_poses[: state.done].clone()
+    for i, relative in state.relative_to_keyframe.items():
+        if i < state.done:
+            poses[i] = relative @ state.frame_poses[state.keyframe_of_frame[i]]
+    return poses
+
+
+def estimated_trajectory(state) -> torch.Tensor:
+    """(done, 4, 4) the method's output poses for the frames processed so far."""
+    if state.cfg.method == "tsslam":
+        return spline_output_poses(state)
+    return coslam_output_poses(state)
+
+
+def export_continuous(state, rate_hz: float, path) -> np.ndarray:
+    """Sample the spline at ``rate_hz`` over its domain and write one line per time, atomically.
+
+    Columns: t tx ty tz qx qy qz qw vx vy vz wx wy wz, with v the world-frame linear velocity
+    (m/s) and w the body-frame angular velocity (rad/s).  Overwrites ``path`` (the caller owns the
+    folder).  Returns the (T, 14) float64 rows."""
+    if rate_hz <= 0:
+        raise ValueError(f"--export-rate must be positive, got {rate_hz}")
+    start, end = state.trajectory.domain()
+    times = np.arange(start, end, 1.0 / rate_hz, dtype=np.float64)
+    sample = state.trajectory.evaluate(times, derivatives=1)
+    poses = make_pose(sample.rotation, sample.translation).detach().cpu().double().numpy()
+    rows = np.concatenate([times[:, None], pose_to_tum(poses), sample.velocity_world.detach().cpu().double().numpy(),
+                           sample.omega_body.detach().cpu().double().numpy()], axis=1)
+    directory = os.path.dirname(os.path.abspath(str(path)))
+    handle, temporary = tempfile.mkstemp(dir=directory, suffix=".tmp")
+    with os.fdopen(handle, "w") as stream:
+        stream.write("# t tx ty tz qx qy qz qw vx vy vz wx wy wz (camera-to-world, OpenCV axes; v world m/s, w body rad/s)\n")
+        np.savetxt(stream, rows, fmt="%.9f")
+    os.replace(temporary, str(path))
+    return rows

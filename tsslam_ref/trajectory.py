@@ -1,0 +1,179 @@
+"""The camera trajectory: one cubic B-spline type for the window, local BA, global BA and the pose models.
+
+TS-SLAM Sec. III-B represents the trajectory by control points {R_k, t_k} at knot times
+t_k = t0 + k dt; the pose at time t is the cumulative cubic B-spline of Eq. (5)-(6)
+(:func:`spline.evaluate`).  :class:`BSplineTrajectory` holds the control points with dt, t0, the
+index convention and, once the first interval is fitted, the pose the curve must start at (the
+gauge, :func:`spline_fit.pin_first_control_point`).  It grows at the back and shrinks at the front
+like basalt's ``knots_push_back`` / ``knots_pop_front``.
+
+Intervals and domain (paper convention, offset o = 2; basalt o = 0):
+
+* interval n is [t_{n+o}, t_{n+o+1}); the first one starts at the first frame's time, so an empty
+  trajectory for a sequence starting at t_first has t0 = t_first - o dt (:meth:`BSplineTrajectory.empty`);
+* with N >= 4 control points the trajectory **covers** the half-open time range
+  [t_o, t_{N-3+o}), the intervals 0..N-4: a frame lies in exactly one interval, and a frame at
+  the end time belongs to the next one, not yet fitted.  This is the one membership rule
+  (:meth:`BSplineTrajectory.covers`); :func:`spline.evaluate` also accepts the end time itself.
+
+Layer 1 (math): imports ``spline`` and ``geometry`` only.
+Taught in notebooks/01_bspline_trajectory.ipynb and notebooks/06_local_ba.ipynb.
+"""
+
+import warnings
+from typing import Optional, Tuple
+
+import numpy as np
+import torch
+
+from . import spline as spline_module
+from .geometry import make_pose, so3_exp, so3_log
+
+_FIRST_SEGMENT_OFFSET = {"paper": 2, "basalt": 0}
+_ROTATION_JUMP_WARN = 0.5 * np.pi
+
+
+class BSplineTrajectory:
+    """Control points plus dt, t0, the index convention and the optional start pose.
+
+    Holds plain tensors (not an nn.Module): the pose models of ``bundle`` keep their own
+    parametrisation (tangent increments) and build a new trajectory from it.  Methods return new
+    objects except :meth:`push_back` and :meth:`pop_front`, which edit it in place.
+
+    Args:
+        control_rotations: (N, 3, 3) body-to-world; control_translations: (N, 3) world, m.
+        dt: knot spacing (s).  t0: time of control point 0 (s).
+        convention: "paper" or "basalt" (:mod:`tsslam_ref.spline`).
+        start_pose: (4, 4) camera-to-world pose the curve starts at (control point 0 follows
+            points 1 and 2 in BA), or None.
+    """
+
+    def __init__(self, control_rotations: torch.Tensor, control_translations: torch.Tensor, dt: float, t0: float,
+                 convention: str = "paper", start_pose: Optional[torch.Tensor] = None):
+        if control_rotations.dim() != 3 or control_rotations.shape[1:] != (3, 3):
+            raise ValueError(f"BSplineTrajectory takes (N, 3, 3) rotations, got {tuple(control_rotations.shape)}")
+        if control_translations.shape != (control_rotations.shape[0], 3):
+            raise ValueError(f"BSplineTrajectory takes (N, 3) translations for N = {control_rotations.shape[0]} "
+                             f"rotations, got {tuple(control_translations.shape)}")
+        if convention not in _FIRST_SEGMENT_OFFSET:
+            raise ValueError(f"convention must be one of {tuple(_FIRST_SEGMENT_OFFSET)}, got {convention!r}")
+        if not dt > 0:
+            raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
+        self.control_rotations = control_rotations
+        self.control_translations = control_translations
+        self.dt = float(dt)
+        self.t0 = float(t0)
+        self.convention = convention
+        self.start_pose = start_pose
+
+    @classmethod
+    def empty(cls, first_time: float, dt: float, like: torch.Tensor, convention: str = "paper") -> "BSplineTrajectory":
+        """No control points yet; interval 0 starts at ``first_time`` (s).  ``like``: dtype and device."""
+        offset = _FIRST_SEGMENT_OFFSET[convention]
+        return cls(like.new_zeros(0, 3, 3), like.new_zeros(0, 3), dt, float(first_time) - offset * float(dt), convention)
+
+    @classmethod
+    def from_rotvecs(cls, rotvecs: torch.Tensor, translations: torch.Tensor, dt: float, t0: float,
+                     convention: str = "paper") -> "BSplineTrajectory":
+        """Build from (N, 3) rotation vectors (rad) and (N, 3) translations (m)."""
+        return cls(so3_exp(rotvecs), translations, dt, t0, convention)
+
+    def with_controls(self, control_rotations: torch.Tensor, control_translations: torch.Tensor) -> "BSplineTrajectory":
+        """The same timing and start pose with other control points, detached: (M, 3, 3), (M, 3)."""
+        return BSplineTrajectory(control_rotations.detach(), control_translations.detach(), self.dt, self.t0,
+                                 self.convention, self.start_pose)
+
+    # --- sizes, knots, intervals, domain
+    @property
+    def n_ctrl(self) -> int:
+        """N, the number of control points."""
+        return int(self.control_translations.shape[0])
+
+    def __len__(self) -> int:
+        return self.n_ctrl
+
+    def knot_time(self, k: int) -> float:
+        """t_k = t0 + k dt (s)."""
+        return self.t0 + k * self.dt
+
+    def knot_times(self) -> np.ndarray:
+        """(N,) float64 times t0 + k dt of the control points (s)."""
+        return self.t0 + self.dt * np.arange(self.n_ctrl, dtype=np.float64)
+
+    def interval(self, n: int) -> Tuple[float, float]:
+        """[start, end) of interval n (s): [t_{n+o}, t_{n+o+1})."""
+        offset = _FIRST_SEGMENT_OFFSET[self.convention]
+        return self.knot_time(n + offset), self.knot_time(n + offset + 1)
+
+    def domain(self) -> Tuple[float, float]:
+        """(start, end) in s of the covered times [start, end); empty (start == end) below 4 points."""
+        if self.n_ctrl < 4:
+            start = self.interval(0)[0]
+            return start, start
+        return spline_module.valid_time_range(self.n_ctrl, self.dt, self.t0, self.convention)
+
+    def covers(self, times) -> np.ndarray:
+        """(times' shape) bool: start <= t < end, the one membership rule (module docstring)."""
+        start, end = self.domain()
+        times = np.asarray(times, dtype=np.float64)
+        return (times >= start) & (times < end)
+
+    # --- evaluation
+    def evaluate(self, times, derivatives: int = 0) -> "spline_module.SplineSample":
+        """:func:`spline.evaluate` of this trajectory (derivatives 0, 1 or 2)."""
+        return spline_module.evaluate(self.control_rotations, self.control_translations, times, self.dt, self.t0,
+                                      self.convention, derivatives)
+
+    def poses(self, times) -> torch.Tensor:
+        """(*times.shape, 4, 4) camera-to-world poses T_wc(t), times in the closed domain (float64 s)."""
+        sample = self.evaluate(times)
+        return make_pose(sample.rotation, sample.translation)
+
+    # --- growing and shrinking (in place)
+    def push_back(self, rotation: torch.Tensor, translation: torch.Tensor) -> None:
+        """Add control point N at t0 + N dt.  rotation (3, 3), translation (3,).  Warns on a jump > pi/2."""
+        if rotation.shape != (3, 3) or translation.shape != (3,):
+            raise ValueError(f"push_back expects (3, 3) and (3,), got {tuple(rotation.shape)} and {tuple(translation.shape)}")
+        rotation = rotation.to(self.control_rotations)
+        translation = translation.to(self.control_translations)
+        if self.n_ctrl > 0:
+            angle = float(torch.linalg.vector_norm(so3_log(self.control_rotations[-1].T @ rotation)))
+            if angle > _ROTATION_JUMP_WARN:
+                warnings.warn(f"pushed control rotation is {angle:.3f} rad from the previous one (> pi/2)")
+        self.control_rotations = torch.cat([self.control_rotations, rotation[None]], dim=0)
+        self.control_translations = torch.cat([self.control_translations, translation[None]], dim=0)
+
+    def pop_front(self) -> None:
+        """Drop control point 0 and advance t0 by dt; the curve is unchanged where still defined."""
+        if self.n_ctrl <= 4:
+            raise ValueError(f"pop_front would leave {self.n_ctrl - 1} control points; a cubic spline needs 4")
+        self.control_rotations = self.control_rotations[1:]
+        self.control_translations = self.control_translations[1:]
+        self.t0 += self.dt
+
+    def window(self, first: int, stop: int) -> "BSplineTrajectory":
+        """Control points [first, stop) as a new trajectory (views), t0 moved to knot ``first``."""
+        if not 0 <= first < stop <= self.n_ctrl or stop - first < 4:
+            raise ValueError(f"window [{first}, {stop}) must lie in [0, {self.n_ctrl}] with >= 4 points")
+        return BSplineTrajectory(self.control_rotations[first:stop], self.control_translations[first:stop],
+                                 self.dt, self.t0 + first * self.dt, self.convention)
+
+    # --- tensor helpers
+    def to(self, *args, **kwargs) -> "BSplineTrajectory":
+        """Copy with tensors moved / cast as ``Tensor.to(*args, **kwargs)``."""
+        start = None if self.start_pose is None else self.start_pose.to(*args, **kwargs)
+        return BSplineTrajectory(self.control_rotations.to(*args, **kwargs),
+                                 self.control_translations.to(*args, **kwargs), self.dt, self.t0, self.convention, start)
+
+    def detach(self) -> "BSplineTrajectory":
+        return self.with_controls(self.control_rotations, self.control_translations)
+
+    def clone(self) -> "BSplineTrajectory":
+        return BSplineTrajectory(self.control_rotations.clone(), self.control_translations.clone(), self.dt, self.t0,
+                                 self.convention, None if self.start_pose is None else self.start_pose.clone())
+
+    def __repr__(self) -> str:
+        start, end = self.domain()
+        return (f"BSplineTrajectory(n_ctrl={self.n_ctrl}, dt={self.dt}, t0={self.t0}, "
+                f"convention={self.convention!r}, domain=[{start}, {end}), "
+                f"dtype={self.control_translations.dtype})")
