@@ -315,8 +315,6 @@ def main(argv=None) -> int:
                 print(f"{key:>22}: {value}")
         return 0
     from tsslam_ref import synthetic  # lazy: the renderer needs torch
-    from tsslam_ref.datasets.tum_format import read_tum_trajectory
-
     try:
         _check_synthesize_out(Path(args.out), args.force)
         start_time = None

@@ -12,12 +12,11 @@ Every pose is camera-to-world, OpenCV axes; times are float64 seconds.  The func
 Layer 4 (system support): imports ``geometry`` only; used by ``slam`` and ``run``.
 """
 
-import os
-import tempfile
 
 import numpy as np
 import torch
 
+from .files import atomic_path
 from .geometry import make_pose, pose_to_tum
 
 
@@ -54,8 +53,8 @@ def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     """Sample the spline at ``rate_hz`` over its domain and write one line per time, atomically.
 
     Columns: t tx ty tz qx qy qz qw vx vy vz wx wy wz, with v the world-frame linear velocity
-    (m/s) and w the body-frame angular velocity (rad/s).  Overwrites ``path`` (the caller owns the
-    folder).  Returns the (T, 14) float64 rows."""
+    (m/s) and w the body-frame angular velocity (rad/s).  Replaces ``path`` atomically (``files.atomic_path``;
+    the caller owns the folder).  Returns the (T, 14) float64 rows."""
     if rate_hz <= 0:
         raise ValueError(f"--export-rate must be positive, got {rate_hz}")
     start, end = state.trajectory.domain()
@@ -64,10 +63,7 @@ def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     poses = make_pose(sample.rotation, sample.translation).detach().cpu().double().numpy()
     rows = np.concatenate([times[:, None], pose_to_tum(poses), sample.velocity_world.detach().cpu().double().numpy(),
                            sample.omega_body.detach().cpu().double().numpy()], axis=1)
-    directory = os.path.dirname(os.path.abspath(str(path)))
-    handle, temporary = tempfile.mkstemp(dir=directory, suffix=".tmp")
-    with os.fdopen(handle, "w") as stream:
+    with atomic_path(path) as temporary, open(temporary, "w") as stream:
         stream.write("# t tx ty tz qx qy qz qw vx vy vz wx wy wz (camera-to-world, OpenCV axes; v world m/s, w body rad/s)\n")
         np.savetxt(stream, rows, fmt="%.9f")
-    os.replace(temporary, str(path))
     return rows

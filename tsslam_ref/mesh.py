@@ -16,13 +16,13 @@ Lewiner marching cubes with its ``mask`` argument set to the cells whose 8 corne
 """
 
 import os
-import tempfile
-from typing import Optional
 
 import numpy as np
 import torch
 import trimesh
 from skimage.measure import marching_cubes
+
+from .files import atomic_write_bytes
 
 
 def _grid_axes(bound: np.ndarray, voxel_size: float):
@@ -109,7 +109,7 @@ def extract_mesh(
 
 
 def save_mesh(mesh: trimesh.Trimesh, path, overwrite: bool = False) -> None:
-    """Write ``mesh`` as .ply atomically (temporary file in the same folder, then rename).
+    """Write ``mesh`` as .ply atomically (``files.atomic_write_bytes``: a new file, then rename).
 
     Raises FileExistsError if ``path`` exists and ``overwrite`` is False, ValueError for a
     suffix other than .ply.
@@ -119,13 +119,4 @@ def save_mesh(mesh: trimesh.Trimesh, path, overwrite: bool = False) -> None:
         raise ValueError(f"save_mesh writes .ply files, got '{path}'")
     if os.path.exists(path) and not overwrite:
         raise FileExistsError(f"'{path}' exists; pass overwrite=True to replace it")
-    directory = os.path.dirname(os.path.abspath(path))
-    handle, temporary = tempfile.mkstemp(dir=directory, suffix=".ply.tmp")
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(trimesh.exchange.ply.export_ply(mesh))
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
+    atomic_write_bytes(path, trimesh.exchange.ply.export_ply(mesh))

@@ -45,6 +45,7 @@ import torch
 from . import checkpoint as checkpoint_module
 from . import config as config_module
 from . import data as data_module
+from . import device as device_module
 from . import eval as eval_module
 from .cli_args import OneLineParser
 from .files import atomic_path, atomic_write_text, remove_stray_temporaries
@@ -313,8 +314,6 @@ def prepare(args: argparse.Namespace) -> Plan:
     cfg = resolve_config(args)
     if args.export_rate is not None and cfg.method != "tsslam":
         raise BadInput(f"--export-rate needs --method tsslam (a continuous trajectory); the method is {cfg.method}")
-    from . import slam
-
     try:
         device = device_module.resolve_device(cfg.device)
     except RuntimeError as error:  # torch's own message for a device it does not know
@@ -450,7 +449,6 @@ def execute(plan: Plan) -> int:
     if plan.finished:
         print(f"{out} holds a finished run (metrics.json); nothing to resume. Use --overwrite to run it again.")
         return EXIT_OK
-    from . import device as device_module
     from . import parallel, slam
     from .export import export_continuous
     from .mesh import extract_mesh
@@ -525,8 +523,7 @@ def execute(plan: Plan) -> int:
         if plan.gt_mesh is not None and len(mesh.faces) > 0:
             metrics.update(reconstruction_metrics(mesh, plan.gt_mesh, sequence, cfg.seed))
     if args.export_rate is not None:
-        with atomic_path(out / f"trajectory_{args.export_rate:g}hz.txt") as temporary:
-            export_continuous(result.state, args.export_rate, temporary)
+        export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
     if checkpoint_path.exists() and not args.checkpoint_every:

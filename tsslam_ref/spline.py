@@ -60,7 +60,6 @@ Glossary
 Here M stands for ``times.shape`` (the outputs carry the query shape).
 """
 
-import math
 from fractions import Fraction
 from typing import NamedTuple, Optional, Tuple, Union
 

@@ -22,11 +22,11 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 from pathlib import Path
 from typing import List, Optional, Sequence
 
 from tsslam_ref import conformance
+from tsslam_ref.files import atomic_write_text
 from tsslam_ref.cli_args import OneLineParser
 
 VECTOR_DIR = Path(__file__).resolve().parent / "assets" / "spline_vectors"
@@ -56,7 +56,7 @@ def _written_by_kit(path: str) -> bool:
 
 
 def write_json_atomic(path: str, data: dict, force: bool = False) -> None:
-    """Write JSON via a temp file in the same folder and os.replace.
+    """Write JSON atomically with the user's normal mode (``files.atomic_write_text``).
 
     An existing file is replaced only if this kit wrote it (``written_by``) or ``force``;
     otherwise FileExistsError with a message that says so.
@@ -64,18 +64,7 @@ def write_json_atomic(path: str, data: dict, force: bool = False) -> None:
     if os.path.exists(path) and not force and not _written_by_kit(path):
         raise FileExistsError(f"{path} exists and was not written by this kit; pass --force to overwrite it "
                               f"(files the kit wrote are replaced on a re-run)")
-    folder = os.path.dirname(os.path.abspath(path))
-    handle, tmp_path = tempfile.mkstemp(prefix=".tmp_", suffix=".json", dir=folder)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as stream:
-            json.dump(data, stream)
-            stream.write("\n")
-        os.chmod(tmp_path, 0o644)  # mkstemp creates 0600; results are meant to be shared
-        os.replace(tmp_path, path)
-    except BaseException:
-        if os.path.exists(tmp_path):
-            os.remove(tmp_path)
-        raise
+    atomic_write_text(path, json.dumps(data) + "\n")
 
 
 def _epilog() -> str:
