@@ -5,7 +5,9 @@ hand-written bad inputs, each of which must fail with a message naming the key, 
 was expected.
 """
 
+import dataclasses
 import json
+import re
 
 import pytest
 
@@ -70,3 +72,36 @@ def test_the_command_line_reports_a_bad_value_and_exits_2(capsys, tmp_path):
     assert code == 2
     assert "mapping.map_every = 0 must be >= 1" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def _ranged_fields():
+    """(key, comparison, bound) for every field declared with config.ranged, top level and sections."""
+    cfg = config.Config()
+    found = []
+    for item in dataclasses.fields(cfg):
+        value = getattr(cfg, item.name)
+        if dataclasses.is_dataclass(value):
+            found += [(f"{item.name}.{sub.name}", *sub.metadata["range"])
+                      for sub in dataclasses.fields(value) if "range" in sub.metadata]
+        elif "range" in item.metadata:
+            found.append((item.name, *item.metadata["range"]))
+    return found
+
+
+def _outside(comparison, bound):
+    """A value just outside the rule (written independently of config._check_range)."""
+    if comparison == "in":
+        return "none-of-these"
+    if comparison in (">", ">="):
+        return bound if comparison == ">" else bound - 1
+    low, high = bound
+    return high + 1 if comparison == "[]" else low  # "(]" and "()" exclude the low end
+
+
+def test_ranges_live_with_their_fields_and_each_one_is_enforced():
+    fields = _ranged_fields()
+    assert len(fields) >= 70  # the declared ranges cover the numeric settings
+    for key, comparison, bound in fields:
+        bad = _outside(comparison, bound)
+        with pytest.raises(ValueError, match=re.escape(f"{key} = {bad!r} must be")):
+            config.apply_overrides(config.tum_cpu(), [f"{key}={json.dumps(bad)}"])

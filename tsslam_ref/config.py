@@ -15,7 +15,8 @@ Layer 0 (base): dataclasses only, no torch.
   parsed as JSON where possible, else kept as strings.
 * :func:`load` accepts a preset name or a JSON file written by :func:`save` (every run saves its
   resolved config as ``config.json``).
-* :func:`validate` checks every value's type against its field and the ranges in :data:`RANGES`
+* :func:`validate` checks every value's type against its field and the range the field declares
+  (:func:`ranged`, next to the field's default)
   (a file, an override or a notebook's edit with ``mapping.map_every=0`` or ``tracking.iters="ten"``
   fails at once, naming the key, the value and what was expected).
 """
@@ -31,6 +32,15 @@ from dataclasses import field as _field
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 
+def ranged(default: Any, comparison: str, bound: Any) -> Any:
+    """A dataclass field with its default and the values it allows, kept in the field's metadata.
+
+    ``comparison`` is one of ``">"``, ``">="`` (``bound`` a number), ``"(]"``, ``"()"``, ``"[]"``
+    (``bound`` a pair) or ``"in"`` (``bound`` the allowed values); :func:`validate` reads it.
+    """
+    return _field(default=default, metadata={"range": (comparison, bound)})
+
+
 @dataclass
 class DataConfig:
     """Which frames to read and how to pre-process them."""
@@ -39,22 +49,22 @@ class DataConfig:
     """Layout of ``path``: auto | tum | scannet | neural_rgbd | replica | folder (ours)."""
     path: str = ""
     """Dataset folder; empty means the bundled default sequence (ours)."""
-    resize_width: Optional[int] = None
+    resize_width: Optional[int] = ranged(None, ">=", 8)
     """Resize colour and depth to this width in pixels (aspect kept, intrinsics scaled exactly);
     None keeps the native size (ours)."""
-    crop_edge: int = 0
+    crop_edge: int = ranged(0, ">=", 0)
     """Pixels cropped from every side before resizing (Co-SLAM ``crop_edge``: ScanNet 10, TUM 8)."""
-    depth_scale: Optional[float] = None
+    depth_scale: Optional[float] = ranged(None, ">", 0)
     """PNG value per metre; None uses the dataset's standard (TUM 5000, ScanNet 1000, ...)."""
-    depth_trunc: float = 100.0
+    depth_trunc: float = ranged(100.0, ">", 0)
     """Depth beyond this (m) is invalid for colour/depth losses (Co-SLAM ``cam.depth_trunc``: TUM 5)."""
-    fps: float = 30.0
+    fps: float = ranged(30.0, ">", 0)
     """Frame rate assumed where a dataset has no timestamps (paper Sec. IV-A: 30 FPS)."""
-    frame_start: int = 0
+    frame_start: int = ranged(0, ">=", 0)
     """First frame index used (ours)."""
     frame_stop: Optional[int] = None
     """One past the last frame index used; None = all (ours)."""
-    frame_step: int = 1
+    frame_step: int = ranged(1, ">=", 1)
     """Use every n-th frame (ours)."""
 
 
@@ -65,26 +75,26 @@ class FieldConfig:
     bound: Optional[List[List[float]]] = None
     """Scene box [[xmin,xmax],[ymin,ymax],[zmin,zmax]] in metres; None = estimated from the first
     frames' depth (ours; Co-SLAM needs it in every scene YAML)."""
-    bound_margin: float = 1.0
+    bound_margin: float = ranged(1.0, ">=", 0)
     """Margin (m) added on every side when the bound is estimated from frame 0's depth (ours: later
     frames see beyond frame 0, so the margin is generous)."""
-    n_levels: int = 16
+    n_levels: int = ranged(16, ">=", 1)
     """Hash-grid levels (Co-SLAM, fixed in code)."""
-    n_features_per_level: int = 2
+    n_features_per_level: int = ranged(2, ">=", 1)
     """Features per level (Co-SLAM, fixed in code)."""
-    base_resolution: int = 16
+    base_resolution: int = ranged(16, ">=", 2)
     """Coarsest grid resolution (Co-SLAM, fixed in code)."""
-    log2_hashmap_size: int = 16
+    log2_hashmap_size: int = ranged(16, ">=", 4)
     """log2 of the per-level table size T (Co-SLAM ``grid.hash_size``)."""
-    voxel_sdf: float = 0.02
+    voxel_sdf: float = ranged(0.02, ">", 0)
     """Finest cell size in metres; finest resolution = max box side / voxel_sdf (Co-SLAM)."""
-    oneblob_bins: int = 16
+    oneblob_bins: int = ranged(16, ">=", 1)
     """OneBlob bins per axis (Co-SLAM ``pos.n_bins``)."""
-    geo_feat_dim: int = 15
+    geo_feat_dim: int = ranged(15, ">=", 1)
     """Geometric feature passed from the SDF head to the colour head (Co-SLAM)."""
-    hidden_dim: int = 32
+    hidden_dim: int = ranged(32, ">=", 1)
     """Hidden width of the geometry MLP (Co-SLAM)."""
-    hidden_dim_color: int = 32
+    hidden_dim_color: int = ranged(32, ">=", 1)
     """Hidden width of the colour MLP (Co-SLAM)."""
     fast_gather: bool = True
     """Use the fused corner lookup with its hand-written backward (``field._TrilinearLookup``, see
@@ -99,21 +109,21 @@ class FieldConfig:
 class RenderConfig:
     """Ray sampling and SDF volume rendering (Sec. III-A, Eq. 3; Co-SLAM ``render_rays``)."""
 
-    n_samples: int = 32
+    n_samples: int = ranged(32, ">=", 1)
     """Uniform samples in [near, far] per ray (Co-SLAM ``n_samples_d``)."""
-    n_range_d: int = 11
+    n_range_d: int = ranged(11, ">=", 0)
     """Depth-guided samples in [D - range_d, D + range_d] (Co-SLAM)."""
-    range_d: float = 0.1
+    range_d: float = ranged(0.1, ">=", 0)
     """Half-width (m) of the depth-guided interval (Co-SLAM)."""
-    near: float = 0.0
+    near: float = ranged(0.0, ">=", 0)
     """Near plane (m) (Co-SLAM)."""
     far: float = 5.0
     """Far plane (m) (Co-SLAM ``cam.far``)."""
-    truncation: float = 0.1
+    truncation: float = ranged(0.1, ">", 0)
     """tr: SDF truncation (m) (Co-SLAM ``training.trunc``: 0.10, TUM 0.05)."""
     perturb: bool = True
     """Stratified jitter of the sorted samples (Co-SLAM ``perturb: 1``)."""
-    chunk: int = 4096
+    chunk: int = ranged(4096, ">=", 1)
     """Rays per chunk for full-image rendering (ours)."""
 
 
@@ -121,19 +131,19 @@ class RenderConfig:
 class LossConfig:
     """Weights of the five reconstruction losses (Sec. III-A, Eq. 4; Co-SLAM section 3.4)."""
 
-    rgb_weight: float = 5.0
-    depth_weight: float = 0.1
-    sdf_weight: float = 1000.0
-    fs_weight: float = 10.0
-    smooth_weight: float = 1e-5
+    rgb_weight: float = ranged(5.0, ">=", 0)
+    depth_weight: float = ranged(0.1, ">=", 0)
+    sdf_weight: float = ranged(1000.0, ">=", 0)
+    fs_weight: float = ranged(10.0, ">=", 0)
+    smooth_weight: float = ranged(1e-5, ">=", 0)
     """Feature total-variation weight, global BA only (Co-SLAM)."""
-    smooth_pts: int = 32
+    smooth_pts: int = ranged(32, ">=", 2)
     """Lattice points per axis for the smoothness term (Co-SLAM)."""
-    smooth_vox: float = 0.1
+    smooth_vox: float = ranged(0.1, ">", 0)
     """Lattice spacing (m) (Co-SLAM)."""
     smooth_margin: float = 0.05
     """Margin (m) from the box when placing the lattice (Co-SLAM)."""
-    rgb_missing: float = 0.05
+    rgb_missing: float = ranged(0.05, ">=", 0)
     """Colour-loss factor for rays without valid depth (Co-SLAM; effective weight is its square)."""
 
 
@@ -141,21 +151,21 @@ class LossConfig:
 class TrackingConfig:
     """Per-frame pose optimisation with the map frozen (Sec. III-D, Tracking Thread)."""
 
-    iters: int = 10
+    iters: int = ranged(10, ">=", 1)
     """Adam iterations per frame (Co-SLAM ``tracking.iter``)."""
-    n_rays: int = 1024
+    n_rays: int = ranged(1024, ">=", 1)
     """Pixels sampled per frame, reused for all iterations (Co-SLAM ``tracking.sample``)."""
-    lr_rot: float = 1e-3
+    lr_rot: float = ranged(1e-3, ">", 0)
     """Learning rate of the rotation increment (Co-SLAM: 1e-3, TUM 1e-2)."""
-    lr_trans: float = 1e-3
+    lr_trans: float = ranged(1e-3, ">", 0)
     """Learning rate of the translation (Co-SLAM: 1e-3, TUM 1e-2)."""
-    ignore_edge: int = 20
+    ignore_edge: int = ranged(20, ">=", 0)
     """Border (px of the processed image) excluded from sampling (Co-SLAM ``ignore_edge_W/H``)."""
     best: bool = True
     """Keep the lowest-loss pose (Co-SLAM ``tracking.best``)."""
     const_speed: bool = True
     """Constant-velocity initialisation (Co-SLAM ``const_speed``)."""
-    max_loss_ratio: float = 50.0
+    max_loss_ratio: float = ranged(50.0, ">", 1)
     """The run stops with a clear message when a frame's best tracking loss exceeds this multiple
     of the median over the first tracked frames (ours: the 'w/o LBA' failure of paper Table V)."""
 
@@ -164,39 +174,39 @@ class TrackingConfig:
 class MappingConfig:
     """First-frame mapping, keyframes and global BA (Co-SLAM section 5; Sec. III-D Global BA)."""
 
-    first_iters: int = 200
+    first_iters: int = ranged(200, ">=", 0)
     """Map iterations on frame 0 with its pose fixed (Co-SLAM: 200, ScanNet 500, TUM 1000)."""
-    first_n_rays: int = 2048
+    first_n_rays: int = ranged(2048, ">=", 1)
     """Rays per first-frame iteration (Co-SLAM ``mapping.sample``)."""
-    iters: int = 10
+    iters: int = ranged(10, ">=", 0)
     """Global BA iterations (Co-SLAM ``mapping.iters``: 10, TUM 20)."""
-    n_rays: int = 2048
+    n_rays: int = ranged(2048, ">=", 1)
     """Keyframe rays per BA iteration (Co-SLAM ``mapping.sample``)."""
-    min_pixels_cur: int = 100
+    min_pixels_cur: int = ranged(100, ">=", 0)
     """Minimum current-frame rays per BA iteration (Co-SLAM)."""
-    keyframe_every: int = 5
+    keyframe_every: int = ranged(5, ">=", 1)
     """Every n-th frame becomes a keyframe (Co-SLAM; paper Sec. III-D)."""
-    map_every: int = 5
+    map_every: int = ranged(5, ">=", 1)
     """Global BA every n-th frame for the discrete-pose baseline (Co-SLAM)."""
-    tsslam_map_every: int = 5
+    tsslam_map_every: int = ranged(5, ">=", 0)
     """TS-SLAM (ours): every n-th frame on which no spline interval completes, Co-SLAM's global BA
     on what the spline does not reach yet (the map, the newer keyframes and the current frame; the
     spline and the keyframes it reaches are held), so that the map takes in new views as often as
     Co-SLAM's does.  0 gives the paper's schedule, mapping only once per interval dt, which loses
     the camera on walking-speed motion (docs/system.md, "Walking-speed motion")."""
-    kf_pixel_fraction: float = 0.05
+    kf_pixel_fraction: float = ranged(0.05, "(]", (0, 1))
     """Share of each keyframe's pixels stored (Co-SLAM ``n_pixels``)."""
-    lr_embed: float = 0.01
+    lr_embed: float = ranged(0.01, ">", 0)
     """Hash-grid learning rate (Co-SLAM; Synthetic 0.001)."""
-    lr_decoder: float = 0.01
+    lr_decoder: float = ranged(0.01, ">", 0)
     """MLP learning rate (Co-SLAM)."""
-    lr_rot: float = 1e-3
+    lr_rot: float = ranged(1e-3, ">", 0)
     """BA rotation learning rate (Co-SLAM)."""
-    lr_trans: float = 1e-3
+    lr_trans: float = ranged(1e-3, ">", 0)
     """BA translation learning rate (Co-SLAM)."""
     optim_cur: bool = True
     """Optimise the current frame's pose in BA (Co-SLAM: False for ScanNet)."""
-    pose_accum_step: int = 5
+    pose_accum_step: int = ranged(5, ">=", 1)
     """Pose optimiser steps every n BA iterations with accumulated gradients (Co-SLAM)."""
 
 
@@ -204,12 +214,12 @@ class MappingConfig:
 class SplineConfig:
     """Uniform cubic B-spline trajectory (Sec. III-B)."""
 
-    dt: float = 0.3
+    dt: float = ranged(0.3, "(]", (0, 10))
     """Knot spacing Delta t in seconds (paper: 0.30 ScanNet/synthetic, 0.25 TUM); at most 10 s: the
     knot times are float64 seconds of dataset time (about 1.3e9 s for TUM), and a spacing of
     hours would leave a hand-held camera's motion unmodelled while the basis coordinate
     (t - t0) / dt loses precision (at 1e6 s positions fall onto a 1/64 m grid)."""
-    convention: str = "paper"
+    convention: str = ranged("paper", "in", ('paper', 'basalt'))
     """Index convention: 'paper' (segment [t_i, t_i+1) uses points i-2..i+1) or 'basalt' (i..i+3)."""
 
 
@@ -217,17 +227,17 @@ class SplineConfig:
 class DynamicsConfig:
     """Dynamics regulariser L_DR (Sec. III-C, Eq. 10)."""
 
-    lambda_acc: float = 0.1
+    lambda_acc: float = ranged(0.1, ">=", 0)
     """lambda_1, weight of the linear-acceleration barrier (paper)."""
-    lambda_ang: float = 0.1
+    lambda_ang: float = ranged(0.1, ">=", 0)
     """lambda_2, weight of the angular-acceleration barrier (paper)."""
-    a_max: float = 5.0
+    a_max: float = ranged(5.0, ">", 0)
     """||a||_max in m/s^2 (paper)."""
-    omegadot_max: float = 5.0
+    omegadot_max: float = ranged(5.0, ">", 0)
     """||omega_dot||_max in rad/s^2 (paper)."""
-    n_samples: int = 32
+    n_samples: int = ranged(32, ">=", 1)
     """K: times sampled uniformly in the window (ours; the paper does not state K)."""
-    barrier_limit: float = 0.95
+    barrier_limit: float = ranged(0.95, "()", (0, 1))
     """Ratio ||a||/a_max beyond which the log barrier is continued by its second-order
     Taylor expansion (ours, see dynamics.py)."""
 
@@ -238,34 +248,34 @@ class LocalBAConfig:
 
     enabled: bool = True
     """False gives the 'w/o LBA' ablation (paper Table V)."""
-    window: int = 6
+    window: int = ranged(6, ">=", 1)
     """M: control points in the sliding window (ours; the paper does not state M)."""
-    fit_iters: int = 50
+    fit_iters: int = ranged(50, ">=", 0)
     """Curve-approximation (Levenberg-Marquardt) iterations for a new control point (ours)."""
-    fit_controls: int = 3
+    fit_controls: int = ranged(3, ">=", 1)
     """Newest control points fitted in the curve approximation, over the poses of as many
     intervals (ours; the paper fits only the new one, which is unstable, see local_ba.py)."""
-    refine_iters: int = 10
+    refine_iters: int = ranged(10, ">=", 0)
     """Control-point refinement iterations with the map frozen (ours)."""
-    joint_iters: int = 0
+    joint_iters: int = ranged(0, ">=", 0)
     """Iterations of local BA's last stage: the window's control points jointly with the map on the
     window's keyframes (paper Sec. III-D, which gives no number).  Off by default (ours): on the
     synthetic fr2/desk sequence that stage raised ATE in every seed measured, see docs/system.md,
     section "TS-SLAM's ATE on clean synthetic data"; ``local_ba.joint_iters=10`` runs it."""
-    n_rays: int = 1024
+    n_rays: int = ranged(1024, ">=", 1)
     """Rays per refinement/joint iteration (ours)."""
-    lr_rot: float = 2e-4
+    lr_rot: float = ranged(2e-4, ">", 0)
     """Control-rotation learning rate (ours).  Adam moves a control point by about the learning
     rate per iteration whatever its gradient, and the newest points are seen by few frames: at
     1e-3, 20 iterations pushed them centimetres off the tracked poses (ATE 1.9 -> 0.9 cm on the
     synthetic fr2/desk run, 15 -> 6.9 cm on TUM-VI room1, 5.5 -> 5.0 cm on TUM teddy, one seed)."""
-    lr_trans: float = 2e-4
+    lr_trans: float = ranged(2e-4, ">", 0)
     """Control-translation learning rate (ours), see ``lr_rot``."""
     use_spline: bool = True
     """False gives the 'w/o B-S.' ablation: local BA on discrete per-frame poses (paper Table V)."""
     use_dynamics: bool = True
     """False gives the 'w/o DR' ablation (paper Table V)."""
-    max_deviation: float = 0.3
+    max_deviation: float = ranged(0.3, ">", 0)
     """The run stops with a clear message when the spline is farther than this (m) from the
     tracked poses of the newest interval (ours: how the 'w/o LBA' failure shows)."""
 
@@ -274,11 +284,11 @@ class LocalBAConfig:
 class MeshConfig:
     """Marching-cubes meshes (Co-SLAM section 6.1)."""
 
-    voxel_eval: float = 0.05
+    voxel_eval: float = ranged(0.05, ">", 0)
     """Voxel size (m) of intermediate meshes (Co-SLAM)."""
-    voxel_final: float = 0.03
+    voxel_final: float = ranged(0.03, ">", 0)
     """Voxel size (m) of the final mesh (Co-SLAM: 0.02 Replica/Synthetic, 0.03 ScanNet/TUM)."""
-    sdf_cutoff: float = 3.0
+    sdf_cutoff: float = ranged(3.0, ">", 0)
     """Skip cells whose corners all have |normalised SDF| >= this (Co-SLAM NumpyMarchingCubes)."""
 
 
@@ -288,13 +298,13 @@ class Config:
 
     name: str = "default"
     """Preset name this config started from."""
-    method: str = "tsslam"
+    method: str = ranged("tsslam", "in", ('tsslam', 'coslam'))
     """tsslam (B-spline trajectory) or coslam (one pose per frame, the baseline)."""
-    seed: int = 0
+    seed: int = ranged(0, "[]", (0, 2**63 - 1))
     """Seed for every random draw (torch, numpy)."""
     device: str = "auto"
     """cpu | cuda | auto."""
-    dtype: str = "float32"
+    dtype: str = ranged("float32", "in", ('float32', 'float64'))
     """Map and rendering precision."""
     parallel: bool = False
     """Track and map in two threads (parallel.py; not deterministic).  False: the sequential,
@@ -479,38 +489,6 @@ def from_dict(values: Dict[str, Any], source: str = "<dict>") -> Config:
 # Ranges the code relies on (ours): "section.key": (comparison, bound).  Keys not listed only have
 # their type checked.  A value outside its range raises before any work starts, instead of a
 # division by zero or an empty loop deep inside a run.
-RANGES: Dict[str, tuple] = {
-    "data.fps": (">", 0), "data.frame_start": (">=", 0), "data.frame_step": (">=", 1),
-    "data.crop_edge": (">=", 0), "data.depth_trunc": (">", 0), "data.resize_width": (">=", 8),
-    "data.depth_scale": (">", 0),
-    "field.bound_margin": (">=", 0), "field.n_levels": (">=", 1), "field.n_features_per_level": (">=", 1),
-    "field.base_resolution": (">=", 2), "field.log2_hashmap_size": (">=", 4), "field.voxel_sdf": (">", 0),
-    "field.oneblob_bins": (">=", 1), "field.geo_feat_dim": (">=", 1), "field.hidden_dim": (">=", 1),
-    "field.hidden_dim_color": (">=", 1),
-    "render.n_samples": (">=", 1), "render.n_range_d": (">=", 0), "render.range_d": (">=", 0),
-    "render.near": (">=", 0), "render.truncation": (">", 0), "render.chunk": (">=", 1),
-    "loss.rgb_weight": (">=", 0), "loss.depth_weight": (">=", 0), "loss.sdf_weight": (">=", 0),
-    "loss.fs_weight": (">=", 0), "loss.smooth_weight": (">=", 0), "loss.smooth_pts": (">=", 2),
-    "loss.smooth_vox": (">", 0), "loss.rgb_missing": (">=", 0),
-    "tracking.iters": (">=", 1), "tracking.n_rays": (">=", 1), "tracking.lr_rot": (">", 0),
-    "tracking.lr_trans": (">", 0), "tracking.ignore_edge": (">=", 0), "tracking.max_loss_ratio": (">", 1),
-    "mapping.first_iters": (">=", 0), "mapping.first_n_rays": (">=", 1), "mapping.iters": (">=", 0),
-    "mapping.n_rays": (">=", 1), "mapping.min_pixels_cur": (">=", 0), "mapping.keyframe_every": (">=", 1),
-    "mapping.map_every": (">=", 1), "mapping.tsslam_map_every": (">=", 0),
-    "mapping.kf_pixel_fraction": ("(]", (0, 1)), "mapping.lr_embed": (">", 0), "mapping.lr_decoder": (">", 0),
-    "mapping.lr_rot": (">", 0), "mapping.lr_trans": (">", 0), "mapping.pose_accum_step": (">=", 1),
-    "spline.dt": ("(]", (0, 10)), "spline.convention": ("in", ("paper", "basalt")),
-    "dynamics.lambda_acc": (">=", 0), "dynamics.lambda_ang": (">=", 0), "dynamics.a_max": (">", 0),
-    "dynamics.omegadot_max": (">", 0), "dynamics.n_samples": (">=", 1), "dynamics.barrier_limit": ("()", (0, 1)),
-    "local_ba.window": (">=", 1), "local_ba.fit_iters": (">=", 0), "local_ba.fit_controls": (">=", 1),
-    "local_ba.refine_iters": (">=", 0), "local_ba.joint_iters": (">=", 0), "local_ba.n_rays": (">=", 1),
-    "local_ba.lr_rot": (">", 0), "local_ba.lr_trans": (">", 0), "local_ba.max_deviation": (">", 0),
-    "mesh.voxel_eval": (">", 0), "mesh.voxel_final": (">", 0), "mesh.sdf_cutoff": (">", 0),
-    "seed": ("[]", (0, 2**63 - 1)),
-    "method": ("in", ("tsslam", "coslam")), "dtype": ("in", ("float32", "float64")),
-}
-
-
 def _type_problem(value: Any, annotation: Any) -> Optional[str]:
     """What is wrong with ``value`` for a field annotated ``annotation`` (None when it fits)."""
     if getattr(annotation, "__origin__", None) is not None and type(None) in getattr(annotation, "__args__", ()):
@@ -530,7 +508,7 @@ def _type_problem(value: Any, annotation: Any) -> Optional[str]:
 
 
 def _check_range(value: Any, comparison: str, bound: Any) -> Tuple[bool, str]:
-    """(whether ``value`` keeps the rule, the rule in words) for one entry of :data:`RANGES`."""
+    """(whether ``value`` keeps the rule, the rule in words) for a field declared with :func:`ranged`."""
     if comparison == "in":
         return value in bound, "one of " + ", ".join(bound)
     if comparison == "[]":
@@ -545,7 +523,7 @@ def _check_range(value: Any, comparison: str, bound: Any) -> Tuple[bool, str]:
 
 
 def validate(cfg: Config, source: str = "config") -> Config:
-    """Check every value's type against its field and the ranges in :data:`RANGES`.
+    """Check every value's type against its field and the range it declares (:func:`ranged`).
 
     Raises ValueError naming ``source``, the key, the value and what was expected; returns
     ``cfg`` unchanged otherwise.  Called by :func:`apply_overrides`, :func:`from_dict` and
@@ -562,9 +540,9 @@ def validate(cfg: Config, source: str = "config") -> Config:
             expected = _type_problem(value, item.type)
             if expected is not None:
                 raise ValueError(f"{source}: {key} = {value!r} must be {expected}")
-            if key not in RANGES or value is None:
+            if "range" not in item.metadata or value is None:
                 continue
-            ok, rule = _check_range(value, *RANGES[key])
+            ok, rule = _check_range(value, *item.metadata["range"])
             if not ok:
                 raise ValueError(f"{source}: {key} = {value!r} must be {rule}")
     if not re.fullmatch(r"auto|cpu|cuda(:[0-9]+)?", cfg.device):

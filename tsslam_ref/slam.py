@@ -128,7 +128,7 @@ def run_slam(sequence, cfg: Config, device: Optional[torch.device] = None, state
 def prepare_run(sequence, cfg: Config, device: Optional[torch.device], state: Optional[SLAMState]
                 ) -> Tuple[SLAMState, torch.device, torch.dtype]:
     """Check the config and the sequence; the state to start from, the device and the dtype."""
-    validate(cfg)  # types and ranges, with the key named (config.RANGES)
+    validate(cfg)  # types and ranges, with the key named (config.ranged fields)
     if len(sequence) < 2:
         raise ValueError(f"a SLAM run needs at least 2 frames, the sequence has {len(sequence)}")
     if np.any(np.diff(np.asarray(sequence.timestamps, dtype=np.float64)) <= 0):
