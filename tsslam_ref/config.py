@@ -244,7 +244,7 @@ class DynamicsConfig:
 
 @dataclass
 class LocalBAConfig:
-    """Sliding-window local BA over spline control points (Sec. III-D, Fig. 5)."""
+    """Sliding-window local BA over spline control points (Sec. III-D, Fig. 4)."""
 
     enabled: bool = True
     """False gives the 'w/o LBA' ablation (paper Table V)."""
@@ -259,16 +259,14 @@ class LocalBAConfig:
     """Control-point refinement iterations with the map frozen (ours)."""
     joint_iters: int = ranged(0, ">=", 0)
     """Iterations of local BA's last stage: the window's control points jointly with the map on the
-    window's keyframes (paper Sec. III-D, which gives no number).  Off by default (ours): on the
-    synthetic fr2/desk sequence that stage raised ATE in every seed measured, see docs/system.md,
-    section "TS-SLAM's ATE on clean synthetic data"; ``local_ba.joint_iters=10`` runs it."""
+    window's keyframes (paper Sec. III-D, which gives no number).  Off by default (ours; it raised
+    ATE, docs/system.md "TS-SLAM's ATE on clean synthetic data"); ``local_ba.joint_iters=10`` runs it."""
     n_rays: int = ranged(1024, ">=", 1)
     """Rays per refinement/joint iteration (ours)."""
     lr_rot: float = ranged(2e-4, ">", 0)
-    """Control-rotation learning rate (ours).  Adam moves a control point by about the learning
-    rate per iteration whatever its gradient, and the newest points are seen by few frames: at
-    1e-3, 20 iterations pushed them centimetres off the tracked poses (ATE 1.9 -> 0.9 cm on the
-    synthetic fr2/desk run, 15 -> 6.9 cm on TUM-VI room1, 5.5 -> 5.0 cm on TUM teddy, one seed)."""
+    """Control-rotation learning rate (ours).  Adam moves a parameter by about its learning rate
+    per step whatever the gradient, and the newest control points are seen by few frames, so the
+    rate is kept below Co-SLAM's pose rate (measurements: docs/system.md, deviations table)."""
     lr_trans: float = ranged(2e-4, ">", 0)
     """Control-translation learning rate (ours), see ``lr_rot``."""
     use_spline: bool = True

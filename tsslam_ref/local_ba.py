@@ -1,6 +1,6 @@
 """Local bundle adjustment over a sliding window of B-spline control points.
 
-TS-SLAM Sec. III-D "Local Bundle Adjustment" and Fig. 5.  Every ``dt`` of sequence time (one
+TS-SLAM Sec. III-D "Local Bundle Adjustment" and Fig. 4.  Every ``dt`` of sequence time (one
 control-point interval) the mapping step runs, coarse to fine:
 
 1. **Curve approximation** (Eq. 11, :func:`curve_approximation`): the new control point
@@ -22,7 +22,7 @@ Deviations (ours; measurements in docs/system.md, "Choices the paper leaves open
 
 Index convention: the paper's (:mod:`tsslam_ref.trajectory`).  Control point k sits at t0 + k dt
 and shapes times [t_{k-1}, t_{k+3}); the window of the ``M`` newest points N-M..N-1 therefore
-acts on [t_{N-M-1}, t_{N-1}) (Fig. 5: the RGB-D observations in [t_{i+1-M}, t_{i+1})).
+acts on [t_{N-M-1}, t_{N-1}) (Fig. 4: the RGB-D observations in [t_{i+1-M}, t_{i+1})).
 
 Ablations of paper Table V: ``local_ba.use_spline=False`` ("w/o B-S.",
 :func:`refine_discrete_window`) runs the window stages on discrete per-frame poses;
