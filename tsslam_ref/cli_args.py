@@ -17,9 +17,11 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see --help)\n")
 
 
-def number_in(name: str, low: float, high: float, integer: bool = False, low_open: bool = False):
+def number_in(name: str, low: float, high: float, integer: bool = False, low_open: bool = False,
+              interval: str = "", hint: str = ""):
     """argparse type: a finite number (an integer if ``integer``) in [low, high], or (low, high]
-    when ``low_open``; anything else is refused with a message naming ``name`` and the range."""
+    when ``low_open``; anything else is refused with a message naming ``name`` and the range
+    (written as ``interval`` when given, e.g. "[0, 2**63 - 1]"), followed by ``hint`` in brackets."""
 
     def parse(text: str):
         try:
@@ -29,9 +31,10 @@ def number_in(name: str, low: float, high: float, integer: bool = False, low_ope
                 f"{name} must be {'an integer' if integer else 'a number'}, got '{text}'") from None
         inside = (low < value if low_open else low <= value) and value <= high
         if not (math.isfinite(value) and inside):
-            interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+            written = interval or f"{'(' if low_open else '['}{low:g}, {high:g}]"
             raise argparse.ArgumentTypeError(
-                f"{name} {text}: must be {'an integer' if integer else 'a finite number'} in {interval}")
+                f"{name} {text}: must be {'an integer' if integer else 'a finite number'} in {written}"
+                + (f" ({hint})" if hint else ""))
         return value
 
     return parse

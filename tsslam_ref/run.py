@@ -32,7 +32,6 @@ Layer 4 (system).
 
 import argparse
 import json
-import math
 import re
 import sys
 from dataclasses import dataclass
@@ -47,7 +46,7 @@ from . import config as config_module
 from . import data as data_module
 from . import device as device_module
 from . import eval as eval_module
-from .cli_args import OneLineParser
+from .cli_args import OneLineParser, number_in
 from .files import atomic_path, atomic_write_text, remove_stray_temporaries
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
@@ -92,35 +91,10 @@ def parse_frames(text: Optional[str]):
     return start, stop, step
 
 
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--seed must be an integer in [0, 2**63 - 1], got '{text}'") from None
-    if not 0 <= value <= 2**63 - 1:
-        raise argparse.ArgumentTypeError(f"--seed {text}: must be an integer in [0, 2**63 - 1]")
-    return value
-
-
-def _export_rate(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--export-rate must be a number of samples per second, got '{text}'") from None
-    if not (math.isfinite(value) and 0 < value <= MAX_EXPORT_RATE):
-        raise argparse.ArgumentTypeError(f"--export-rate {text}: must be a finite rate in (0, {MAX_EXPORT_RATE:g}] Hz "
-                                         f"(leave the option out for no export)")
-    return value
-
-
-def _checkpoint_every(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--checkpoint-every must be an integer number of frames, got '{text}'") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"--checkpoint-every {text}: must be >= 1 frames, or 0 for no checkpoint")
-    return value
+_seed = number_in("--seed", 0, 2**63 - 1, integer=True, interval="[0, 2**63 - 1]")
+_export_rate = number_in("--export-rate", 0, MAX_EXPORT_RATE, low_open=True,
+                         hint="samples per second; leave the option out for no export")
+_checkpoint_every = number_in("--checkpoint-every", 0, 10**9, integer=True, hint="frames; 0 for no checkpoint")
 
 
 def build_parser() -> argparse.ArgumentParser:
