@@ -424,8 +424,6 @@ def execute(plan: Plan) -> int:
         print(f"{out} holds a finished run (metrics.json); nothing to resume. Use --overwrite to run it again.")
         return EXIT_OK
     from . import parallel, slam
-    from .export import export_continuous
-    from .mesh import extract_mesh
 
     out.mkdir(parents=True, exist_ok=True)
     if args.overwrite:
@@ -483,28 +481,35 @@ def execute(plan: Plan) -> int:
         return EXIT_BAD_INPUT
     if progress is not None:
         progress.close()
+    write_outputs(plan, result)
+    return EXIT_OK
+
+
+def write_outputs(plan: Plan, result) -> None:
+    """trajectory.txt, metrics.json, mesh.ply, the continuous export and the plots of a finished run."""
+    args, cfg, sequence, out = plan.args, plan.cfg, plan.sequence, plan.out
+    from .export import export_continuous
+    from .mesh import extract_mesh, save_mesh
+
     data_module.write_tum_trajectory(out / "trajectory.txt", result.timestamps, result.poses, overwrite=True)
     metrics = {"method": cfg.method, "sequence": sequence.name, "frames": int(len(sequence)),
                "frames_per_second": result.frames_per_second}
     metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
     metrics["runtime"] = result.state.timings.table()
     if not args.no_mesh:
-        import trimesh
-
         mesh = extract_mesh(result.state.field, None, cfg.mesh.voxel_final, sdf_cutoff=cfg.mesh.sdf_cutoff)
-        with atomic_path(out / "mesh.ply") as temporary:
-            temporary.write_bytes(trimesh.exchange.ply.export_ply(mesh))
+        save_mesh(mesh, out / "mesh.ply", overwrite=True)
         if plan.gt_mesh is not None and len(mesh.faces) > 0:
             metrics.update(reconstruction_metrics(mesh, plan.gt_mesh, sequence, cfg.seed))
     if args.export_rate is not None:
         export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
+    checkpoint_path = out / "checkpoint.pt"
     if checkpoint_path.exists() and not args.checkpoint_every:
         checkpoint_path.unlink()
     summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
     print(f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s; {summary}; outputs in {out}")
-    return EXIT_OK
 
 
 def main(argv: Optional[List[str]] = None) -> int:
