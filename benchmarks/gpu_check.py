@@ -25,7 +25,6 @@ Nothing here runs in the tests; the figures go to the README's "Results" when a 
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -42,7 +41,8 @@ from tsslam_ref.geometry import rotation_angle_deg
 from tsslam_ref.mapping import make_map_optimizer
 from tsslam_ref.run import parse_frames, trajectory_metrics
 
-FIELD_BOX = [[-3.5, 3.0], [-3.0, 3.0], [-3.0, 3.0]]  # a 6.5 m box, as bench_field.py
+from bench_field import BOX, time_iterations  # benchmarks/ is on the path when this script runs
+
 
 
 def run_method(sequence, cfg: config.Config, device: torch.device) -> Dict[str, object]:
@@ -68,31 +68,14 @@ def agreement(cpu_poses: np.ndarray, device_poses: np.ndarray) -> Dict[str, floa
 
 
 def time_map_iteration(cfg: config.Config, device: torch.device, n_rays: int = 1024, repeats: int = 10) -> float:
-    """Median ms of one map iteration (forward + backward + Adam) at ``n_rays`` x (n_samples + n_range_d)."""
-    field = SceneField(cfg.field, torch.tensor(FIELD_BOX)).to(device)
+    """Median ms of one map iteration at ``n_rays`` x (n_samples + n_range_d), timed by bench_field.py."""
+    field = SceneField(cfg.field, BOX, generator=torch.Generator().manual_seed(0)).to(device)
     optimizer = make_map_optimizer(field, cfg.mapping)
     generator = torch.Generator(device="cpu").manual_seed(0)
-    n_points = n_rays * (cfg.render.n_samples + cfg.render.n_range_d)
-    low, high = torch.tensor(FIELD_BOX).T
-    points = (low + (high - low) * torch.rand(n_points, 3, generator=generator)).to(device)
-
-    def one() -> None:
-        optimizer.zero_grad(set_to_none=True)
-        rgb, sdf = field(points)
-        (rgb.square().mean() + sdf.square().mean()).backward()
-        optimizer.step()
-
-    timings = []
-    for step in range(repeats + 2):  # two warm-ups
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        start = time.perf_counter()
-        one()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        if step >= 2:
-            timings.append((time.perf_counter() - start) * 1000)
-    return statistics.median(timings)
+    low, high = torch.tensor(BOX).T
+    points = low + (high - low) * torch.rand(n_rays * (cfg.render.n_samples + cfg.render.n_range_d), 3, generator=generator)
+    median, _ = time_iterations(field, optimizer, points.to(device), repeats, device)
+    return median
 
 
 def stage_cell(runtime: Dict[str, Dict[str, float]], stage: str) -> str:

@@ -149,7 +149,8 @@ def basis(u: torch.Tensor, order: int = 0) -> torch.Tensor:
 # Time domain
 
 
-def _check_convention(convention: str) -> int:
+def first_segment_offset(convention: str) -> int:
+    """o, the knot index of the first valid time (paper 2, basalt 0); ValueError for another convention."""
     if convention not in _FIRST_SEGMENT_OFFSET:
         raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
     return _FIRST_SEGMENT_OFFSET[convention]
@@ -163,7 +164,7 @@ def valid_time_range(n_ctrl: int, dt: float, t0: float, convention: str = "paper
     Raises:
         ValueError: n_ctrl < 4, dt ≤ 0 or an unknown convention.
     """
-    offset = _check_convention(convention)
+    offset = first_segment_offset(convention)
     if n_ctrl < 4:
         raise ValueError(f"a cubic B-spline needs at least 4 control points, got n_ctrl={n_ctrl}")
     if not dt > 0:

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from tsslam_ref.geometry import so3_exp, so3_log
-from tsslam_ref.spline import _check_convention, _locate, evaluate_segments
+from tsslam_ref.spline import _locate, evaluate_segments, first_segment_offset
 from tsslam_ref.trajectory import BSplineTrajectory
 
 
@@ -26,7 +26,7 @@ def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "pa
     paper: t_{k+1} = t0 + (k+1)Δt; basalt: t_{k−1}.  Initialising R_k, t_k from the pose at these
     times avoids a one-Δt lag of the curve (docs/spline.md).
     """
-    offset = _check_convention(convention)
+    offset = first_segment_offset(convention)
     return float(t0) + dt * (np.arange(n_ctrl, dtype=np.float64) + offset - 1)
 
 
@@ -186,7 +186,7 @@ def fit_trajectory(
     if times.shape[0] < 2 or not np.all(np.diff(times) > 0):
         raise ValueError(f"fit_trajectory needs at least 2 strictly increasing times, got {times.shape[0]} "
                          f"({'not increasing' if times.shape[0] >= 2 else 'too few'})")
-    offset = _check_convention(convention)
+    offset = first_segment_offset(convention)
     if not dt > 0:
         raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
     intervals = max(1, math.ceil((times[-1] - times[0]) / dt - 1e-9))

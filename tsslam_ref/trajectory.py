@@ -29,7 +29,6 @@ import torch
 from . import spline as spline_module
 from .geometry import make_pose, so3_exp, so3_log
 
-_FIRST_SEGMENT_OFFSET = {"paper": 2, "basalt": 0}
 _ROTATION_JUMP_WARN = 0.5 * np.pi
 
 
@@ -55,8 +54,7 @@ class BSplineTrajectory:
         if control_translations.shape != (control_rotations.shape[0], 3):
             raise ValueError(f"BSplineTrajectory takes (N, 3) translations for N = {control_rotations.shape[0]} "
                              f"rotations, got {tuple(control_translations.shape)}")
-        if convention not in _FIRST_SEGMENT_OFFSET:
-            raise ValueError(f"convention must be one of {tuple(_FIRST_SEGMENT_OFFSET)}, got {convention!r}")
+        spline_module.first_segment_offset(convention)  # ValueError for an unknown convention
         if not dt > 0:
             raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
         self.control_rotations = control_rotations
@@ -69,7 +67,7 @@ class BSplineTrajectory:
     @classmethod
     def empty(cls, first_time: float, dt: float, like: torch.Tensor, convention: str = "paper") -> "BSplineTrajectory":
         """No control points yet; interval 0 starts at ``first_time`` (s).  ``like``: dtype and device."""
-        offset = _FIRST_SEGMENT_OFFSET[convention]
+        offset = spline_module.first_segment_offset(convention)
         return cls(like.new_zeros(0, 3, 3), like.new_zeros(0, 3), dt, float(first_time) - offset * float(dt), convention)
 
     @classmethod
@@ -102,7 +100,7 @@ class BSplineTrajectory:
 
     def interval(self, n: int) -> Tuple[float, float]:
         """[start, end) of interval n (s): [t_{n+o}, t_{n+o+1})."""
-        offset = _FIRST_SEGMENT_OFFSET[self.convention]
+        offset = spline_module.first_segment_offset(self.convention)
         return self.knot_time(n + offset), self.knot_time(n + offset + 1)
 
     def domain(self) -> Tuple[float, float]:
