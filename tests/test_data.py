@@ -313,6 +313,17 @@ def test_depth_png_not_16_bit(tum_folder):
         sequence[0]
 
 
+def test_a_frame_without_any_depth_is_refused_naming_its_file(tum_folder):
+    folder = tum_folder[0]
+    name = (folder / "depth.txt").read_text().splitlines()[1].split()[1]
+    shape = iio.imread(folder / name).shape
+    iio.imwrite(folder / name, np.zeros(shape, np.uint16))  # a valid 16-bit PNG holding only "no depth"
+    sequence = data.load_sequence(folder)
+    with pytest.raises(ValueError, match=rf"{os.path.basename(name)}: depth is 0 \(no measurement\) at every pixel"):
+        sequence[0]
+    sequence[1]  # the other frames still read
+
+
 def test_no_depth_within_tolerance_is_an_error_not_empty(tmp_path):
     stamps = 10.0 + np.arange(3) / 30
     folder = make_tum(tmp_path / "t", stamps, stamps + 1.0, stamps, _random_poses(3))

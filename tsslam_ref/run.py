@@ -217,28 +217,6 @@ def resume_differences(saved: Dict[str, Any], cfg: config_module.Config) -> List
     return changes
 
 
-class CheckedSequence:
-    """A sequence whose frames must hold some valid depth (an all-zero depth image is an error).
-
-    Everything else is the wrapped :class:`tsslam_ref.data.RGBDSequence`'s."""
-
-    def __init__(self, sequence):
-        self._sequence = sequence
-
-    def __len__(self) -> int:
-        return len(self._sequence)
-
-    def __getattr__(self, name):
-        return getattr(self._sequence, name)
-
-    def __getitem__(self, i):
-        frame = self._sequence[i]
-        if not np.any(frame.depth > 0):
-            raise BadInput(f"{self._sequence.depth_paths[frame.index]}: depth is 0 (no measurement) at every pixel; "
-                           f"expected depth in every frame")
-        return frame
-
-
 @dataclass
 class Plan:
     """What :func:`prepare` checked and loaded; :func:`execute` runs it."""
@@ -297,8 +275,7 @@ def prepare(args: argparse.Namespace) -> Plan:
         selection = f"--frames {args.frames} selects" if args.frames else f"{sequence.path} has"
         raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
     sequence.check_files()
-    sequence = CheckedSequence(sequence)
-    sequence[0]  # decode frame 0 fully: the map is placed from its depth
+    sequence[0]  # decode frame 0 fully (the map is placed from its depth; an all-zero depth is refused)
     out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
     _check_output_folder(out, args.overwrite, args.resume)
     plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)

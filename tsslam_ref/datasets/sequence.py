@@ -104,7 +104,8 @@ class RGBDSequence:
                 f"size={k.width}x{k.height}, path='{self.path}')")
 
     def __getitem__(self, i: int) -> Frame:
-        """Read frame ``i`` (negative indices count from the end)."""
+        """Read frame ``i`` (negative indices count from the end).  ValueError naming the file for a
+        depth image of another size than the calibration's or with no valid depth at all."""
         if not isinstance(i, (int, np.integer)):
             raise TypeError(f"sequence indices must be integers, got {type(i).__name__}")
         n = len(self)
@@ -122,6 +123,9 @@ class RGBDSequence:
         rgb, depth = crop(rgb, self.crop_edge), crop(depth, self.crop_edge)
         rgb = resize_rgb(rgb, self.intrinsics.width, self.intrinsics.height)  # (H, W, 3)
         depth = resize_depth(depth, self.intrinsics.width, self.intrinsics.height)  # (H, W)
+        if not np.any(depth > 0):
+            raise ValueError(f"{self.depth_paths[i]}: depth is 0 (no measurement) at every pixel; "
+                             f"expected depth in every frame")
         pose = None
         if self.gt_poses is not None and np.isfinite(self.gt_poses[i]).all():
             pose = self.gt_poses[i].copy()
