@@ -23,9 +23,9 @@ def grow(poses: torch.Tensor, cfg: config.Config, n_intervals: int = 9):
     trajectory = BSplineTrajectory.empty(float(TIMES[0]), cfg.spline.dt, poses)
     errors = []
     for n in range(n_intervals):
-        start, end = local_ba.fit_time_range(trajectory, n, cfg)
+        start, end = local_ba.fit_time_range(trajectory, n, cfg.local_ba)
         inside = np.nonzero((TIMES >= start) & (TIMES < end))[0]
-        trajectory = local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg)
+        trajectory = local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba)
         covered = trajectory.covers(TIMES)
         errors.append(float((trajectory.poses(TIMES[covered])[:, :3, 3] - truth[covered, :3, 3]).norm(dim=-1).max()))
     return trajectory, np.array(errors)

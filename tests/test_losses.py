@@ -9,7 +9,7 @@ from tsslam_ref import config
 from tsslam_ref.config import FieldConfig
 from tsslam_ref.field import SceneField
 from tsslam_ref.geometry import make_pose, so3_exp
-from tsslam_ref.losses import reconstruction_losses, render_loss, smoothness_lattice, smoothness_loss
+from tsslam_ref.losses import RenderLossSettings, reconstruction_losses, render_loss, smoothness_lattice, smoothness_loss
 from tsslam_ref.render import RayBatch, pixel_directions, sample_pixels
 
 TR = 0.1
@@ -95,7 +95,7 @@ def test_render_loss_pose_gradient_matches_central_differences():
     params = torch.tensor([0.02, -0.03, 0.01, 0.0517, -0.0213, 0.1234], dtype=torch.float64)
 
     def loss_of(p):
-        return render_loss(field, rays, make_pose(so3_exp(p[:3]), p[3:]), cfg)[0]
+        return render_loss(field, rays, make_pose(so3_exp(p[:3]), p[3:]), RenderLossSettings.from_config(cfg))[0]
 
     p = params.clone().requires_grad_(True)
     loss_of(p).backward()
@@ -114,10 +114,11 @@ def test_render_loss_is_the_weighted_sum_of_the_terms():
     rays = RayBatch(pixel_directions(rows, cols, (40.0, 40.0, 31.5, 23.5)), torch.rand(32, 3), 1 + torch.rand(32),
                     torch.zeros(32, dtype=torch.long))
     pose = torch.eye(4, dtype=torch.float64)
-    total, terms = render_loss(field, rays, pose, cfg, torch.Generator().manual_seed(0))
+    total, terms = render_loss(field, rays, pose, RenderLossSettings.from_config(cfg), torch.Generator().manual_seed(0))
     assert set(terms) == {"rgb", "depth", "sdf", "fs"}
     assert total.item() == pytest.approx(sum(terms.values()), rel=1e-5)
-    total_s, terms_s = render_loss(field, rays, pose, cfg, torch.Generator().manual_seed(0), smoothness=True)
+    total_s, terms_s = render_loss(field, rays, pose, RenderLossSettings.from_config(cfg), torch.Generator().manual_seed(0),
+                                   smoothness=True)
     assert terms_s["smooth"] > 0
     assert total_s.item() == pytest.approx(sum(terms_s.values()), rel=1e-5)
 
@@ -135,6 +136,27 @@ def _linear_feature_field():
             vertex = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
             grid.table[grid.level_index(level, vertex)] = ((vertex.double() - 0.5) / grid.level_scales[level]) @ coefficients
     return field, coefficients
+
+
+def test_render_loss_settings_take_the_depth_limit_from_the_data_config():
+    """data.depth_trunc reaches render_loss: with every target depth beyond it L_d is 0 and L_rgb
+    is scaled by rgb_missing^2 (the mean of the squared colour error, computed here by hand)."""
+    field, cfg = _small_field(torch.float64)
+    cfg.render = dataclasses.replace(cfg.render, perturb=False)
+    rows, cols = sample_pixels(48, 64, 32, generator=torch.Generator().manual_seed(0))
+    rays = RayBatch(pixel_directions(rows, cols, (40.0, 40.0, 31.5, 23.5)).double(),
+                    torch.rand(32, 3, dtype=torch.float64), 1 + torch.rand(32, dtype=torch.float64),
+                    torch.zeros(32, dtype=torch.long))
+    pose = torch.eye(4, dtype=torch.float64)
+    cfg.data.depth_trunc = 100.0
+    _, kept = render_loss(field, rays, pose, RenderLossSettings.from_config(cfg))
+    cfg.data.depth_trunc = 0.5  # every target depth (1-2 m) is now invalid
+    settings = RenderLossSettings.from_config(cfg)
+    assert settings.depth_trunc == 0.5 and settings.render is cfg.render and settings.loss is cfg.loss
+    _, cut = render_loss(field, rays, pose, settings)
+    assert kept["depth"] > 0 and cut["depth"] == 0.0
+    assert cut["rgb"] == pytest.approx(kept["rgb"] * cfg.loss.rgb_missing**2, rel=1e-9)
+    assert cut["sdf"] == pytest.approx(kept["sdf"], rel=1e-12)  # the SDF masks only need D > 0
 
 
 def test_smoothness_of_linear_features_matches_the_analytic_total_variation():

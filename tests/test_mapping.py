@@ -10,6 +10,7 @@ import torch
 from tsslam_ref import config
 from tsslam_ref.eval import cull_mesh, mesh_metrics
 from tsslam_ref.field import SceneField
+from tsslam_ref.losses import RenderLossSettings
 from tsslam_ref.mapping import FramePixels, estimate_bound, fit_map, make_map_optimizer
 from tsslam_ref.mesh import extract_mesh
 from tsslam_ref.render import render_image
@@ -93,7 +94,8 @@ def test_mapping_with_gt_poses_reconstructs_the_synthetic_room(synthetic_views):
     field = SceneField(cfg.field, bound, generator=torch.Generator().manual_seed(0))
     optimizer = make_map_optimizer(field, cfg.mapping)
     poses = torch.from_numpy(np.stack([f.pose_c2w for f in train]))
-    losses = fit_map(field, optimizer, train, poses, cfg, iters=60, n_rays=256, generator=torch.Generator().manual_seed(0))
+    losses = fit_map(field, optimizer, train, poses, RenderLossSettings.from_config(cfg), iters=60, n_rays=256,
+                     generator=torch.Generator().manual_seed(0))
     assert len(losses) == 60 and np.mean(losses[-10:]) < 0.2 * np.mean(losses[:10])
 
     errors = []

@@ -115,7 +115,7 @@ def test_a_spline_that_leaves_tracking_stops_the_run_with_a_message():
     poses = torch.eye(4, dtype=torch.float64).repeat(12, 1, 1)
     poses[:, 0, 3] = torch.as_tensor(times)  # 1 m/s along x
     trajectory = BSplineTrajectory.empty(float(times[0]), 0.2, poses)
-    trajectory = local_ba.curve_approximation(trajectory, times[:6], poses[:6], cfg)
+    trajectory = local_ba.curve_approximation(trajectory, times[:6], poses[:6], cfg.local_ba)
     state = SimpleNamespace(cfg=cfg, frame_poses=poses)
     slam.check_spline_follows_tracking(state, trajectory, times[:6], np.arange(6))  # follows: no error
     displaced = trajectory.with_controls(trajectory.control_rotations, trajectory.control_translations + 0.5)
@@ -290,8 +290,10 @@ def test_run_cli_hands_a_parallel_run_to_the_two_thread_loop(synthetic_sequence,
 def test_global_ba_names_a_fixed_mask_of_the_wrong_length():
     from tsslam_ref import global_ba
     from tsslam_ref.bundle import KeyframeDatabase
+    from tsslam_ref.losses import RenderLossSettings
 
     current = global_ba.CurrentFrame(rays=None, timestamp=0.0, pose=torch.eye(4))
     with pytest.raises(ValueError, match=r"one entry per keyframe plus the current frame \(1\), got 2"):
         global_ba.coslam_global_ba(None, None, KeyframeDatabase(), torch.zeros(0, 4, 4), current,
-                                   config.tiny(), fixed=torch.tensor([True, False]))
+                                   config.tiny().mapping, RenderLossSettings.from_config(config.tiny()),
+                                   fixed=torch.tensor([True, False]))

@@ -17,6 +17,7 @@ from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
 from tsslam_ref.render import frame_rays, sample_pixels
 from tsslam_ref.trajectory import BSplineTrajectory
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
+from tsslam_ref.losses import RenderLossSettings
 from tsslam_ref.tracking import constant_velocity_init, track_frame
 
 
@@ -89,7 +90,8 @@ def test_tracking_recovers_a_perturbed_pose_against_an_exact_map(scene_setup):
     start = _perturb(true_pose, [0.0, 0.02, -0.015], [0.03, -0.02, 0.02])
     cfg.tracking.iters, cfg.tracking.lr_rot, cfg.tracking.lr_trans, cfg.tracking.best = 60, 3e-3, 3e-3, True
     rays = _rays(rgb, depth, intrinsics, 512, seed=1)
-    result = track_frame(field, rays, start, cfg, generator=torch.Generator().manual_seed(2))
+    result = track_frame(field, rays, start, cfg.tracking, RenderLossSettings.from_config(cfg),
+                         generator=torch.Generator().manual_seed(2))
     start_t, start_r = _pose_error(start, true_pose)
     end_t, end_r = _pose_error(result.pose, true_pose)
     assert end_t < 0.3 * start_t and end_r < 0.5 * start_r, (start_t, end_t, start_r, end_r)
@@ -103,7 +105,8 @@ def test_tracking_keeps_the_pose_before_the_step_of_the_best_iteration(scene_set
     field = AnalyticField(scene, cfg.render.truncation)
     start = _perturb(torch.as_tensor(pose, dtype=torch.float32), [0.0, 0.0, 0.01], [0.02, 0.0, 0.0])
     cfg.tracking.iters, cfg.tracking.best = 1, False
-    result = track_frame(field, _rays(rgb, depth, intrinsics, 128, seed=3), start, cfg)
+    result = track_frame(field, _rays(rgb, depth, intrinsics, 128, seed=3), start, cfg.tracking,
+                         RenderLossSettings.from_config(cfg))
     assert torch.allclose(result.pose, start, atol=1e-6)
 
 
@@ -120,7 +123,7 @@ def test_joint_optimization_moves_free_poses_only_and_accumulates(scene_setup):
     database.add(0, 0.5, _rays(rgb, depth, intrinsics, 400, seed=4))
     database.add(1, 0.8, _rays(rgb2, depth2, intrinsics, 400, seed=5))
     model = DiscretePoses(initial, torch.tensor([True, False]), lr_rot=3e-3, lr_trans=3e-3)
-    stats = joint_optimization(field, None, [(database.rays(), 512)], model, cfg, iters=90,
+    stats = joint_optimization(field, None, [(database.rays(), 512)], model, RenderLossSettings.from_config(cfg), iters=90,
                                generator=torch.Generator().manual_seed(6), optimise_map=False, pose_accum_step=3)
     assert stats.pose_steps == 30
     result = model.poses().detach()
@@ -221,7 +224,8 @@ def test_adam_caps_a_frames_correction_near_iterations_times_learning_rate(scene
     for lr in (1e-3, 3e-3):
         cfg = copy.deepcopy(base_cfg)
         cfg.tracking.iters, cfg.tracking.lr_rot, cfg.tracking.lr_trans, cfg.tracking.best = 20, lr, lr, True
-        result = track_frame(field, rays, start, cfg, generator=torch.Generator().manual_seed(5))
+        result = track_frame(field, rays, start, cfg.tracking, RenderLossSettings.from_config(cfg),
+                             generator=torch.Generator().manual_seed(5))
         end_r[lr] = _pose_error(result.pose, true_pose)[1]
         moved = _pose_error(result.pose, start)[1]
         assert moved <= 1.2 * np.sqrt(3) * cfg.tracking.iters * lr, (lr, moved)

@@ -32,10 +32,10 @@ import numpy as np
 import torch
 
 from . import spline_fit
-from .config import Config, DynamicsConfig
+from .config import DynamicsConfig
 from .dynamics import trajectory_dynamics_loss
 from .geometry import make_pose, orthonormalize, so3_exp
-from .losses import render_loss
+from .losses import RenderLossSettings, render_loss
 from .render import RayBatch
 from .trajectory import BSplineTrajectory
 
@@ -190,7 +190,7 @@ class SplinePoses(torch.nn.Module):
         return spline_poses
 
 
-def dynamics_term(poses: SplinePoses, time_range: Optional[Tuple[float, float]], cfg: DynamicsConfig,
+def dynamics_term(poses: SplinePoses, time_range: Optional[Tuple[float, float]], dynamics: DynamicsConfig,
                   generator: Optional[torch.Generator]) -> Optional[Callable[[], torch.Tensor]]:
     """L_DR (Eq. 10) of the pose model's current trajectory over ``time_range`` = (start, end) s.
 
@@ -199,7 +199,7 @@ def dynamics_term(poses: SplinePoses, time_range: Optional[Tuple[float, float]],
     if time_range is None or time_range[1] <= time_range[0] or not bool(poses.free_mask.any()):
         return None
     start, end = time_range
-    return lambda: trajectory_dynamics_loss(poses.trajectory(), start, end, cfg, generator)
+    return lambda: trajectory_dynamics_loss(poses.trajectory(), start, end, dynamics, generator)
 
 
 def with_slot(rays: RayBatch, slot: int) -> RayBatch:
@@ -257,12 +257,35 @@ def draw_rays(pool: RayBatch, n_rays: int, generator: Optional[torch.Generator])
     return pool.subset(index.to(pool.depth.device))
 
 
+def iteration_loss(
+    field_model: torch.nn.Module,
+    ray_sources: Sequence[Tuple[RayBatch, int]],
+    poses: PoseModel,
+    loss_settings: RenderLossSettings,
+    generator: Optional[torch.Generator],
+    extra_loss: Optional[Callable[[], torch.Tensor]],
+    smoothness: bool,
+) -> Tuple[torch.Tensor, Dict[str, float]]:
+    """One iteration's loss of :func:`joint_optimization`: Eq. (4) on fresh rays plus ``extra_loss()``.
+
+    Draws ``n`` rays from every ``(pool, n)`` of ``ray_sources`` and renders each with its slot's
+    pose.  Returns the scalar loss and its weighted terms as floats (``dynamics`` for the extra)."""
+    rays = RayBatch.cat([draw_rays(pool, n, generator) for pool, n in ray_sources if n > 0 and len(pool) > 0])
+    c2w = poses.poses()[rays.frame_ids]  # (R, 4, 4)
+    loss, terms = render_loss(field_model, rays, c2w, loss_settings, generator=generator, smoothness=smoothness)
+    if extra_loss is not None:
+        regulariser = extra_loss()
+        terms = dict(terms, dynamics=float(regulariser.detach()))
+        loss = loss + regulariser
+    return loss, terms
+
+
 def joint_optimization(
     field_model: torch.nn.Module,
     map_optimizer: Optional[torch.optim.Optimizer],
     ray_sources: Sequence[Tuple[RayBatch, int]],
     poses: PoseModel,
-    cfg: Config,
+    loss_settings: RenderLossSettings,
     iters: int,
     generator: Optional[torch.Generator] = None,
     extra_loss: Optional[Callable[[], torch.Tensor]] = None,
@@ -272,9 +295,8 @@ def joint_optimization(
 ) -> BAStats:
     """Minimise Eq. (10) over the map (optionally) and the parameters of ``poses``.
 
-    Each iteration draws ``n`` rays from every ``(pool, n)`` of ``ray_sources`` (their
-    ``frame_ids`` index ``poses.poses()``), renders them with their slot's pose, adds
-    ``extra_loss()`` (the dynamics regulariser) and takes one map-optimizer step (if
+    Each iteration takes :func:`iteration_loss` (rays drawn from ``ray_sources``, whose
+    ``frame_ids`` index ``poses.poses()``, plus ``extra_loss()``) and one map-optimizer step (if
     ``optimise_map``); the pose optimizer (a fresh Adam per call) steps every ``pose_accum_step``
     iterations on the gradients summed in between (Co-SLAM's ``pose_accum_step``).
 
@@ -283,10 +305,10 @@ def joint_optimization(
         map_optimizer: the run's map optimizer (ignored when ``optimise_map`` is False).
         ray_sources: list of (RayBatch pool, rays per iteration).
         poses: a :class:`PoseModel`.
-        cfg: run config (losses, rendering).
+        loss_settings: rendering and loss settings of :func:`render_loss`.
         iters: iterations.
         generator: random generator for ray draws and depth-sample jitter.
-        extra_loss: callable returning a scalar added to every iteration's loss.
+        extra_loss: callable returning a scalar added to every iteration's loss (L_DR).
         optimise_map: False keeps the map frozen (local BA refinement).
         pose_accum_step: pose steps every this many iterations.
         smoothness: add the feature-smoothness term (default: when the map is optimised).
@@ -301,13 +323,8 @@ def joint_optimization(
     context = contextlib.nullcontext() if optimise_map else frozen(field_model)
     with context:
         for iteration in range(iters):
-            rays = RayBatch.cat([draw_rays(pool, n, generator) for pool, n in ray_sources if n > 0 and len(pool) > 0])
-            c2w = poses.poses()[rays.frame_ids]  # (R, 4, 4)
-            loss, terms = render_loss(field_model, rays, c2w, cfg, generator=generator, smoothness=smoothness)
-            if extra_loss is not None:
-                regulariser = extra_loss()
-                terms = dict(terms, dynamics=float(regulariser.detach()))
-                loss = loss + regulariser
+            loss, terms = iteration_loss(field_model, ray_sources, poses, loss_settings, generator, extra_loss,
+                                         smoothness)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"joint optimisation loss is not finite at iteration {iteration}: {terms}")
             if optimise_map:

@@ -17,7 +17,7 @@ frame, the feature-smoothness term, one map step per iteration, pose steps every
   keeps its pose, the gauge Co-SLAM fixes by holding keyframe 0); L_DR is sampled over the time
   outside the window.
 
-Layer 3 (optimiser): uses bundle, trajectory; never tracking or local_ba.
+Layer 3 (optimiser): uses bundle, trajectory, losses (its settings type); never tracking or local_ba.
 Taught in notebooks/07_global_ba.ipynb.
 """
 
@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, dynamics_term, joint_optimization, with_slot
-from .config import Config
+from .config import DynamicsConfig, MappingConfig
+from .losses import RenderLossSettings
 from .render import RayBatch
 from .trajectory import BSplineTrajectory
 
@@ -45,17 +46,18 @@ class CurrentFrame:
     """(4, 4) camera-to-world pose (tracked, or as the last BA left it)."""
 
 
-def current_frame_share(cfg: Config, n_keyframes: int, n_available: int) -> int:
-    """Current-frame rays per iteration: max(n_rays // n_kf, min_pixels_cur) (Co-SLAM 5.4)."""
-    return min(n_available, max(cfg.mapping.n_rays // max(n_keyframes, 1), cfg.mapping.min_pixels_cur))
+def current_frame_share(mapping: MappingConfig, n_keyframes: int, n_available: int) -> int:
+    """Current-frame rays per iteration: max(n_rays // n_kf, min_pixels_cur) (Co-SLAM 5.4), at
+    most ``n_available``."""
+    return min(n_available, max(mapping.n_rays // max(n_keyframes, 1), mapping.min_pixels_cur))
 
 
-def ray_sources(keyframes: KeyframeDatabase, current: CurrentFrame, cfg: Config):
+def ray_sources(keyframes: KeyframeDatabase, current: CurrentFrame, mapping: MappingConfig):
     """Per-iteration ray draws: ``mapping.n_rays`` from all keyframes (slots 0..K-1) and the
     current frame's share (slot K)."""
     n_kf = len(keyframes)
-    return [(keyframes.rays(), cfg.mapping.n_rays),
-            (with_slot(current.rays, n_kf), current_frame_share(cfg, n_kf, len(current.rays)))]
+    return [(keyframes.rays(), mapping.n_rays),
+            (with_slot(current.rays, n_kf), current_frame_share(mapping, n_kf, len(current.rays)))]
 
 
 def coslam_global_ba(
@@ -64,7 +66,8 @@ def coslam_global_ba(
     keyframes: KeyframeDatabase,
     keyframe_poses: torch.Tensor,
     current: CurrentFrame,
-    cfg: Config,
+    mapping: MappingConfig,
+    loss_settings: RenderLossSettings,
     generator: Optional[torch.Generator] = None,
     fixed: Optional[np.ndarray] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor, BAStats]:
@@ -73,6 +76,10 @@ def coslam_global_ba(
     Args:
         keyframe_poses: (K, 4, 4) camera-to-world poses of the keyframe slots.
         current: the current frame (its pose is slot K).
+        mapping: ``iters``, ``n_rays``, ``min_pixels_cur``, learning rates, ``pose_accum_step``,
+            ``optim_cur``.
+        loss_settings: rendering and loss settings of ``losses.render_loss``.
+        generator: random generator for ray draws and depth-sample jitter.
         fixed: (K + 1,) bool, the slots (keyframes, then the current frame) whose poses stay as
             given, replacing Co-SLAM's rule (keyframe 0, and the current frame unless
             ``optim_cur``); TS-SLAM's map update between two spline intervals fixes the keyframes
@@ -91,10 +98,10 @@ def coslam_global_ba(
                              f"got {fixed_slots.shape[0]}")
     elif n_kf >= 2:
         fixed_slots[1:n_kf] = False
-        fixed_slots[n_kf] = not cfg.mapping.optim_cur
-    poses = DiscretePoses(initial, fixed_slots, cfg.mapping.lr_rot, cfg.mapping.lr_trans)
-    stats = joint_optimization(field_model, map_optimizer, ray_sources(keyframes, current, cfg), poses, cfg,
-                               cfg.mapping.iters, generator, pose_accum_step=cfg.mapping.pose_accum_step)
+        fixed_slots[n_kf] = not mapping.optim_cur
+    poses = DiscretePoses(initial, fixed_slots, mapping.lr_rot, mapping.lr_trans)
+    stats = joint_optimization(field_model, map_optimizer, ray_sources(keyframes, current, mapping), poses,
+                               loss_settings, mapping.iters, generator, pose_accum_step=mapping.pose_accum_step)
     result = poses.poses().detach()
     return result[:n_kf], result[n_kf], stats
 
@@ -107,7 +114,9 @@ def tsslam_global_ba(
     trajectory: BSplineTrajectory,
     free_controls: Sequence[int],
     current: CurrentFrame,
-    cfg: Config,
+    mapping: MappingConfig,
+    dynamics: DynamicsConfig,
+    loss_settings: RenderLossSettings,
     dynamics_range: Optional[Tuple[float, float]] = None,
     generator: Optional[torch.Generator] = None,
 ) -> Tuple[BSplineTrajectory, BAStats]:
@@ -120,17 +129,21 @@ def tsslam_global_ba(
         free_controls: indices of the control points to optimise (outside the window).
         current: the current frame (its pose is the spline's if its time is inside the domain,
             else the given one; it is never a free pose).
+        mapping: as in :func:`coslam_global_ba` (``optim_cur`` is not used).
+        dynamics: the limits of L_DR.
+        loss_settings: rendering and loss settings of ``losses.render_loss``.
         dynamics_range: (t_start, t_end) seconds where L_DR is sampled (outside the window), or
             None for no regulariser.
+        generator: random generator for ray draws, depth-sample jitter and L_DR sample times.
 
     Returns:
         (the optimised trajectory, detached; stats).
     """
     slot_times = np.asarray(list(keyframes.timestamps) + [current.timestamp], dtype=np.float64)
     fallback = torch.cat([keyframe_poses, current.pose.unsqueeze(0)], dim=0)
-    poses = SplinePoses(trajectory, free_controls, slot_times, fallback, cfg.mapping.lr_rot, cfg.mapping.lr_trans)
-    stats = joint_optimization(field_model, map_optimizer, ray_sources(keyframes, current, cfg), poses, cfg,
-                               cfg.mapping.iters, generator,
-                               extra_loss=dynamics_term(poses, dynamics_range, cfg.dynamics, generator),
-                               pose_accum_step=cfg.mapping.pose_accum_step)
+    poses = SplinePoses(trajectory, free_controls, slot_times, fallback, mapping.lr_rot, mapping.lr_trans)
+    stats = joint_optimization(field_model, map_optimizer, ray_sources(keyframes, current, mapping), poses,
+                               loss_settings, mapping.iters, generator,
+                               extra_loss=dynamics_term(poses, dynamics_range, dynamics, generator),
+                               pose_accum_step=mapping.pose_accum_step)
     return poses.trajectory().detach(), stats

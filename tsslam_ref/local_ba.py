@@ -29,7 +29,8 @@ Ablations of paper Table V: ``local_ba.use_spline=False`` ("w/o B-S.",
 ``local_ba.enabled=False`` ("w/o LBA") keeps only the extrapolated control point;
 ``local_ba.use_dynamics=False`` ("w/o DR") drops L_DR.
 
-Layer 3 (optimiser): uses trajectory, spline, bundle; never tracking or global_ba.
+Layer 3 (optimiser): uses trajectory, spline_fit, losses (its settings type), bundle; never tracking
+or global_ba.
 Taught in notebooks/06_local_ba.ipynb.
 """
 
@@ -40,8 +41,9 @@ import torch
 
 from . import spline_fit
 from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, dynamics_term, joint_optimization, slotted
-from .config import Config
+from .config import DynamicsConfig, LocalBAConfig
 from .geometry import so3_exp, so3_log
+from .losses import RenderLossSettings
 from .render import RayBatch
 from .trajectory import BSplineTrajectory
 
@@ -114,8 +116,8 @@ def constant_velocity_control_points(trajectory: BSplineTrajectory, times: np.nd
     return rotations.to(poses.dtype), translations.to(poses.dtype)
 
 
-def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses: torch.Tensor, cfg: Config,
-                        fit: bool = True) -> BSplineTrajectory:
+def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses: torch.Tensor,
+                        local_ba: LocalBAConfig, fit: bool = True) -> BSplineTrajectory:
     """Add the control point of the next interval, Eq. (11).
 
     First interval: the four points of :func:`constant_velocity_control_points`, and frame 0's
@@ -129,7 +131,7 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
         trajectory: the trajectory so far.
         times: (K,) float64 timestamps of the frames to fit (:func:`fit_time_range`).
         poses: (K, 4, 4) their camera-to-world poses (tracked, or spline-refined for older frames).
-        cfg: run config (``local_ba.fit_iters``, ``local_ba.fit_controls``).
+        local_ba: uses ``fit_iters`` and ``fit_controls``.
         fit: False only extrapolates (the "w/o LBA" ablation).
 
     Returns:
@@ -148,93 +150,105 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
         translations = torch.cat([trajectory.control_translations, new_translation.unsqueeze(0)], dim=0)
         if fit and len(times) > 0:
             fixed = torch.ones(rotations.shape[0], dtype=torch.bool)
-            fixed[-cfg.local_ba.fit_controls:] = False
+            fixed[-local_ba.fit_controls:] = False
             fixed[:N_ANCHOR_CONTROLS] = True
             rotations, translations = spline_fit.fit_control_points(
                 np.asarray(times, dtype=np.float64), poses, trajectory.dt, trajectory.t0, rotations.shape[0],
                 init_rotations=rotations, init_translations=translations, fixed=fixed,
-                iters=cfg.local_ba.fit_iters, convention=trajectory.convention)
+                iters=local_ba.fit_iters, convention=trajectory.convention)
             rotations, translations = spline_fit.pin_first_control_point(rotations, translations, start_pose)
     return BSplineTrajectory(rotations.detach().to(poses.dtype), translations.detach().to(poses.dtype),
                              trajectory.dt, trajectory.t0, trajectory.convention, start_pose)
 
 
-def fit_time_range(trajectory: BSplineTrajectory, n: int, cfg: Config) -> Tuple[float, float]:
+def fit_time_range(trajectory: BSplineTrajectory, n: int, local_ba: LocalBAConfig) -> Tuple[float, float]:
     """[start, end) in s of the frames :func:`curve_approximation` fits when mapping interval ``n``:
     interval n and the ``local_ba.fit_controls - 1`` before it."""
     start, end = trajectory.interval(n)
-    return max(trajectory.interval(0)[0], start - (cfg.local_ba.fit_controls - 1) * trajectory.dt), end
+    return max(trajectory.interval(0)[0], start - (local_ba.fit_controls - 1) * trajectory.dt), end
 
 
-def window_dynamics_range(trajectory: BSplineTrajectory, cfg: Config) -> Optional[Tuple[float, float]]:
+def window_dynamics_range(trajectory: BSplineTrajectory, local_ba: LocalBAConfig) -> Optional[Tuple[float, float]]:
     """Where local BA samples L_DR: the window's time range, or None with ``local_ba.use_dynamics`` off."""
-    return window_time_range(trajectory, cfg.local_ba.window) if cfg.local_ba.use_dynamics else None
+    return window_time_range(trajectory, local_ba.window) if local_ba.use_dynamics else None
 
 
 def refine_window(field_model: torch.nn.Module, trajectory: BSplineTrajectory, frame_times: np.ndarray,
-                  frame_rays: Sequence[RayBatch], cfg: Config, generator: Optional[torch.Generator] = None
+                  frame_rays: Sequence[RayBatch], local_ba: LocalBAConfig, dynamics: DynamicsConfig,
+                  loss_settings: RenderLossSettings, generator: Optional[torch.Generator] = None
                   ) -> Tuple[BSplineTrajectory, BAStats]:
     """Stage 2: the window's control points on the window frames' rays, map frozen, L_DR in the window.
 
     Args:
+        field_model: the scene field (frozen here).
+        trajectory: the trajectory with the new control point.
         frame_times: (F,) float64 times of the frames whose rays are given (inside the window).
         frame_rays: F ray batches (any ``frame_ids``; relabelled to slots here).
+        local_ba: ``window``, ``n_rays``, ``refine_iters``, learning rates, ``use_dynamics``.
+        dynamics: the limits of L_DR.
+        loss_settings: rendering and loss settings of ``losses.render_loss``.
+        generator: random generator for ray draws, depth-sample jitter and L_DR sample times.
 
     Returns:
         The refined trajectory (detached) and the optimisation record.
     """
-    poses = SplinePoses(trajectory, window_controls(trajectory, cfg.local_ba.window), frame_times,
-                        trajectory.poses(frame_times), cfg.local_ba.lr_rot, cfg.local_ba.lr_trans)
-    extra = dynamics_term(poses, window_dynamics_range(trajectory, cfg), cfg.dynamics, generator)
-    stats = joint_optimization(field_model, None, [(slotted(frame_rays), cfg.local_ba.n_rays)], poses, cfg,
-                               cfg.local_ba.refine_iters, generator, extra_loss=extra, optimise_map=False,
+    poses = SplinePoses(trajectory, window_controls(trajectory, local_ba.window), frame_times,
+                        trajectory.poses(frame_times), local_ba.lr_rot, local_ba.lr_trans)
+    extra = dynamics_term(poses, window_dynamics_range(trajectory, local_ba), dynamics, generator)
+    stats = joint_optimization(field_model, None, [(slotted(frame_rays), local_ba.n_rays)], poses, loss_settings,
+                               local_ba.refine_iters, generator, extra_loss=extra, optimise_map=False,
                                pose_accum_step=1)
     return poses.trajectory().detach(), stats
 
 
 def joint_window(field_model: torch.nn.Module, map_optimizer: torch.optim.Optimizer, trajectory: BSplineTrajectory,
-                 keyframes: KeyframeDatabase, cfg: Config, generator: Optional[torch.Generator] = None
+                 keyframes: KeyframeDatabase, local_ba: LocalBAConfig, dynamics: DynamicsConfig,
+                 loss_settings: RenderLossSettings, generator: Optional[torch.Generator] = None
                  ) -> Tuple[BSplineTrajectory, Optional[BAStats]]:
     """Stage 3: the window's keyframes, jointly with the map (control points in the window move).
 
-    Returns the trajectory unchanged (and None) when ``local_ba.joint_iters`` is 0 or no
-    keyframe lies in the window."""
-    if cfg.local_ba.joint_iters <= 0:
+    ``local_ba``, ``dynamics``, ``loss_settings`` and ``generator`` as in :func:`refine_window`
+    (``joint_iters`` instead of ``refine_iters``).  Returns the trajectory unchanged (and None)
+    when ``local_ba.joint_iters`` is 0 or no keyframe lies in the window."""
+    if local_ba.joint_iters <= 0:
         return trajectory, None
-    time_range = window_time_range(trajectory, cfg.local_ba.window)
+    time_range = window_time_range(trajectory, local_ba.window)
     kf_times = np.asarray(keyframes.timestamps, dtype=np.float64)
     slots = [s for s, t in enumerate(kf_times) if time_range[0] <= t < time_range[1]]
     if not slots:
         return trajectory, None
     times = kf_times[slots]
-    poses = SplinePoses(trajectory, window_controls(trajectory, cfg.local_ba.window), times, trajectory.poses(times),
-                        cfg.local_ba.lr_rot, cfg.local_ba.lr_trans)
-    extra = dynamics_term(poses, window_dynamics_range(trajectory, cfg), cfg.dynamics, generator)
-    stats = joint_optimization(field_model, map_optimizer, [(keyframes.rays(slots), cfg.local_ba.n_rays)], poses, cfg,
-                               cfg.local_ba.joint_iters, generator, extra_loss=extra, pose_accum_step=1)
+    poses = SplinePoses(trajectory, window_controls(trajectory, local_ba.window), times, trajectory.poses(times),
+                        local_ba.lr_rot, local_ba.lr_trans)
+    extra = dynamics_term(poses, window_dynamics_range(trajectory, local_ba), dynamics, generator)
+    stats = joint_optimization(field_model, map_optimizer, [(keyframes.rays(slots), local_ba.n_rays)], poses,
+                               loss_settings, local_ba.joint_iters, generator, extra_loss=extra, pose_accum_step=1)
     return poses.trajectory().detach(), stats
 
 
 def refine_discrete_window(field_model: torch.nn.Module, map_optimizer: torch.optim.Optimizer, poses: torch.Tensor,
-                           frame_rays: Sequence[RayBatch], keyframe_mask: Sequence[bool], cfg: Config,
-                           generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                           frame_rays: Sequence[RayBatch], keyframe_mask: Sequence[bool], local_ba: LocalBAConfig,
+                           loss_settings: RenderLossSettings, generator: Optional[torch.Generator] = None
+                           ) -> torch.Tensor:
     """The "w/o B-S." ablation: stages 2 and 3 on discrete per-frame poses (no spline, no L_DR).
 
     Args:
         poses: (F, 4, 4) tracked poses of the window's frames.
         frame_rays: their rays.  keyframe_mask: (F,) which of them are keyframes.
+        local_ba: ``n_rays``, ``refine_iters``, ``joint_iters`` and the learning rates.
+        loss_settings: rendering and loss settings of ``losses.render_loss``.
 
     Returns:
         (F, 4, 4) refined poses.
     """
     fixed = torch.zeros(len(frame_rays), dtype=torch.bool)
-    model = DiscretePoses(poses, fixed, cfg.local_ba.lr_rot, cfg.local_ba.lr_trans)
+    model = DiscretePoses(poses, fixed, local_ba.lr_rot, local_ba.lr_trans)
     pool = slotted(frame_rays)
-    joint_optimization(field_model, None, [(pool, cfg.local_ba.n_rays)], model, cfg, cfg.local_ba.refine_iters,
+    joint_optimization(field_model, None, [(pool, local_ba.n_rays)], model, loss_settings, local_ba.refine_iters,
                        generator, optimise_map=False, pose_accum_step=1)
     keyframe_slots = [slot for slot, is_kf in enumerate(keyframe_mask) if is_kf]
-    if keyframe_slots and cfg.local_ba.joint_iters > 0:
+    if keyframe_slots and local_ba.joint_iters > 0:
         kf_pool = RayBatch.cat([pool.subset(torch.nonzero(pool.frame_ids == slot).squeeze(1)) for slot in keyframe_slots])
-        joint_optimization(field_model, map_optimizer, [(kf_pool, cfg.local_ba.n_rays)], model, cfg,
-                           cfg.local_ba.joint_iters, generator, pose_accum_step=1)
+        joint_optimization(field_model, map_optimizer, [(kf_pool, local_ba.n_rays)], model, loss_settings,
+                           local_ba.joint_iters, generator, pose_accum_step=1)
     return model.poses().detach()

@@ -13,18 +13,37 @@ term weighted as in Co-SLAM @3bb904e:
 band get no loss; n_fs, n_sdf count masked samples over the whole batch and n = n_fs + n_sdf.
 
 Layer 2 (objective): imports config and render; the smoothness term uses the field it is given.
-Tracking, local BA, global BA and first-frame mapping all call :func:`render_loss`.
+Tracking, local BA, global BA and first-frame mapping all call :func:`render_loss` with one
+:class:`RenderLossSettings` (the rendering, the loss weights and the valid-depth limit).
 Taught in notebooks/04_rendering_and_losses.ipynb.
 Sources: Co-SLAM @3bb904e ``model/scene_rep.py`` (``forward``, losses), ``model/utils.py``
 (``get_masks``, ``get_sdf_loss``), ``model/scene_rep.py`` ``smoothness``.
 """
 
+from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import torch
 
-from .config import Config, LossConfig
+from .config import Config, LossConfig, RenderConfig
 from .render import RayBatch, rays_to_world, render_rays
+
+
+@dataclass(frozen=True)
+class RenderLossSettings:
+    """What :func:`render_loss` reads from the config; tracking, BA and mapping pass it through."""
+
+    render: RenderConfig
+    """Ray sampling and volume rendering (sample counts, near / far, truncation tr, jitter)."""
+    loss: LossConfig
+    """Weights of the terms of Eq. (4), the colour factor of rays without depth, the smoothness lattice."""
+    depth_trunc: float
+    """Depths (m) at or beyond this are invalid for L_rgb / L_d (``data.depth_trunc``)."""
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> "RenderLossSettings":
+        """The settings of a run's config: ``cfg.render``, ``cfg.loss``, ``cfg.data.depth_trunc``."""
+        return cls(render=cfg.render, loss=cfg.loss, depth_trunc=cfg.data.depth_trunc)
 
 
 def _masked_mean_square(residual: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -127,7 +146,7 @@ def render_loss(
     field,
     rays: RayBatch,
     c2w: torch.Tensor,
-    cfg: Config,
+    loss_settings: RenderLossSettings,
     generator: Optional[torch.Generator] = None,
     smoothness: bool = False,
 ) -> Tuple[torch.Tensor, Dict[str, float]]:
@@ -137,25 +156,27 @@ def render_loss(
         field: callable points -> (rgb, sdf); needs ``bound``/``grid_features`` if ``smoothness``.
         rays: camera-frame rays and targets.
         c2w: (4, 4) or (R, 4, 4) camera-to-world poses (any float dtype; gradients flow).
-        cfg: uses ``cfg.render``, ``cfg.loss`` weights and ``cfg.data.depth_trunc``.
+        loss_settings: the rendering, the loss weights and the valid-depth limit.
+        generator: random generator for the depth-sample jitter and the smoothness lattice.
         smoothness: add smooth_weight * L_smooth (Co-SLAM: global BA only).
 
     Returns:
         total (scalar tensor) and a dict of the weighted terms as floats.
     """
+    render_cfg, loss_cfg = loss_settings.render, loss_settings.loss
     origins, directions = rays_to_world(rays.directions_cam, c2w)
-    rendered = render_rays(field, origins, directions, rays.depth, cfg.render, generator)
+    rendered = render_rays(field, origins, directions, rays.depth, render_cfg, generator)
     terms = reconstruction_losses(
-        rendered, rays.rgb, rays.depth, cfg.loss, cfg.render.truncation, cfg.data.depth_trunc
+        rendered, rays.rgb, rays.depth, loss_cfg, render_cfg.truncation, loss_settings.depth_trunc
     )
     weights = {
-        "rgb": cfg.loss.rgb_weight,
-        "depth": cfg.loss.depth_weight,
-        "sdf": cfg.loss.sdf_weight,
-        "fs": cfg.loss.fs_weight,
+        "rgb": loss_cfg.rgb_weight,
+        "depth": loss_cfg.depth_weight,
+        "sdf": loss_cfg.sdf_weight,
+        "fs": loss_cfg.fs_weight,
     }
     weighted = {name: weights[name] * terms[name] for name in weights}
     if smoothness:
-        weighted["smooth"] = cfg.loss.smooth_weight * smoothness_loss(field, cfg.loss, generator)
+        weighted["smooth"] = loss_cfg.smooth_weight * smoothness_loss(field, loss_cfg, generator)
     total = sum(weighted.values())
     return total, {name: float(value.detach()) for name, value in weighted.items()}

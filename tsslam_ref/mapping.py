@@ -23,9 +23,9 @@ from typing import List, Optional, Sequence
 import numpy as np
 import torch
 
-from .config import Config, MappingConfig
+from .config import MappingConfig
 from .geometry import pixel_to_ray
-from .losses import render_loss
+from .losses import RenderLossSettings, render_loss
 from .render import RayBatch, _as_tensor, _intrinsic_values
 
 # Adam betas of Co-SLAM's map optimiser (``coslam.py``).
@@ -95,7 +95,7 @@ def fit_map(
     optimizer: torch.optim.Optimizer,
     frames: Sequence,
     poses: torch.Tensor,
-    cfg: Config,
+    loss_settings: RenderLossSettings,
     iters: int,
     n_rays: int,
     generator: Optional[torch.Generator] = None,
@@ -108,7 +108,10 @@ def fit_map(
         field: the SceneField being trained (its device and dtype are used).
         optimizer: e.g. :func:`make_map_optimizer` (kept across calls, as in Co-SLAM).
         frames: frames with rgb, depth, intrinsics; poses: (F, 4, 4) camera-to-world, fixed.
+        loss_settings: rendering and loss settings of :func:`render_loss`.
+        iters: Adam steps.
         n_rays: rays per iteration, drawn uniformly from all frames (no edge ignored, Co-SLAM).
+        generator: random generator for the ray draws and the depth-sample jitter.
         smoothness: add the feature smoothness term (Co-SLAM uses it in BA only).
         progress: show a tqdm bar.
 
@@ -129,7 +132,7 @@ def fit_map(
     for _ in steps:
         rays = pixels.sample(n_rays, generator)
         optimizer.zero_grad(set_to_none=True)
-        loss, _ = render_loss(field, rays, poses[rays.frame_ids], cfg, generator, smoothness=smoothness)
+        loss, _ = render_loss(field, rays, poses[rays.frame_ids], loss_settings, generator, smoothness=smoothness)
         loss.backward()
         optimizer.step()
         losses.append(float(loss.detach()))

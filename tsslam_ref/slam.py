@@ -47,6 +47,7 @@ from .export import estimated_trajectory
 from .field import SceneField
 from .geometry import invert_pose
 from .global_ba import CurrentFrame, coslam_global_ba, tsslam_global_ba
+from .losses import RenderLossSettings
 from .mapping import estimate_bound, fit_map, make_map_optimizer
 from .render import RayBatch
 from .timings import Timings
@@ -79,6 +80,11 @@ class SLAMState:
     generator: Optional[torch.Generator] = None
     timings: Timings = field(default_factory=Timings)
     log: List[Dict[str, float]] = field(default_factory=list)
+
+    @property
+    def loss_settings(self) -> RenderLossSettings:
+        """The rendering and loss settings of ``cfg`` that tracking, mapping and BA take."""
+        return RenderLossSettings.from_config(self.cfg)
 
 
 @dataclass
@@ -188,7 +194,7 @@ def start_map(state: SLAMState, frame: FrameTensors) -> None:
     for TS-SLAM the empty spline whose first interval starts at frame 0's time."""
     cfg = state.cfg
     with state.timings.stage("first_frame_mapping", cfg.mapping.first_iters):
-        fit_map(state.field, state.map_optimizer, [frame], state.frame_poses[:1], cfg,
+        fit_map(state.field, state.map_optimizer, [frame], state.frame_poses[:1], state.loss_settings,
                 iters=cfg.mapping.first_iters, n_rays=cfg.mapping.first_n_rays, generator=state.generator)
     add_keyframe(state, frame)
     state.keyframe_of_frame[0] = 0
@@ -246,8 +252,8 @@ def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneFiel
         reference = [entry["tracking_loss"] for entry in state.log[:5]]
     rays = frame.sampled_rays(cfg.tracking.n_rays, state.generator, ignore_edge=cfg.tracking.ignore_edge)
     with state.timings.stage("tracking") as record:
-        result = track_frame(field_model if field_model is not None else state.field, rays, init, cfg,
-                             generator=state.generator)
+        result = track_frame(field_model if field_model is not None else state.field, rays, init, cfg.tracking,
+                             state.loss_settings, generator=state.generator)
         record.iterations = len(result.losses)
     best_loss = check_tracking(result, reference, cfg, frame)
     with lock:
@@ -307,7 +313,7 @@ def discrete_global_ba(state: SLAMState, frame: FrameTensors, fixed: Optional[np
     with state.timings.stage(stage, state.cfg.mapping.iters):
         keyframe_poses, current_pose, _ = coslam_global_ba(
             state.field, state.map_optimizer, state.keyframes, state.frame_poses[keyframe_frames],
-            current_frame(state, frame), state.cfg, state.generator, fixed=fixed)
+            current_frame(state, frame), state.cfg.mapping, state.loss_settings, state.generator, fixed=fixed)
     state.frame_poses[keyframe_frames] = keyframe_poses
     state.frame_poses[frame.index] = current_pose
 
@@ -352,10 +358,10 @@ def add_control_point(state: SLAMState, frame: FrameTensors, n: int) -> BSplineT
     cfg = state.cfg
     times = state.timestamps[: frame.index + 1]
     with state.timings.stage("lba_init", cfg.local_ba.fit_iters if cfg.local_ba.enabled else 0):
-        fit_start, fit_end = local_ba.fit_time_range(state.trajectory, n, cfg)
+        fit_start, fit_end = local_ba.fit_time_range(state.trajectory, n, cfg.local_ba)
         fit_frames = np.nonzero((times >= fit_start) & (times < fit_end))[0]
         trajectory = local_ba.curve_approximation(state.trajectory, times[fit_frames], state.frame_poses[fit_frames],
-                                                  cfg, fit=cfg.local_ba.enabled)
+                                                  cfg.local_ba, fit=cfg.local_ba.enabled)
     check_finite(trajectory, "the curve approximation", frame)
     return trajectory
 
@@ -370,10 +376,11 @@ def local_ba_in_window(state: SLAMState, frame: FrameTensors, trajectory: BSplin
         frames = [j for j in sorted(state.window_rays) if start <= times[j] < end]
         if frames:
             trajectory, _ = local_ba.refine_window(state.field, trajectory, times[frames],
-                                                   [state.window_rays[j] for j in frames], cfg, state.generator)
+                                                   [state.window_rays[j] for j in frames], cfg.local_ba, cfg.dynamics,
+                                                   state.loss_settings, state.generator)
         check_finite(trajectory, "local BA refinement", frame)
-        trajectory, _ = local_ba.joint_window(state.field, state.map_optimizer, trajectory, state.keyframes, cfg,
-                                              state.generator)
+        trajectory, _ = local_ba.joint_window(state.field, state.map_optimizer, trajectory, state.keyframes,
+                                              cfg.local_ba, cfg.dynamics, state.loss_settings, state.generator)
         check_finite(trajectory, "local BA joint refinement", frame)
     return trajectory
 
@@ -390,8 +397,8 @@ def global_ba_outside_window(state: SLAMState, frame: FrameTensors, trajectory: 
     with state.timings.stage("global_ba", cfg.mapping.iters):
         trajectory, _ = tsslam_global_ba(
             state.field, state.map_optimizer, state.keyframes, state.frame_poses[keyframe_frames], trajectory, free,
-            current_frame(state, frame), cfg, dynamics_range=before_window if cfg.local_ba.use_dynamics else None,
-            generator=state.generator)
+            current_frame(state, frame), cfg.mapping, cfg.dynamics, state.loss_settings,
+            dynamics_range=before_window if cfg.local_ba.use_dynamics else None, generator=state.generator)
     check_finite(trajectory, "global BA", frame)
     return trajectory
 
@@ -422,7 +429,7 @@ def discrete_pose_interval(state: SLAMState, frame: FrameTensors, n: int) -> Non
             keyframe_set = set(state.keyframes.frame_indices)
             state.frame_poses[frames] = local_ba.refine_discrete_window(
                 state.field, state.map_optimizer, state.frame_poses[frames], [state.window_rays[j] for j in frames],
-                [j in keyframe_set for j in frames], cfg, state.generator)
+                [j in keyframe_set for j in frames], cfg.local_ba, state.loss_settings, state.generator)
     discrete_global_ba(state, frame)
 
 

@@ -24,10 +24,10 @@ from typing import List, Optional
 
 import torch
 
-from .config import Config
+from .config import TrackingConfig
 from .bundle import PoseIncrement, frozen
 from .geometry import invert_pose, make_pose, orthonormalize
-from .losses import render_loss
+from .losses import RenderLossSettings, render_loss
 from .render import RayBatch
 
 
@@ -65,7 +65,8 @@ def track_frame(
     field: torch.nn.Module,
     rays: RayBatch,
     init_pose: torch.Tensor,
-    cfg: Config,
+    tracking: TrackingConfig,
+    loss_settings: RenderLossSettings,
     generator: Optional[torch.Generator] = None,
 ) -> TrackingResult:
     """Optimise one frame's camera-to-world pose against a frozen map.
@@ -75,14 +76,13 @@ def track_frame(
         rays: (R,) camera-frame rays of this frame with their colour and depth targets.  The same
             rays are used in every iteration.
         init_pose: (4, 4) initial camera-to-world pose (e.g. :func:`constant_velocity_init`).
-        cfg: the run's config (``cfg.tracking`` for iterations and learning rates, ``cfg.loss`` and
-            ``cfg.render`` for the loss).
+        tracking: iterations, learning rates and ``best``.
+        loss_settings: rendering and loss settings of :func:`render_loss`.
         generator: random generator for the depth-sample jitter.
 
     Returns:
         :class:`TrackingResult` with the kept pose, detached.
     """
-    tracking = cfg.tracking
     pose_parameters = PoseIncrement(init_pose)
     optimizer = pose_parameters.optimizer(tracking.lr_rot, tracking.lr_trans)
     losses: List[float] = []
@@ -92,7 +92,7 @@ def track_frame(
     with frozen(field):
         for iteration in range(tracking.iters):
             pose = pose_parameters()
-            loss, _ = render_loss(field, rays, pose, cfg, generator=generator)
+            loss, _ = render_loss(field, rays, pose, loss_settings, generator=generator)
             value = float(loss.detach())
             losses.append(value)
             if not torch.isfinite(loss):
