@@ -126,6 +126,13 @@ def basis(u: torch.Tensor, order: int = 0) -> torch.Tensor:
         >>> basis(torch.tensor(0.0, dtype=torch.float64)) * 6
         tensor([6., 5., 1., 0.], dtype=torch.float64)
     """
+    monomials = basis_monomials(u, order)  # (..., 4)
+    C = torch.tensor(_C, dtype=monomials.dtype, device=monomials.device) / 6.0
+    return monomials @ C.T  # (..., 4)
+
+
+def basis_monomials(u: torch.Tensor, order: int = 0) -> torch.Tensor:
+    """(..., 4) the order-th u-derivative of [1, u, u², u³] (order 0..3); a basis matrix times it gives the basis."""
     u = torch.as_tensor(u)
     if not u.is_floating_point():
         u = u.to(torch.get_default_dtype())
@@ -140,9 +147,7 @@ def basis(u: torch.Tensor, order: int = 0) -> torch.Tensor:
         powers = [zero, zero, zero, 6.0 * one]
     else:
         raise ValueError(f"basis order must be 0, 1, 2 or 3, got {order}")
-    monomials = torch.stack(powers, dim=-1)  # (..., 4)
-    C = torch.tensor(_C, dtype=u.dtype, device=u.device) / 6.0
-    return monomials @ C.T  # (..., 4)
+    return torch.stack(powers, dim=-1)  # (..., 4)
 
 
 # --------------------------------------------------------------------------------------------
@@ -470,7 +475,11 @@ def evaluate(
     n_ctrl = _check_control_points(control_rotations, control_translations)
     first, u, shape = _locate(times, n_ctrl, dt, t0, convention)
     sample = evaluate_segments(control_rotations, control_translations, first, u, dt, derivatives)
-    batch = control_translations.shape[:-2]
+    return reshape_sample(sample, control_translations.shape[:-2], shape)
+
+
+def reshape_sample(sample: SplineSample, batch: Tuple[int, ...], shape: Tuple[int, ...]) -> SplineSample:
+    """Fields (*batch, M, ...) reshaped to (*batch, *shape, ...), M = prod(shape); None stays None."""
 
     def _reshape(value: Optional[torch.Tensor], tail: Tuple[int, ...]) -> Optional[torch.Tensor]:
         return None if value is None else value.reshape(*batch, *shape, *tail)
