@@ -42,13 +42,13 @@ def check_knots(knots, n_ctrl: int) -> np.ndarray:
     if values.ndim != 1 or values.shape[0] != n_ctrl + 2:
         raise ValueError(f"knots must be a 1-D vector of n_ctrl + 2 = {n_ctrl + 2} times (s), got shape {values.shape}")
     if not np.all(np.isfinite(values)):
-        raise ValueError(f"knots must be finite, got {values[~np.isfinite(values)][0]!r} at index "
+        raise ValueError(f"knots must be finite, got {float(values[~np.isfinite(values)][0])!r} at index "
                          f"{int(np.flatnonzero(~np.isfinite(values))[0])}")
     steps = np.diff(values)
     if np.any(steps <= 0):
         j = int(np.flatnonzero(steps <= 0)[0])
-        raise ValueError(f"knots must be strictly increasing, got knots[{j}] = {values[j]!r} s and "
-                         f"knots[{j + 1}] = {values[j + 1]!r} s")
+        raise ValueError(f"knots must be strictly increasing, got knots[{j}] = {float(values[j])!r} s and "
+                         f"knots[{j + 1}] = {float(values[j + 1])!r} s")
     return values
 
 
