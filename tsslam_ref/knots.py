@@ -131,17 +131,17 @@ def locate(times: TimesLike, knots: np.ndarray):
     times64 = spline._times_float64(times)
     shape = times64.shape
     flat = times64.reshape(-1)
+    knots_t = torch.as_tensor(knots, dtype=torch.float64, device=flat.device)
     with torch.no_grad():
-        plain = flat.detach().cpu().numpy()
+        plain = flat.detach()
         low = t_min - spline._end_tolerance(t_min, knots[0])
         high = t_max + spline._end_tolerance(t_max, knots[0])
-        bad = ~((plain >= low) & (plain <= high))
-        if bad.any():
-            raise ValueError(f"time {float(plain[bad][0])!r} s is outside the spline domain [{t_min!r}, {t_max!r}] s "
+        bad = ~((plain >= low) & (plain <= high))  # NaN is bad too
+        if bool(bad.any()):
+            first_bad = float(plain[bad.nonzero()[0, 0]])
+            raise ValueError(f"time {first_bad!r} s is outside the spline domain [{t_min!r}, {t_max!r}] s "
                              f"(n_ctrl={len(knots) - 2}, non-uniform knots, closed interval)")
-        segment = np.searchsorted(knots[3:-3], plain, side="right")  # interior knots <= t
-    segment = torch.as_tensor(segment, dtype=torch.int64, device=flat.device)
-    knots_t = torch.as_tensor(knots, dtype=torch.float64, device=flat.device)
+        segment = torch.searchsorted(knots_t[3:-3].contiguous(), plain.contiguous(), right=True)  # interior knots <= t
     u = (flat - knots_t[segment + 2]) / (knots_t[segment + 3] - knots_t[segment + 2])  # differentiable in t
     return segment, u, shape
 
