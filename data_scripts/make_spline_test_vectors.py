@@ -43,6 +43,11 @@ SE3_SPLINES = [
 JACOBIAN_SPLINE = ("jacobians_paper_dt0.25", "paper", 8, 0.25, 0.5, 1.5, 1.0)
 N_JACOBIAN_TIMES = 30
 
+# Non-uniform knots ("knots" replaces convention, dt, t0): name, n_ctrl, first knot (s), spacings
+# uniform in [min, max] (s), max relative rotation (rad), translation scale (m).  Its own generator
+# (seed SEED + 1), so the uniform vectors above do not change.
+KNOT_SPLINE = ("knots_uneven_tum_stamps", 11, 1305031102.175304, (0.02, 0.4), 1.5, 0.5)
+
 # The basalt golden table's knots (tsslam_ref/assets/spline_kit.md; basalt convention, t0 = 0, dt = 0.5 s).
 BASALT_GOLDEN_ROTVECS = [[0, 0, 0], [0.1, -0.2, 0.3], [0.4, -0.1, 0.5], [0.3, 0.3, 0.9], [-0.2, 0.6, 1.2], [-0.5, 0.4, 1.0]]
 BASALT_GOLDEN_TRANSLATIONS = [[0, 0, 0], [1, 0, 0.5], [1.5, 1, 0.5], [1, 2, 0], [0, 2.5, -0.5], [-1, 2, -1]]
@@ -87,6 +92,25 @@ def make_vector(convention, dt, t0, rotvecs, translations, times, description, r
     return data
 
 
+def knot_vector():
+    """(name, data) of the non-uniform vector: every knot in the domain, its float64 neighbours, random times."""
+    name, n_ctrl, first, (low, high), max_angle, scale = KNOT_SPLINE
+    rng = np.random.default_rng(SEED + 1)
+    rotvecs, translations = random_control_points(rng, n_ctrl, max_angle, scale)
+    knot_vector = first + np.concatenate([[0.0], np.cumsum(rng.uniform(low, high, size=n_ctrl + 1))])
+    domain_knots = knot_vector[2:n_ctrl]  # kappa_2 .. kappa_{N-1}
+    interior = domain_knots[1:-1]
+    random = domain_knots[0] + (domain_knots[-1] - domain_knots[0]) * rng.uniform(size=N_RANDOM_TIMES)
+    times = np.sort(np.concatenate([domain_knots, np.nextafter(interior, -np.inf), np.nextafter(interior, np.inf),
+                                    random]))
+    data = {"description": f"{name}: random spline on uneven knots ({low}..{high} s apart) at TUM-like stamps, "
+                           f"seed {SEED + 1}, n_ctrl={n_ctrl}, relative rotations <= {max_angle} rad",
+            "representation": "split", "knots": knot_vector.tolist(), "rotvecs": rotvecs.tolist(),
+            "translations": translations.tolist(), "times": times.tolist()}
+    data.update(conformance.evaluate_input(data, name))
+    return name, data
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     default_out = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tsslam_ref", "assets", "spline_vectors")
@@ -120,6 +144,8 @@ def main(argv=None) -> int:
     description = (f"{name}: random spline with analytic Jacobians w.r.t. the 4 active control points "
                    f"(R_k <- Exp(delta) R_k, P_k <- P_k + tau; output R <- Exp(eps) R), seed {SEED}")
     vectors[name] = make_vector(convention, dt, t0, rotvecs, translations, times, description, jacobians=True)
+    name, data = knot_vector()
+    vectors[name] = data
     for name, data in vectors.items():
         path = os.path.join(args.out, name + ".json")
         spline_kit.write_json_atomic(path, data, force=args.force)

@@ -18,14 +18,17 @@ import scipy.interpolate
 import torch
 from scipy.spatial.transform import Rotation
 
-from tsslam_ref import conformance, spline, spline_kit
+from tsslam_ref import conformance, knots, spline, spline_kit
 from tsslam_ref.geometry import so3_exp, so3_log, vee
 
 F64 = torch.float64
 VECTOR_DIR = Path(spline.__file__).resolve().parent / "assets" / "spline_vectors"
 ALL_VECTOR_PATHS = sorted(VECTOR_DIR.glob("*.json"))
-VECTOR_PATHS = [p for p in ALL_VECTOR_PATHS if json.loads(p.read_text()).get("representation", "split") == "split"]
-"""The split vectors (the joint SE(3) ones are tested in tests/test_se3_spline.py)."""
+KNOT_VECTOR_PATHS = [p for p in ALL_VECTOR_PATHS if "knots" in json.loads(p.read_text())]
+"""The non-uniform vectors (key "knots"), tested at the end of this file."""
+UNIFORM_VECTOR_PATHS = [p for p in ALL_VECTOR_PATHS if p not in KNOT_VECTOR_PATHS]
+VECTOR_PATHS = [p for p in UNIFORM_VECTOR_PATHS if json.loads(p.read_text()).get("representation", "split") == "split"]
+"""The uniform split vectors (the joint SE(3) ones are tested in tests/test_se3_spline.py)."""
 OFFSET = {"paper": 2, "basalt": 0}
 
 
@@ -42,9 +45,9 @@ def scale_err(value, reference):
 def test_shipped_vectors_exist_and_are_small():
     assert len(VECTOR_PATHS) >= 5
     assert sum(path.stat().st_size for path in ALL_VECTOR_PATHS) < 1_500_000
-    conventions = {json.loads(path.read_text())["convention"] for path in ALL_VECTOR_PATHS}
-    assert conventions == {"paper", "basalt"}
-    for path in ALL_VECTOR_PATHS:
+    conventions = {json.loads(path.read_text())["convention"] for path in UNIFORM_VECTOR_PATHS}
+    assert conventions == {"paper", "basalt"} and len(KNOT_VECTOR_PATHS) >= 1
+    for path in UNIFORM_VECTOR_PATHS:
         data, arrays = load_vector(path)
         t_min, t_max = spline.valid_time_range(len(data["rotvecs"]), data["dt"], data["t0"], data["convention"])
         assert arrays["times"].min() == t_min and arrays["times"].max() == t_max  # both domain ends
@@ -225,3 +228,71 @@ def test_kit_runs_as_python_dash_m(tmp_path):
     result = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert spline_kit.main(["check", str(VECTOR_DIR / "basalt_golden_dt0.5.json"), str(output)]) == 0
+
+
+# ------------------------------------------------------------------------------------------
+# Non-uniform knots (key "knots")
+
+
+@pytest.mark.parametrize("path", KNOT_VECTOR_PATHS, ids=lambda p: p.stem)
+def test_knot_vector_translation_matches_scipy_and_rates_match_autograd(path):
+    data, arrays = load_vector(path)
+    knot_vector = np.asarray(data["knots"])
+    assert arrays["times"].min() == knot_vector[2] and arrays["times"].max() == knot_vector[-3]  # domain ends
+    origin = knot_vector[0]  # scipy gets times relative to the first knot (stamps)
+    relative = np.r_[-1.0, knot_vector - origin, knot_vector[-1] - origin + 1.0]
+    oracle = scipy.interpolate.BSpline(relative, arrays["translations"], 3)
+    times = arrays["times"] - origin
+    gap = np.abs(times[:, None] - (knot_vector - origin)[None, :]).min(1)
+    away = gap > 1e-6  # scipy's relative times move a knot-adjacent stamp to the other side
+    assert scale_err(arrays["p"], oracle(times)) < 1e-9
+    assert scale_err(arrays["v"][away], oracle(times[away], 1)) < 1e-9
+    assert scale_err(arrays["a"][away], oracle(times[away], 2)) < 1e-9
+    R = so3_exp(torch.as_tensor(arrays["rotvecs"]))
+    P = torch.as_tensor(arrays["translations"])
+    t = torch.as_tensor(arrays["times"][away])
+    ones = torch.ones_like(t)
+
+    def rotation(at):
+        return knots.evaluate(R, P, at, knot_vector).rotation
+
+    def first(at):
+        return torch.func.jvp(rotation, (at,), (ones,))
+
+    R_t, R_dot = first(t)
+    _, (_, R_ddot) = torch.func.jvp(first, (t,), (ones,))
+    Rt = R_t.transpose(-1, -2)
+    assert scale_err(arrays["omega_body"][away], vee(Rt @ R_dot).numpy()) < 1e-9
+    assert scale_err(arrays["omegadot_body"][away], vee(Rt @ R_ddot).numpy()) < 1e-9
+
+
+@pytest.mark.parametrize("path", KNOT_VECTOR_PATHS, ids=lambda p: p.stem)
+def test_cli_evaluates_and_checks_a_knot_vector(path, tmp_path, capsys):
+    data = json.loads(path.read_text())
+    source = tmp_path / "input.json"
+    source.write_text(json.dumps({key: data[key] for key in ("knots", "rotvecs", "translations", "times")}))
+    output = tmp_path / "out.json"
+    assert spline_kit.main(["evaluate", str(source), "-o", str(output)]) == 0
+    assert spline_kit.main(["check", str(path), str(output)]) == 0
+    assert "PASS" in capsys.readouterr().out
+    perturbed = json.loads(output.read_text())
+    perturbed["omegadot_body"][5][0] += 1e-3
+    output.write_text(json.dumps(perturbed))
+    assert spline_kit.main(["check", str(path), str(output)]) == 1
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"knots": [0.0, 0.5, 0.4, 1.5, 2.0, 2.5, 3.0]}, ["'knots'", "strictly increasing", "knots[1] = 0.5"]),
+    ({"knots": [0.0, 0.5, 1.0]}, ["'knots'", "n_ctrl + 2 = 7"]),
+    ({"dt": 0.5}, ["'knots' replaces", "'dt'"]),
+    ({"representation": "se3"}, ["'knots'", "split"]),
+])
+def test_cli_bad_knot_input_exits_2_naming_the_key(tmp_path, capsys, change, words):
+    data = {"knots": [0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0], "rotvecs": [[0, 0, 0]] * 5,
+            "translations": [[0, 0, 0]] * 5, "times": [1.2]}
+    data.update(change)
+    source = tmp_path / "in.json"
+    source.write_text(json.dumps(data))
+    assert spline_kit.main(["evaluate", str(source), "-o", str(tmp_path / "o.json")]) == 2
+    err = capsys.readouterr().err
+    assert all(word in err for word in words), err

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import spline
+from tsslam_ref import knots, spline
 from tsslam_ref.bundle import SplinePoses, dynamics_term
 from tsslam_ref.config import DynamicsConfig
 from tsslam_ref.geometry import make_pose, so3_exp, so3_log
@@ -149,3 +149,80 @@ def test_pose_models_use_the_same_domain_rule_as_the_trajectory():
     assert traj.covers(times).tolist() == [False, True, True, False]
     assert torch.equal(poses[0], fallback[0]) and torch.equal(poses[3], fallback[3])
     assert torch.allclose(poses[1:3], traj.poses(times[1:3]), atol=1e-14)
+
+
+# --- variable intervals (non-uniform knots)
+
+
+def uneven_trajectory(seed: int = 31, n_ctrl: int = 10, convention: str = "paper") -> BSplineTrajectory:
+    """A trajectory grown by push_back with uneven knot times (0.08 .. 0.45 s)."""
+    R, P = random_controls(seed, n_ctrl)
+    spacing = np.random.default_rng(seed).uniform(0.08, 0.45, n_ctrl)
+    traj = BSplineTrajectory.empty(5.0, 0.3, torch.zeros(1, dtype=F64), convention=convention)
+    time = traj.t0
+    for k in range(n_ctrl):
+        time = time + (0.0 if k == 0 else spacing[k])
+        traj.push_back(R[k], P[k], knot_time=time)
+    return traj
+
+
+def test_push_back_with_knot_times_sets_the_intervals_and_the_non_uniform_curve():
+    traj = uneven_trajectory()
+    assert not traj.uniform
+    knots_of_points = traj.knot_times()
+    assert np.all(np.diff(knots_of_points) > 0)
+    assert traj.interval(3) == (knots_of_points[5], knots_of_points[6])  # paper: [t_{n+2}, t_{n+3})
+    assert traj.domain() == (knots_of_points[2], knots_of_points[-1])
+    assert traj.knot_time(10) == knots_of_points[-1] + traj.dt and traj.knot_time(11) == knots_of_points[-1] + 2 * traj.dt
+    times = np.linspace(*traj.domain(), 41)
+    oracle = knots.evaluate(traj.control_rotations, traj.control_translations, times,
+                            np.r_[knots_of_points, knots_of_points[-1] + traj.dt * np.arange(1, 3)], 2)
+    for a, b in zip(traj.evaluate(times, derivatives=2), oracle):
+        assert torch.equal(a, b)
+    start, end = traj.domain()
+    assert traj.covers([start, end - 1e-9, end]).tolist() == [True, True, False]
+    with pytest.raises(ValueError, match=r"knot_time = 1.0 s must come after the previous knot"):
+        traj.push_back(traj.control_rotations[-1], traj.control_translations[-1], knot_time=1.0)
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_variable_interval_window_pop_front_clone_keep_the_curve(convention):
+    traj = uneven_trajectory(32, 11, convention)
+    window = traj.window(2, 9)
+    popped = traj.clone()
+    popped.pop_front()
+    popped.pop_front()
+    start, end = window.domain()
+    times = np.linspace(start, end, 23)
+    reference = traj.evaluate(times, derivatives=2)
+    for other in (window, popped, traj.clone(), traj.detach(), traj.to(F64)):
+        for a, b in zip(other.evaluate(times, derivatives=2), reference):
+            assert torch.allclose(a, b, atol=1e-13, rtol=0)
+    assert popped.t0 == traj.knot_time(2) and window.t0 == traj.knot_time(2)
+    assert np.array_equal(popped.knot_times(), traj.knot_times()[2:])
+
+
+def test_pushing_the_uniform_time_keeps_the_trajectory_uniform_and_bitwise_equal():
+    R, P = random_controls(33, 7)
+    plain = BSplineTrajectory.empty(2.0, 0.25, torch.zeros(1, dtype=F64))
+    timed = BSplineTrajectory.empty(2.0, 0.25, torch.zeros(1, dtype=F64))
+    for k in range(7):
+        plain.push_back(R[k], P[k])
+        timed.push_back(R[k], P[k], knot_time=timed.knot_time(k))
+    assert timed.uniform and plain.uniform
+    times = np.linspace(*plain.domain(), 9)
+    for a, b in zip(plain.evaluate(times, 2), timed.evaluate(times, 2)):
+        assert torch.equal(a, b)
+    nonuniform = BSplineTrajectory(R, P, 0.25, plain.t0, knots=plain.knot_times())  # same times, stored
+    for a, b in zip(plain.evaluate(times, 2), nonuniform.evaluate(times, 2)):
+        assert torch.allclose(a, b, atol=1e-12, rtol=0)
+
+
+def test_bad_knot_times_are_named():
+    R, P = random_controls(34, 5)
+    with pytest.raises(ValueError, match="strictly increasing, got 0.5 s then 0.5 s"):
+        BSplineTrajectory(R, P, 0.25, 0.0, knots=[0.0, 0.5, 0.5, 0.7, 0.9])
+    with pytest.raises(ValueError, match="t0 = 0.1 s must equal knot 0"):
+        BSplineTrajectory(R, P, 0.25, 0.1, knots=[0.0, 0.5, 0.6, 0.7, 0.9])
+    with pytest.raises(ValueError, match="must hold knot 0"):
+        BSplineTrajectory(R, P, 0.25, 0.0, knots=[0.0, 0.5], knot_offset=1)

@@ -9,7 +9,7 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
 
 * 0 base: ``config`` (settings), ``geometry`` (SO(3), poses, pixel rays), ``files`` (atomic
   writes), ``cli_args`` (command-line value parsing shared by the command lines)
-* 1 math and map: ``spline`` (the curve, Eq. 5-9), ``spline_fit`` (curve approximation, Eq. 11),
+* 1 math and map: ``spline`` (the curve, Eq. 5-9), ``knots`` (its non-uniform form), ``spline_fit`` (curve approximation, Eq. 11),
   ``spline_jacobians``, ``se3_spline`` (joint SE(3) variant), ``trajectory`` (the spline
   trajectory type), ``dynamics`` (L_DR), ``hash_kernel`` (compiled hash-grid kernel), ``field``
   (Eq. 1), ``render`` (Eq. 2-3)
@@ -36,6 +36,7 @@ LAYERS = {
     "cli_args": 0,
     # 1 math and map
     "spline": 1,
+    "knots": 1,
     "spline_fit": 1,
     "spline_jacobians": 1,
     "se3_spline": 1,

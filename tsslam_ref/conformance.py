@@ -4,11 +4,13 @@ TS-SLAM §III-B/§III-C, Eq. (5)-(9): lets another implementation (C++, JAX, a p
 check itself against ours with shared test vectors (tsslam_ref/assets/spline_vectors).  The command
 line is :mod:`tsslam_ref.spline_kit` (it imports this module; this module never imports it).
 
-Side module.  Imports ``spline`` and ``geometry``.
+Side module.  Imports ``spline``, ``knots`` and ``geometry``.
 
 Input keys: ``convention`` ("paper" | "basalt"), ``dt`` and ``t0`` (s), ``rotvecs`` (N x 3, rad),
 ``translations`` (N x 3, m), ``times`` (M, s); optional ``representation`` ("split", the default,
-or "se3" for the joint SE(3) spline, :mod:`tsslam_ref.se3_spline`).  Output keys: ``times`` (M),
+or "se3" for the joint SE(3) spline, :mod:`tsslam_ref.se3_spline`).  Non-uniform knots: the key
+``knots`` (N + 2 strictly increasing times, s; :mod:`tsslam_ref.knots`) replaces ``convention``,
+``dt`` and ``t0`` (split representation only, no Jacobians).  Output keys: ``times`` (M),
 ``R`` (M x 3 x 3), ``p``, ``v``, ``a`` (M x 3, world), ``omega_body``, ``omegadot_body`` (M x 3,
 body), all float64.  With Jacobians (``evaluate --jacobians``, :mod:`tsslam_ref.spline_jacobians`):
 ``J_first`` (M, first active control index) and ``J_R``, ``J_p``, ``J_v``, ``J_a``,
@@ -28,11 +30,11 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from tsslam_ref import spline
+from tsslam_ref import knots, spline
 from tsslam_ref.geometry import so3_exp, so3_log
 
 INPUT_KEYS = ("convention", "dt", "t0", "rotvecs", "translations", "times")
-OPTIONAL_INPUT_KEYS = ("representation",)
+OPTIONAL_INPUT_KEYS = ("representation", "knots")
 REPRESENTATIONS = ("split", "se3")
 OUTPUT_KEYS = ("R", "p", "v", "a", "omega_body", "omegadot_body")
 OUTPUT_SHAPES = {"R": (3, 3), "p": (3,), "v": (3,), "a": (3,), "omega_body": (3,), "omegadot_body": (3,)}
@@ -112,6 +114,8 @@ def parse_input(data: dict, source: str = "input") -> dict:
     Raises ConformanceError naming the key: malformed values, fewer than 4 control points, or a
     rotation step ≥ :data:`ROTATION_STEP_LIMIT` (the message names the pair and the angle).
     """
+    if "knots" in data:
+        return _parse_knot_input(data, source)
     convention = data.get("convention")
     if convention not in spline.CONVENTIONS:
         raise ConformanceError(f"{source}: key 'convention' must be one of {spline.CONVENTIONS}, got {convention!r}")
@@ -121,7 +125,32 @@ def parse_input(data: dict, source: str = "input") -> dict:
     dt = _scalar(data, "dt", source)
     if dt <= 0:
         raise ConformanceError(f"{source}: key 'dt' must be > 0, got {dt}")
-    parsed = {"representation": representation, "convention": convention, "dt": dt, "t0": _scalar(data, "t0", source)}
+    parsed = {"representation": representation, "convention": convention, "dt": dt, "t0": _scalar(data, "t0", source),
+              "knots": None}
+    return _parse_control_points(data, source, parsed)
+
+
+def _parse_knot_input(data: dict, source: str) -> dict:
+    """A non-uniform input: key 'knots' (N + 2 strictly increasing times, s) instead of dt, t0, convention."""
+    extra = [key for key in ("dt", "t0", "convention") if key in data]
+    if extra:
+        raise ConformanceError(f"{source}: key 'knots' replaces 'dt', 't0' and 'convention'; remove {extra}")
+    if data.get("representation", "split") != "split":
+        raise ConformanceError(f"{source}: key 'knots' needs \"representation\": \"split\", got "
+                               f"{data.get('representation')!r}")
+    knot_vector = _array(data, "knots", (), source)
+    parsed = {"representation": "split", "convention": None, "dt": None, "t0": float(knot_vector[0]) if
+              knot_vector.size else None, "knots": knot_vector}
+    parsed = _parse_control_points(data, source, parsed)
+    try:
+        knots.check_knots(knot_vector, parsed["rotvecs"].shape[0])
+    except ValueError as error:
+        raise ConformanceError(f"{source}: key 'knots': {error}") from None
+    return parsed
+
+
+def _parse_control_points(data: dict, source: str, parsed: dict) -> dict:
+    """Add rotvecs, translations and times to ``parsed``; ConformanceError naming the key."""
     parsed["rotvecs"] = _array(data, "rotvecs", (3,), source)
     parsed["translations"] = _array(data, "translations", (3,), source)
     parsed["times"] = _array(data, "times", (), source)
@@ -154,7 +183,9 @@ def evaluate_parsed(parsed: dict, times: Optional[np.ndarray] = None) -> Dict[st
     times = parsed["times"] if times is None else times
     rotations = so3_exp(torch.as_tensor(parsed["rotvecs"]))
     translations = torch.as_tensor(parsed["translations"])
-    if parsed["representation"] == "se3":
+    if parsed["knots"] is not None:
+        sample = knots.evaluate(rotations, translations, times, parsed["knots"], derivatives=2)
+    elif parsed["representation"] == "se3":
         from tsslam_ref import se3_spline
 
         sample = se3_spline.evaluate(rotations, translations, times, parsed["dt"], parsed["t0"],
@@ -181,8 +212,9 @@ def evaluate_input(data: dict, source: str = "input", jacobians: bool = False) -
     parsed = parse_input(data, source)
     outputs = evaluate_parsed(parsed)
     if jacobians:
-        if parsed["representation"] != "split":
-            raise ConformanceError(f"{source}: Jacobians are available for \"representation\": \"split\" only")
+        if parsed["representation"] != "split" or parsed["knots"] is not None:
+            raise ConformanceError(f"{source}: Jacobians are available for \"representation\": \"split\" with "
+                                   f"uniform knots only")
         from tsslam_ref import spline_jacobians
 
         blocks = spline_jacobians.jacobians(so3_exp(torch.as_tensor(parsed["rotvecs"])),
@@ -194,8 +226,9 @@ def evaluate_input(data: dict, source: str = "input", jacobians: bool = False) -
         if not np.all(np.isfinite(value)):
             raise ConformanceError(f"{source}: evaluation gave non-finite {key!r}; check 'rotvecs' and "
                                    f"'translations' (values too large for float64?)")
-    result = {"representation": parsed["representation"], "convention": parsed["convention"],
-              "dt": parsed["dt"], "t0": parsed["t0"], "rotvecs": parsed["rotvecs"].tolist(),
+    timing = ({"knots": parsed["knots"].tolist()} if parsed["knots"] is not None else
+              {"convention": parsed["convention"], "dt": parsed["dt"], "t0": parsed["t0"]})
+    result = {"representation": parsed["representation"], **timing, "rotvecs": parsed["rotvecs"].tolist(),
               "translations": parsed["translations"].tolist(), "times": parsed["times"].tolist()}
     result.update({key: value.tolist() for key, value in outputs.items()})
     return result
@@ -232,6 +265,9 @@ def _segment_and_u(parsed: Optional[dict], times: np.ndarray):
     """(segment index (M,), u (M,)) of times in the reference spline, or (None, None)."""
     if parsed is None:
         return None, None
+    if parsed["knots"] is not None:
+        segment, u, _ = knots.locate(times, parsed["knots"])
+        return segment.numpy(), u.numpy()
     offset = 2 if parsed["convention"] == "paper" else 0
     first = spline.active_control_indices(times, parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
                                           parsed["convention"])[..., 0].numpy()
@@ -315,84 +351,119 @@ def _transposed_basis_translation(parsed: dict, times: np.ndarray) -> np.ndarray
     return points[first] + (weights[:, 1:, None] * deltas).sum(1)
 
 
-def diagnose(report: dict, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndarray], parsed: Optional[dict],
-             atol: float, rtol: float) -> List[str]:
-    """Hints naming the likely mistake from the pattern of errors (list of one-line strings)."""
-    rows = {row["quantity"]: row for row in report["rows"]}
-    failing = {key for key, row in rows.items() if not row["ok"]}
+def _frame_hints(failing: set, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndarray]) -> List[str]:
+    """Angular rates given in the world frame instead of the body frame."""
     hints = []
-    R = refs["R"]
-    # Frames of the angular rates.
     for key in ("omega_body", "omegadot_body"):
-        if key in failing and _close(cands[key], np.einsum("mij,mj->mi", R, refs[key])):
+        if key in failing and _close(cands[key], np.einsum("mij,mj->mi", refs["R"], refs[key])):
             hints.append(f"{key}: the candidate equals R @ {key}, the WORLD-frame value; the kit wants the body "
                          f"frame ([omega]x = R^T dR/dt), i.e. omega_body = R^T omega_world")
-    # Time scaling: v, a (and omega, omegadot) off by a power of dt.
-    if parsed is not None:
-        dt = parsed["dt"]
-        for key, order in (("v", 1), ("a", 2), ("omega_body", 1), ("omegadot_body", 2)):
-            if key not in failing:
-                continue
-            for power in (-2, -1, 1, 2):
-                if dt != 1.0 and _close(cands[key], refs[key] * dt ** power):
-                    hints.append(f"{key}: the candidate is the reference times dt^{power} (dt = {dt}); a time "
-                                 f"derivative of order {order} needs 1/dt^{order} (chain rule, du/dt = 1/dt)")
-                    break
-    # Float32.
+    return hints
+
+
+def _time_scale_hints(failing: set, refs, cands, parsed: Optional[dict]) -> List[str]:
+    """v, a (and omega, omegadot) off by a power of dt (uniform knots only)."""
+    if parsed is None or parsed["dt"] is None:
+        return []
+    hints, dt = [], parsed["dt"]
+    for key, order in (("v", 1), ("a", 2), ("omega_body", 1), ("omegadot_body", 2)):
+        if key not in failing:
+            continue
+        for power in (-2, -1, 1, 2):
+            if dt != 1.0 and _close(cands[key], refs[key] * dt ** power):
+                hints.append(f"{key}: the candidate is the reference times dt^{power} (dt = {dt}); a time "
+                             f"derivative of order {order} needs 1/dt^{order} (chain rule, du/dt = 1/dt)")
+                break
+    return hints
+
+
+def _float32_hint(failing: set, rows: dict) -> List[str]:
+    """Every quantity off by float32 rounding."""
     scaled = [row["scaled"] for row in rows.values()]
     if failing and max(scaled) < 3e-5 and sum(value > 1e-9 for value in scaled) >= 4:
-        hints.append(f"all quantities differ by 1e-9..3e-5 of their scale (largest {max(scaled):.1e}): the "
-                     f"candidate looks like float32 arithmetic (about 1e-7 relative); compute in float64, "
-                     f"or check with --rtol 1e-5 if float32 is intended")
-    # Joint SE(3) instead of split (or the reverse): compare with the other representation directly.
-    if failing and failing <= {"p", "v", "a"} and {"p", "v", "a"} & failing:
-        other = None
-        if parsed is not None:
-            swapped = dict(parsed, representation="split" if parsed["representation"] == "se3" else "se3")
-            other = evaluate_parsed(swapped, report["times"])
-        if other is not None and _close(cands["p"], other["p"]):
-            hints.append("p equals the JOINT SE(3) spline of the same control points (PyPose pp.bspline, Sophus) "
-                         "but this vector is split SO(3) x R^3" if parsed["representation"] == "split" else
-                         "p equals the SPLIT SO(3) x R^3 spline but this vector is JOINT SE(3) "
-                         "(\"representation\": \"se3\")")
-        else:
-            hints.append("only p, v, a differ while R, omega, omegadot agree: the translation is coupled "
-                         "differently, e.g. a JOINT SE(3) spline (PyPose, Sophus) against a split one")
-    if parsed is None:
-        return hints
-    times = report["times"]
-    # Errors only at knots.
+        return [f"all quantities differ by 1e-9..3e-5 of their scale (largest {max(scaled):.1e}): the "
+                f"candidate looks like float32 arithmetic (about 1e-7 relative); compute in float64, "
+                f"or check with --rtol 1e-5 if float32 is intended"]
+    return []
+
+
+def _representation_hint(failing: set, cands, parsed: Optional[dict], times: np.ndarray) -> List[str]:
+    """Joint SE(3) instead of split (or the reverse): only p, v, a differ."""
+    if not (failing and failing <= {"p", "v", "a"} and {"p", "v", "a"} & failing):
+        return []
+    other = None
+    if parsed is not None and parsed["knots"] is None:
+        swapped = dict(parsed, representation="split" if parsed["representation"] == "se3" else "se3")
+        other = evaluate_parsed(swapped, times)
+    if other is not None and _close(cands["p"], other["p"]):
+        return ["p equals the JOINT SE(3) spline of the same control points (PyPose pp.bspline, Sophus) "
+                "but this vector is split SO(3) x R^3" if parsed["representation"] == "split" else
+                "p equals the SPLIT SO(3) x R^3 spline but this vector is JOINT SE(3) "
+                "(\"representation\": \"se3\")"]
+    return ["only p, v, a differ while R, omega, omegadot agree: the translation is coupled "
+            "differently, e.g. a JOINT SE(3) spline (PyPose, Sophus) against a split one"]
+
+
+def _knot_rule_hint(failing: set, rows: dict, parsed: dict, times: np.ndarray) -> List[str]:
+    """Errors only at times next to a knot."""
     _, u = _segment_and_u(parsed, times)
     near_knot = np.minimum(np.abs(u), np.abs(1.0 - u)) < 1e-4
-    if failing and near_knot.any():
-        bad_anywhere = np.zeros(len(times), dtype=bool)
-        for key in failing:
-            bad_anywhere |= rows[key]["per_time"] > rows[key]["bound"]
-        if bad_anywhere.any() and not (bad_anywhere & ~near_knot).any():
-            hints.append(f"errors only at times within 1e-4 segments of a knot ({int(bad_anywhere.sum())} of "
-                         f"{int(near_knot.sum())} such times, nowhere else): the knot rule; the segment of t is floor((t - t0)/dt) of the "
-                         f"exact float64 values (a time 1e-6 segments before a knot is in the earlier segment), "
-                         f"t_max is the end of the last segment")
-    # Index convention: a shift by whole segments.
+    if not (failing and near_knot.any()):
+        return []
+    bad_anywhere = np.zeros(len(times), dtype=bool)
+    for key in failing:
+        bad_anywhere |= rows[key]["per_time"] > rows[key]["bound"]
+    if bad_anywhere.any() and not (bad_anywhere & ~near_knot).any():
+        return [f"errors only at times within 1e-4 segments of a knot ({int(bad_anywhere.sum())} of "
+                f"{int(near_knot.sum())} such times, nowhere else): the knot rule; the segment of t is floor((t - t0)/dt) of the "
+                f"exact float64 values (a time 1e-6 segments before a knot is in the earlier segment), "
+                f"t_max is the end of the last segment"]
+    return []
+
+
+def _convention_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
+    """An index convention shifted by whole segments (uniform knots only)."""
+    if parsed["knots"] is not None or "p" not in failing:
+        return []
     n, dt, t0 = parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"]
     t_min, t_max = spline.valid_time_range(n, dt, t0, parsed["convention"])
     for shift in (-2, -1, 1, 2):
         shifted = times + shift * dt
         inside = (shifted >= t_min) & (shifted <= t_max)
-        if inside.sum() < max(3, len(times) // 4) or "p" not in failing:
+        if inside.sum() < max(3, len(times) // 4):
             continue
         model = evaluate_parsed(parsed, shifted[inside])
         if _close(cands["p"][inside], model["p"]) and _close(cands["R"][inside], model["R"]):
-            hints.append(f"the candidate at t equals the reference at t {'+' if shift > 0 else '-'} {abs(shift)} dt: "
-                         f"an index convention shifted by {abs(shift)} segment(s) (paper: segment [t_i, t_i+1) uses "
-                         f"control points i-2..i+1; basalt and Sommer et al.: i..i+3; Lovegrove-style: i-1..i+2)")
-            break
-    # Transposed basis matrix.
-    if "p" in failing and parsed["representation"] == "split":
+            return [f"the candidate at t equals the reference at t {'+' if shift > 0 else '-'} {abs(shift)} dt: "
+                    f"an index convention shifted by {abs(shift)} segment(s) (paper: segment [t_i, t_i+1) uses "
+                    f"control points i-2..i+1; basalt and Sommer et al.: i..i+3; Lovegrove-style: i-1..i+2)"]
+    return []
+
+
+def _transposed_basis_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
+    """The basis matrix transposed (uniform knots, split representation)."""
+    if "p" in failing and parsed["representation"] == "split" and parsed["knots"] is None:
         if _close(cands["p"], _transposed_basis_translation(parsed, times)):
-            hints.append("p equals the spline with the TRANSPOSED basis matrix: B(u) = C [1, u, u^2, u^3]^T with "
-                         "rows of C = (6,0,0,0), (5,3,-3,1), (1,3,3,-2), (0,0,0,1) over 6")
-    return hints
+            return ["p equals the spline with the TRANSPOSED basis matrix: B(u) = C [1, u, u^2, u^3]^T with "
+                    "rows of C = (6,0,0,0), (5,3,-3,1), (1,3,3,-2), (0,0,0,1) over 6"]
+    return []
+
+
+def diagnose(report: dict, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndarray], parsed: Optional[dict],
+             atol: float, rtol: float) -> List[str]:
+    """Hints naming the likely mistake from the pattern of errors (list of one-line strings).
+
+    ``parsed`` is the reference's parsed input, or None for a bare output file (fewer hints).
+    """
+    rows = {row["quantity"]: row for row in report["rows"]}
+    failing = {key for key, row in rows.items() if not row["ok"]}
+    times = report["times"]
+    hints = _frame_hints(failing, refs, cands) + _time_scale_hints(failing, refs, cands, parsed)
+    hints += _float32_hint(failing, rows) + _representation_hint(failing, cands, parsed, times)
+    if parsed is None:
+        return hints
+    hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)
+    return hints + _transposed_basis_hint(failing, cands, parsed, times)
 
 
 def format_report(report: dict, reference_name: str = "reference", candidate_name: str = "candidate") -> str:

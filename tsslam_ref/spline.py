@@ -126,6 +126,13 @@ def basis(u: torch.Tensor, order: int = 0) -> torch.Tensor:
         >>> basis(torch.tensor(0.0, dtype=torch.float64)) * 6
         tensor([6., 5., 1., 0.], dtype=torch.float64)
     """
+    monomials = basis_monomials(u, order)  # (..., 4)
+    C = torch.tensor(_C, dtype=monomials.dtype, device=monomials.device) / 6.0
+    return monomials @ C.T  # (..., 4)
+
+
+def basis_monomials(u: torch.Tensor, order: int = 0) -> torch.Tensor:
+    """(..., 4) the order-th u-derivative of [1, u, u², u³] (order 0..3); a basis matrix times it gives the basis."""
     u = torch.as_tensor(u)
     if not u.is_floating_point():
         u = u.to(torch.get_default_dtype())
@@ -140,9 +147,7 @@ def basis(u: torch.Tensor, order: int = 0) -> torch.Tensor:
         powers = [zero, zero, zero, 6.0 * one]
     else:
         raise ValueError(f"basis order must be 0, 1, 2 or 3, got {order}")
-    monomials = torch.stack(powers, dim=-1)  # (..., 4)
-    C = torch.tensor(_C, dtype=u.dtype, device=u.device) / 6.0
-    return monomials @ C.T  # (..., 4)
+    return torch.stack(powers, dim=-1)  # (..., 4)
 
 
 # --------------------------------------------------------------------------------------------
@@ -289,6 +294,107 @@ def knot_rotation_differences(control_rotations: torch.Tensor) -> torch.Tensor:
     return so3_log(relative)  # (..., N-1, 3)
 
 
+class CumulativeWeights(NamedTuple):
+    """Cumulative basis weights B_1..B_3 of each sample and their time derivatives.
+
+    value (M, 3) dimensionless; rate (M, 3) in 1/s; curvature (M, 3) in 1/s² (None where
+    not needed).  The uniform spline fills them from :func:`basis` and Δt
+    (:func:`uniform_weights`), the non-uniform one from each segment's knots (:mod:`tsslam_ref.knots`).
+    """
+
+    value: torch.Tensor
+    rate: Optional[torch.Tensor] = None
+    curvature: Optional[torch.Tensor] = None
+
+
+def uniform_weights(u: torch.Tensor, dt: float, derivatives: int = 0) -> CumulativeWeights:
+    """B(u), Ḃ = B'(u)/Δt and B̈ = B''(u)/Δt² of the uniform basis, j = 1..3: each (M, 3, 1)."""
+    value = basis(u, 0)[:, 1:, None]  # (M, 3, 1): B_1..B_3
+    rate = basis(u, 1)[:, 1:, None] / dt if derivatives >= 1 else None
+    curvature = basis(u, 2)[:, 1:, None] / dt**2 if derivatives >= 2 else None
+    return CumulativeWeights(value, rate, curvature)
+
+
+def _gather_windows(control_rotations: torch.Tensor, control_translations: torch.Tensor, first_index: torch.Tensor):
+    """d_j and Δt_j = t_{k+j} − t_{k+j−1}, j = 1..3, of each sample's window: (..., M, 3, 3) each.
+
+    Only the knot pairs some sample needs are used (each Log computed once, then gathered).
+    """
+    device = control_translations.device
+    lo = int(first_index.min()) if first_index.numel() else 0
+    hi = int(first_index.max()) if first_index.numel() else 0
+    used_rotations = control_rotations[..., lo:hi + 4, :, :]  # (..., hi-lo+4, 3, 3)
+    used_translations = control_translations[..., lo:hi + 4, :]  # (..., hi-lo+4, 3)
+    window = (first_index - lo)[:, None] + torch.arange(3, device=device)  # (M, 3): pair j = 1..3
+    d = knot_rotation_differences(used_rotations)  # (..., hi-lo+3, 3): one Log per knot pair
+    delta_p = used_translations[..., 1:, :] - used_translations[..., :-1, :]  # (..., hi-lo+3, 3)
+    return d[..., window, :], delta_p[..., window, :]  # [..., m, j-1, :] = d_j, Δt_j
+
+
+def _angular_recursion(A: torch.Tensor, d: torch.Tensor, B_dot: torch.Tensor, B_ddot: Optional[torch.Tensor]):
+    """Eq. (9): ω^(4), ω̇^(4) (body) from A_j (..., M, 3, 3, 3), d_j (..., M, 3, 3), Ḃ, B̈ (M, 3, 1).
+
+    ω̇ is None when B̈ is None.
+    """
+    A_T = A.transpose(-1, -2)
+    omega = torch.zeros_like(d[..., 0, :])  # ω^(1)
+    omega_dot = None if B_ddot is None else torch.zeros_like(omega)  # ω̇^(1)
+    for j in range(3):
+        d_j = d[..., j, :]  # (..., M, 3)
+        omega = (A_T[..., j, :, :] @ omega.unsqueeze(-1)).squeeze(-1) + B_dot[:, j] * d_j
+        if B_ddot is not None:
+            omega_dot = (
+                B_dot[:, j] * torch.linalg.cross(omega, d_j)
+                + (A_T[..., j, :, :] @ omega_dot.unsqueeze(-1)).squeeze(-1)
+                + B_ddot[:, j] * d_j
+            )
+    return omega, omega_dot
+
+
+def evaluate_weights(
+    control_rotations: torch.Tensor,
+    control_translations: torch.Tensor,
+    first_index: torch.Tensor,
+    weights: CumulativeWeights,
+    derivatives: int = 0,
+) -> SplineSample:
+    """Evaluate given each sample's first control index and its cumulative weights (no domain logic).
+
+    Eq. (5) t(t) = t_{k} + Σ_{j=1..3} B_j (t_{k+j} − t_{k+j−1});
+    Eq. (6) R(t) = R_{k} Π_{j=1..3} Exp(B_j d_j);
+    Eq. (8) a = Σ B̈_j Δt_j (v likewise with Ḃ);
+    Eq. (9) ω^(j+1) = A_jᵀ ω^(j) + Ḃ_j d_j, ω̇^(j+1) = Ḃ_j ω^(j+1) × d_j + A_jᵀ ω̇^(j) + B̈_j d_j,
+    with ω^(1) = ω̇^(1) = 0; ω^(4), ω̇^(4) are body-frame.  The same for a uniform and a
+    non-uniform knot vector: only the weights differ.
+
+    Args:
+        control_rotations: (..., N, 3, 3); control_translations: (..., N, 3).
+        first_index: (M,) int64 in [0, N−4].
+        weights: :class:`CumulativeWeights`, fields (M, 3) or (M, 3, 1); rate needed for
+            derivatives ≥ 1, curvature for 2.
+        derivatives: 0 pose only; 1 adds v and ω; 2 adds a and ω̇.
+
+    Returns:
+        :class:`SplineSample` with leading shape (..., M).
+    """
+    if derivatives not in (0, 1, 2):
+        raise ValueError(f"derivatives must be 0, 1 or 2, got {derivatives}")
+    dtype, device = control_translations.dtype, control_translations.device
+    first_index = first_index.to(device)
+    B, B_dot, B_ddot = (None if w is None else w.to(device=device, dtype=dtype).reshape(-1, 3, 1) for w in weights)
+    d, delta_p = _gather_windows(control_rotations, control_translations, first_index)
+    translation = control_translations[..., first_index, :] + (B * delta_p).sum(-2)  # (..., M, 3)
+    A = so3_exp(B * d)  # (..., M, 3, 3, 3): A_j = Exp(B_j d_j)
+    rotation = control_rotations[..., first_index, :, :] @ A[..., 0, :, :] @ A[..., 1, :, :] @ A[..., 2, :, :]
+    velocity = acceleration = omega = omega_dot = None
+    if derivatives >= 1:
+        velocity = (B_dot * delta_p).sum(-2)  # (..., M, 3)
+        if derivatives >= 2:
+            acceleration = (B_ddot * delta_p).sum(-2)  # (..., M, 3)
+        omega, omega_dot = _angular_recursion(A, d, B_dot, B_ddot if derivatives >= 2 else None)
+    return SplineSample(rotation, translation, velocity, acceleration, omega, omega_dot)
+
+
 def evaluate_segments(
     control_rotations: torch.Tensor,
     control_translations: torch.Tensor,
@@ -297,14 +403,11 @@ def evaluate_segments(
     dt: float,
     derivatives: int = 0,
 ) -> SplineSample:
-    """Evaluate given the first control index of each 4-point window and u (no domain logic).
+    """Uniform spline given the first control index of each 4-point window and u (no domain logic).
 
-    Eq. (5) t(t) = t_{k} + Σ_{j=1..3} B_j(u) (t_{k+j} − t_{k+j−1});
-    Eq. (6) R(t) = R_{k} Π_{j=1..3} Exp(B_j(u) d_j);
-    Eq. (8) a = Σ B̈_j Δt_j (v likewise with Ḃ);
-    Eq. (9) ω^(j+1) = A_jᵀ ω^(j) + Ḃ_j d_j, ω̇^(j+1) = Ḃ_j ω^(j+1) × d_j + A_jᵀ ω̇^(j) + B̈_j d_j,
-    with ω^(1) = ω̇^(1) = 0; ω^(4), ω̇^(4) are body-frame.  Here k = first_index (k = i−2 in the
-    paper's indexing).  Used by :func:`evaluate`; also lets tests take one-sided limits at knots.
+    :func:`evaluate_weights` with the uniform weights B(u), B'(u)/Δt, B''(u)/Δt².  Here
+    k = first_index (k = i−2 in the paper's indexing).  Used by :func:`evaluate`; also lets
+    tests take one-sided limits at knots.
 
     Args:
         control_rotations: (..., N, 3, 3); control_translations: (..., N, 3).
@@ -318,46 +421,9 @@ def evaluate_segments(
     """
     if derivatives not in (0, 1, 2):
         raise ValueError(f"derivatives must be 0, 1 or 2, got {derivatives}")
-    dtype, device = control_translations.dtype, control_translations.device
-    first_index = first_index.to(device)
-    u = u.to(device=device, dtype=dtype)
-    # Only the knot pairs some time needs: pairs lo .. hi+2 (each Log computed once, then gathered).
-    lo = int(first_index.min()) if first_index.numel() else 0
-    hi = int(first_index.max()) if first_index.numel() else 0
-    used_rotations = control_rotations[..., lo:hi + 4, :, :]  # (..., hi-lo+4, 3, 3)
-    used_translations = control_translations[..., lo:hi + 4, :]  # (..., hi-lo+4, 3)
-    window = (first_index - lo)[:, None] + torch.arange(3, device=device)  # (M, 3): pair j = 1..3
-
-    d = knot_rotation_differences(used_rotations)  # (..., hi-lo+3, 3): one Log per knot pair
-    delta_p = used_translations[..., 1:, :] - used_translations[..., :-1, :]  # (..., hi-lo+3, 3)
-    d = d[..., window, :]  # (..., M, 3, 3): [..., m, j-1, :] = d_j
-    delta_p = delta_p[..., window, :]  # (..., M, 3, 3)
-
-    B = basis(u, 0)[:, 1:, None]  # (M, 3, 1): B_1..B_3
-    translation = control_translations[..., first_index, :] + (B * delta_p).sum(-2)  # (..., M, 3)
-    A = so3_exp(B * d)  # (..., M, 3, 3, 3): A_j = Exp(B_j d_j)
-    rotation = control_rotations[..., first_index, :, :] @ A[..., 0, :, :] @ A[..., 1, :, :] @ A[..., 2, :, :]
-
-    velocity = acceleration = omega = omega_dot = None
-    if derivatives >= 1:
-        B_dot = basis(u, 1)[:, 1:, None] / dt  # (M, 3, 1)
-        velocity = (B_dot * delta_p).sum(-2)  # (..., M, 3)
-        A_T = A.transpose(-1, -2)
-        omega = torch.zeros_like(translation)  # ω^(1)
-        if derivatives >= 2:
-            B_ddot = basis(u, 2)[:, 1:, None] / dt**2  # (M, 3, 1)
-            acceleration = (B_ddot * delta_p).sum(-2)  # (..., M, 3)
-            omega_dot = torch.zeros_like(translation)  # ω̇^(1)
-        for j in range(3):
-            d_j = d[..., j, :]  # (..., M, 3)
-            omega = (A_T[..., j, :, :] @ omega.unsqueeze(-1)).squeeze(-1) + B_dot[:, j] * d_j
-            if derivatives >= 2:
-                omega_dot = (
-                    B_dot[:, j] * torch.linalg.cross(omega, d_j)
-                    + (A_T[..., j, :, :] @ omega_dot.unsqueeze(-1)).squeeze(-1)
-                    + B_ddot[:, j] * d_j
-                )
-    return SplineSample(rotation, translation, velocity, acceleration, omega, omega_dot)
+    u = u.to(device=control_translations.device, dtype=control_translations.dtype)
+    weights = uniform_weights(u, dt, derivatives)
+    return evaluate_weights(control_rotations, control_translations, first_index, weights, derivatives)
 
 
 def _check_control_points(control_rotations: torch.Tensor, control_translations: torch.Tensor) -> int:
@@ -409,7 +475,11 @@ def evaluate(
     n_ctrl = _check_control_points(control_rotations, control_translations)
     first, u, shape = _locate(times, n_ctrl, dt, t0, convention)
     sample = evaluate_segments(control_rotations, control_translations, first, u, dt, derivatives)
-    batch = control_translations.shape[:-2]
+    return reshape_sample(sample, control_translations.shape[:-2], shape)
+
+
+def reshape_sample(sample: SplineSample, batch: Tuple[int, ...], shape: Tuple[int, ...]) -> SplineSample:
+    """Fields (*batch, M, ...) reshaped to (*batch, *shape, ...), M = prod(shape); None stays None."""
 
     def _reshape(value: Optional[torch.Tensor], tail: Tuple[int, ...]) -> Optional[torch.Tensor]:
         return None if value is None else value.reshape(*batch, *shape, *tail)

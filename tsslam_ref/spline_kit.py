@@ -85,7 +85,8 @@ def _build_parser() -> argparse.ArgumentParser:
     inputs.add_argument("--force", action="store_true", help="overwrite files this kit did not write")
     run = commands.add_parser("evaluate", help="evaluate R, p, v, a, omega, omegadot at the input times",
                               epilog=_epilog())
-    run.add_argument("input", help="input JSON (convention, dt, t0, rotvecs, translations, times[, representation])")
+    run.add_argument("input", help="input JSON (convention, dt, t0, rotvecs, translations, times[, representation]; "
+                                   "or knots instead of convention, dt, t0)")
     run.add_argument("-o", "--output", required=True, help="output JSON path (inputs echoed + outputs)")
     run.add_argument("--force", action="store_true", help="overwrite an existing file this kit did not write")
     run.add_argument("--jacobians", action="store_true",
@@ -111,8 +112,10 @@ def _list() -> int:
     print(f"shipped vectors in {VECTOR_DIR}:")
     for path in shipped_vectors():
         data = conformance.load_json(str(path))
-        print(f"  {path.stem:<28} {data.get('representation', 'split'):<6} {data['convention']:<7} "
-              f"n_ctrl={len(data['rotvecs']):<3} times={len(data['times']):<4} dt={data['dt']} t0={data['t0']}")
+        timing = (f"knots={len(data['knots'])} ({data['knots'][0]} .. {data['knots'][-1]} s)" if "knots" in data
+                  else f"dt={data['dt']} t0={data['t0']}")
+        print(f"  {path.stem:<28} {data.get('representation', 'split'):<6} {data.get('convention', '-'):<7} "
+              f"n_ctrl={len(data['rotvecs']):<3} times={len(data['times']):<4} {timing}")
     print("run your code on each input ('inputs FOLDER'), save FOLDER/<name>.json, then 'check-all FOLDER'")
     return 0
 

@@ -16,7 +16,18 @@ Intervals and domain (paper convention, offset o = 2; basalt o = 0):
   the end time belongs to the next one, not yet fitted.  This is the one membership rule
   (:meth:`BSplineTrajectory.covers`); :func:`spline.evaluate` also accepts the end time itself.
 
-Layer 1 (math): imports ``spline`` and ``geometry`` only.
+Knot times.  A uniform trajectory (the paper's) has t_k = t0 + k dt for every integer k.  A
+non-uniform one stores the times of a run of knots (``knots``, index ``knot_offset`` for the first
+stored one) and continues them with spacing dt beyond both ends of that run; the curve is the
+non-uniform spline of :mod:`tsslam_ref.knots` on the knots t_{k-o}..t_{N+1-o}.  So ``dt`` is the
+nominal spacing: the whole spacing of a uniform trajectory, and for a non-uniform one the spacing
+assumed for knots not stored yet.  In the paper convention ``push_back(..., knot_time=T)`` of
+control point N sets t_N = T, the end of the interval that point adds; the basis of the last two
+intervals also depends on t_{N+1} and t_{N+2}, which stay assumed (last + dt) until their own
+control points arrive, so a push changes the curve on the last intervals a little (the price of
+choosing knots online; a uniform push changes nothing there).
+
+Layer 1 (math): imports ``spline``, ``knots`` and ``geometry`` only.
 Taught in notebooks/01_bspline_trajectory.ipynb and notebooks/06_local_ba.ipynb.
 """
 
@@ -26,6 +37,7 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
+from . import knots as knots_module
 from . import spline as spline_module
 from .geometry import make_pose, so3_exp, so3_log
 
@@ -45,10 +57,14 @@ class BSplineTrajectory:
         convention: "paper" or "basalt" (:mod:`tsslam_ref.spline`).
         start_pose: (4, 4) camera-to-world pose the curve starts at (control point 0 follows
             points 1 and 2 in BA), or None.
+        knots: None (uniform, t_k = t0 + k dt) or (L,) strictly increasing float64 times of knots
+            knot_offset .. knot_offset + L − 1 (s), a run that holds knot 0 (knot_offset <= 0 < L +
+            knot_offset) with t_0 = t0; knots outside it continue with spacing dt.
     """
 
     def __init__(self, control_rotations: torch.Tensor, control_translations: torch.Tensor, dt: float, t0: float,
-                 convention: str = "paper", start_pose: Optional[torch.Tensor] = None):
+                 convention: str = "paper", start_pose: Optional[torch.Tensor] = None,
+                 knots: Optional[np.ndarray] = None, knot_offset: int = 0):
         if control_rotations.dim() != 3 or control_rotations.shape[1:] != (3, 3):
             raise ValueError(f"BSplineTrajectory takes (N, 3, 3) rotations, got {tuple(control_rotations.shape)}")
         if control_translations.shape != (control_rotations.shape[0], 3):
@@ -63,6 +79,33 @@ class BSplineTrajectory:
         self.t0 = float(t0)
         self.convention = convention
         self.start_pose = start_pose
+        self._knots, self.knot_offset = None, 0
+        if knots is not None:
+            self._set_knots(knots, knot_offset)
+
+    def _set_knots(self, knots, knot_offset: int) -> None:
+        """Store a checked run of knot times; t0 must be its knot 0."""
+        values = np.array(knots, dtype=np.float64).reshape(-1)
+        knot_offset = int(knot_offset)
+        if not knot_offset <= 0 < values.shape[0] + knot_offset:
+            raise ValueError(f"knots must hold knot 0: knot_offset = {knot_offset} with {values.shape[0]} knots")
+        steps = np.diff(values)
+        if not np.all(np.isfinite(values)) or np.any(steps <= 0):
+            j = int(np.flatnonzero(~(steps > 0))[0]) if np.any(~(steps > 0)) else 0
+            raise ValueError(f"knot times must be finite and strictly increasing, got {float(values[j])!r} s then "
+                             f"{float(values[min(j + 1, len(values) - 1)])!r} s at stored index {j}")
+        if values[-knot_offset] != self.t0:
+            raise ValueError(f"t0 = {self.t0!r} s must equal knot 0 of the knot times, {float(values[-knot_offset])!r} s")
+        self._knots, self.knot_offset = values, knot_offset
+
+    @property
+    def uniform(self) -> bool:
+        """True when every knot is t0 + k dt (no stored knot times)."""
+        return self._knots is None
+
+    def _timing(self) -> dict:
+        """Keyword arguments that carry the knot times into a new trajectory."""
+        return {} if self._knots is None else {"knots": self._knots.copy(), "knot_offset": self.knot_offset}
 
     @classmethod
     def empty(cls, first_time: float, dt: float, like: torch.Tensor, convention: str = "paper") -> "BSplineTrajectory":
@@ -79,7 +122,7 @@ class BSplineTrajectory:
     def with_controls(self, control_rotations: torch.Tensor, control_translations: torch.Tensor) -> "BSplineTrajectory":
         """The same timing and start pose with other control points, detached: (M, 3, 3), (M, 3)."""
         return BSplineTrajectory(control_rotations.detach(), control_translations.detach(), self.dt, self.t0,
-                                 self.convention, self.start_pose)
+                                 self.convention, self.start_pose, **self._timing())
 
     # --- sizes, knots, intervals, domain
     @property
@@ -91,12 +134,26 @@ class BSplineTrajectory:
         return self.n_ctrl
 
     def knot_time(self, k: int) -> float:
-        """t_k = t0 + k dt (s)."""
-        return self.t0 + k * self.dt
+        """t_k (s): t0 + k dt when uniform; else the stored time, continued with spacing dt outside the run."""
+        if self._knots is None:
+            return self.t0 + k * self.dt
+        index = k - self.knot_offset
+        if index < 0:
+            return float(self._knots[0]) + index * self.dt
+        if index >= len(self._knots):
+            return float(self._knots[-1]) + (index - len(self._knots) + 1) * self.dt
+        return float(self._knots[index])
 
     def knot_times(self) -> np.ndarray:
-        """(N,) float64 times t0 + k dt of the control points (s)."""
-        return self.t0 + self.dt * np.arange(self.n_ctrl, dtype=np.float64)
+        """(N,) float64 times t_k of the control points (s)."""
+        if self._knots is None:
+            return self.t0 + self.dt * np.arange(self.n_ctrl, dtype=np.float64)
+        return np.array([self.knot_time(k) for k in range(self.n_ctrl)], dtype=np.float64)
+
+    def knot_vector(self) -> np.ndarray:
+        """(N + 2,) the knots of :mod:`tsslam_ref.knots`: t_{j-o}, j = 0..N+1 (o: first-segment offset)."""
+        offset = spline_module.first_segment_offset(self.convention)
+        return np.array([self.knot_time(j + offset - 2) for j in range(self.n_ctrl + 2)], dtype=np.float64)
 
     def interval(self, n: int) -> Tuple[float, float]:
         """[start, end) of interval n (s): [t_{n+o}, t_{n+o+1})."""
@@ -108,7 +165,9 @@ class BSplineTrajectory:
         if self.n_ctrl < 4:
             start = self.interval(0)[0]
             return start, start
-        return spline_module.valid_time_range(self.n_ctrl, self.dt, self.t0, self.convention)
+        if self._knots is None:
+            return spline_module.valid_time_range(self.n_ctrl, self.dt, self.t0, self.convention)
+        return knots_module.valid_time_range(self.knot_vector())
 
     def covers(self, times) -> np.ndarray:
         """(times' shape) bool: start <= t < end, the one membership rule (module docstring)."""
@@ -118,7 +177,10 @@ class BSplineTrajectory:
 
     # --- evaluation
     def evaluate(self, times, derivatives: int = 0) -> "spline_module.SplineSample":
-        """:func:`spline.evaluate` of this trajectory (derivatives 0, 1 or 2)."""
+        """:func:`spline.evaluate` (uniform) or :func:`knots.evaluate` of this trajectory (derivatives 0, 1 or 2)."""
+        if self._knots is not None:
+            return knots_module.evaluate(self.control_rotations, self.control_translations, times,
+                                         self.knot_vector(), derivatives)
         return spline_module.evaluate(self.control_rotations, self.control_translations, times, self.dt, self.t0,
                                       self.convention, derivatives)
 
@@ -128,8 +190,13 @@ class BSplineTrajectory:
         return make_pose(sample.rotation, sample.translation)
 
     # --- growing and shrinking (in place)
-    def push_back(self, rotation: torch.Tensor, translation: torch.Tensor) -> None:
-        """Add control point N at t0 + N dt.  rotation (3, 3), translation (3,).  Warns on a jump > pi/2."""
+    def push_back(self, rotation: torch.Tensor, translation: torch.Tensor, knot_time: Optional[float] = None) -> None:
+        """Add control point N.  rotation (3, 3), translation (3,).  Warns on a jump > pi/2.
+
+        knot_time: t_N in s, after t_{N-1}; None keeps the current t_N (t_{N-1} + dt unless stored).
+        A time other than the current t_N makes the trajectory non-uniform and forgets the
+        knots stored after N (they were assumed).
+        """
         if rotation.shape != (3, 3) or translation.shape != (3,):
             raise ValueError(f"push_back expects (3, 3) and (3,), got {tuple(rotation.shape)} and {tuple(translation.shape)}")
         rotation = rotation.to(self.control_rotations)
@@ -138,8 +205,23 @@ class BSplineTrajectory:
             angle = float(torch.linalg.vector_norm(so3_log(self.control_rotations[-1].T @ rotation)))
             if angle > _ROTATION_JUMP_WARN:
                 warnings.warn(f"pushed control rotation is {angle:.3f} rad from the previous one (> pi/2)")
+        if knot_time is not None and float(knot_time) != self.knot_time(self.n_ctrl):
+            self._set_knot(self.n_ctrl, float(knot_time))
         self.control_rotations = torch.cat([self.control_rotations, rotation[None]], dim=0)
         self.control_translations = torch.cat([self.control_translations, translation[None]], dim=0)
+
+    def _set_knot(self, k: int, time: float) -> None:
+        """t_k = time (k >= 1 after knot 0), keeping the knots before k and dropping those after it."""
+        if self.n_ctrl == 0 and k == 0:
+            self.t0 = time
+            self._knots, self.knot_offset = (None, 0) if self._knots is None else (np.array([time]), 0)
+            return
+        previous = self.knot_time(k - 1)
+        if not time > previous:
+            raise ValueError(f"knot_time = {time!r} s must come after the previous knot, {previous!r} s")
+        first = min(self.knot_offset, 0) if self._knots is not None else 0
+        kept = [self.knot_time(j) for j in range(first, k)]
+        self._set_knots(np.array(kept + [time], dtype=np.float64), first)
 
     def pop_front(self) -> None:
         """Drop control point 0 and advance t0 by dt; the curve is unchanged where still defined."""
@@ -147,31 +229,42 @@ class BSplineTrajectory:
             raise ValueError(f"pop_front would leave {self.n_ctrl - 1} control points; a cubic spline needs 4")
         self.control_rotations = self.control_rotations[1:]
         self.control_translations = self.control_translations[1:]
-        self.t0 += self.dt
+        if self._knots is None:
+            self.t0 += self.dt
+            return
+        self.t0 = self.knot_time(1)
+        keep_from = max(0, -2 - (self.knot_offset - 1))  # keep knots -2.. (the basalt convention reads them)
+        self._knots, self.knot_offset = self._knots[keep_from:], self.knot_offset - 1 + keep_from
 
     def window(self, first: int, stop: int) -> "BSplineTrajectory":
         """Control points [first, stop) as a new trajectory (views), t0 moved to knot ``first``."""
         if not 0 <= first < stop <= self.n_ctrl or stop - first < 4:
             raise ValueError(f"window [{first}, {stop}) must lie in [0, {self.n_ctrl}] with >= 4 points")
+        if self._knots is None:
+            return BSplineTrajectory(self.control_rotations[first:stop], self.control_translations[first:stop],
+                                     self.dt, self.t0 + first * self.dt, self.convention)
+        run = np.array([self.knot_time(k) for k in range(first - 2, stop + 3)], dtype=np.float64)  # all it reads
         return BSplineTrajectory(self.control_rotations[first:stop], self.control_translations[first:stop],
-                                 self.dt, self.t0 + first * self.dt, self.convention)
+                                 self.dt, self.knot_time(first), self.convention, knots=run, knot_offset=-2)
 
     # --- tensor helpers
     def to(self, *args, **kwargs) -> "BSplineTrajectory":
         """Copy with tensors moved / cast as ``Tensor.to(*args, **kwargs)``."""
         start = None if self.start_pose is None else self.start_pose.to(*args, **kwargs)
         return BSplineTrajectory(self.control_rotations.to(*args, **kwargs),
-                                 self.control_translations.to(*args, **kwargs), self.dt, self.t0, self.convention, start)
+                                 self.control_translations.to(*args, **kwargs), self.dt, self.t0, self.convention, start,
+                                 **self._timing())
 
     def detach(self) -> "BSplineTrajectory":
         return self.with_controls(self.control_rotations, self.control_translations)
 
     def clone(self) -> "BSplineTrajectory":
         return BSplineTrajectory(self.control_rotations.clone(), self.control_translations.clone(), self.dt, self.t0,
-                                 self.convention, None if self.start_pose is None else self.start_pose.clone())
+                                 self.convention, None if self.start_pose is None else self.start_pose.clone(),
+                                 **self._timing())
 
     def __repr__(self) -> str:
         start, end = self.domain()
-        return (f"BSplineTrajectory(n_ctrl={self.n_ctrl}, dt={self.dt}, t0={self.t0}, "
+        return (f"BSplineTrajectory(n_ctrl={self.n_ctrl}, dt={self.dt}, t0={self.t0}, uniform={self.uniform}, "
                 f"convention={self.convention!r}, domain=[{start}, {end}), "
                 f"dtype={self.control_translations.dtype})")

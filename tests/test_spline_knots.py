@@ -1,0 +1,131 @@
+"""Non-uniform cumulative cubic B-spline (tsslam_ref.knots) against independent oracles.
+
+Translation, v, a: scipy.interpolate.BSpline with the same knots (non-cumulative = cumulative
+for R^3).  Rotation: omega_body from central finite differences of R(t) (Log(R(t-h)^T R(t+h))/2h),
+omegadot_body from autograd of omega_body in time.  Equally spaced knots: the uniform spline.
+"""
+
+import numpy as np
+import pytest
+import torch
+from scipy.interpolate import BSpline
+
+from tsslam_ref import knots, spline
+from tsslam_ref.geometry import so3_exp, so3_log
+
+F64 = torch.float64
+
+
+def random_spline(seed: int, n_ctrl: int = 8, step: float = 0.6):
+    g = torch.Generator().manual_seed(seed)
+    rotations = so3_exp(torch.randn(n_ctrl, 3, generator=g, dtype=F64) * step)
+    translations = torch.randn(n_ctrl, 3, generator=g, dtype=F64)
+    spacing = np.random.default_rng(seed).uniform(0.03, 0.6, n_ctrl + 1)  # very uneven intervals
+    knot_vector = 1.3e3 + np.cumsum(np.r_[0.0, spacing])
+    return rotations, translations, knot_vector
+
+
+def interior_times(knot_vector, count=97):
+    """Times in the domain, away from the knots by >= 1e-3 of the shortest interval."""
+    t = np.linspace(knot_vector[2], knot_vector[-3], count)
+    gap = np.abs(t[:, None] - knot_vector[None, :]).min(1)
+    return t[gap > 1e-3 * np.diff(knot_vector).min()]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_translation_and_derivatives_match_scipy_bspline(seed):
+    R, P, kv = random_spline(seed)
+    t = np.linspace(kv[2], kv[-3], 203)  # includes both ends and knots
+    sample = knots.evaluate(R, P, t, kv, derivatives=2)
+    oracle = BSpline(np.r_[kv[0] - 1.0, kv, kv[-1] + 1.0], P.numpy(), 3)  # tau_0, tau_{N+3} do not matter
+    scale = [np.abs(oracle.derivative(k)(t)).max() for k in range(3)]
+    assert np.abs(sample.translation.numpy() - oracle(t)).max() <= 1e-12 * scale[0]
+    assert np.abs(sample.velocity_world.numpy() - oracle.derivative(1)(t)).max() <= 1e-11 * scale[1]
+    assert np.abs(sample.acceleration_world.numpy() - oracle.derivative(2)(t)).max() <= 1e-10 * scale[2]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_omega_body_matches_central_differences_of_rotation(seed):
+    R, P, kv = random_spline(seed)
+    t = interior_times(kv)
+    h = 1e-4 * np.diff(kv).min()  # truncation ~h², rounding of t ± h at 1.3e3 s ~2e-13/h
+    before = knots.evaluate(R, P, t - h, kv).rotation
+    after = knots.evaluate(R, P, t + h, kv).rotation
+    fd = so3_log(before.transpose(-1, -2) @ after) / (2 * h)  # body-frame rate over [t-h, t+h]
+    omega = knots.evaluate(R, P, t, kv, derivatives=1).omega_body
+    assert float((omega - fd).abs().max()) <= 1e-6 * float(omega.abs().max())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_omegadot_body_matches_autograd_of_omega(seed):
+    R, P, kv = random_spline(seed)
+    t = torch.tensor(interior_times(kv, 31), dtype=F64, requires_grad=True)
+    sample = knots.evaluate(R, P, t, kv, derivatives=2)
+    rows = [torch.autograd.grad(sample.omega_body[:, c].sum(), t, retain_graph=True)[0] for c in range(3)]
+    autograd_omegadot = torch.stack(rows, dim=-1)  # each omega depends on its own time only
+    expected = sample.omegadot_body.detach()
+    assert float((autograd_omegadot - expected).abs().max()) <= 1e-9 * float(expected.abs().max())
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+@pytest.mark.parametrize("t0", [0.01, 1.3e3 + 0.01])
+def test_equally_spaced_knots_give_the_uniform_spline(convention, t0):
+    R, P, _ = random_spline(3, n_ctrl=9)
+    dt = 0.137
+    # Knots are absolute times: their float64 rounding (eps |t0|) moves u and h by eps |t0| / dt.
+    rel = 1e-12 + 8 * np.finfo(np.float64).eps * abs(t0) / dt
+    kv = knots.uniform_knots(9, dt, t0, convention)
+    lo, hi = spline.valid_time_range(9, dt, t0, convention)
+    assert knots.valid_time_range(kv) == pytest.approx((lo, hi), abs=1e-12)
+    t = np.linspace(lo, hi, 301)
+    ours = knots.evaluate(R, P, t, kv, derivatives=2)
+    uniform = spline.evaluate(R, P, t, dt, t0, convention, derivatives=2)
+    for name, a, b in zip(spline.SplineSample._fields, ours, uniform):
+        scale = max(1.0, float(b.abs().max()))
+        assert float((a - b).abs().max()) <= rel * scale, name
+
+
+def test_basis_matrix_of_equal_spacing_is_the_paper_matrix():
+    local = torch.tensor([[-2.0, -1.0, 0.0, 1.0, 2.0, 3.0]], dtype=F64)
+    C = torch.tensor(spline._C, dtype=F64) / 6.0
+    assert torch.allclose(knots.cumulative_basis_matrix(local)[0], C, atol=1e-15, rtol=0)
+
+
+def test_weights_are_a_partition_of_unity_and_monotone():
+    kv = torch.tensor(np.cumsum([0.0, 0.1, 0.7, 0.05, 0.3, 0.02, 0.9]), dtype=F64)
+    u = torch.linspace(0, 1, 11, dtype=F64)
+    seg = torch.zeros(11, dtype=torch.int64)
+    B = knots.cumulative_weights(kv, seg, u).value[..., 0]  # (M, 3): B_1 >= B_2 >= B_3 in [0, 1]
+    assert bool(((B[:, :-1] - B[:, 1:]) >= -1e-15).all()) and bool((B >= -1e-15).all() and (B <= 1 + 1e-15).all())
+
+
+def test_curve_is_c2_across_uneven_knots():
+    R, P, kv = random_spline(4)
+    for knot in kv[3:-3]:
+        eps = 1e-9
+        left = knots.evaluate(R, P, np.array([knot - eps]), kv, 2)
+        right = knots.evaluate(R, P, np.array([knot]), kv, 2)
+        for a, b in zip(left, right):
+            assert float((a - b).abs().max()) <= 1e-6 * max(1.0, float(b.abs().max()))
+
+
+@pytest.mark.parametrize("bad, message", [
+    ([0.0, 0.1, 0.2, 0.2, 0.4, 0.5], r"strictly increasing, got knots\[2\] = 0.2 s and knots\[3\] = 0.2"),
+    ([0.0, 0.1, 0.3, 0.2, 0.4, 0.5], r"strictly increasing, got knots\[2\] = 0.3"),
+    ([0.0, 0.1, 0.2, 0.3, 0.4], r"n_ctrl \+ 2 = 6 times"),
+    ([0.0, 0.1, np.nan, 0.3, 0.4, 0.5], r"finite, got nan at index 2"),
+])
+def test_bad_knot_vectors_are_named(bad, message):
+    R, P, _ = random_spline(0, n_ctrl=4)
+    with pytest.raises(ValueError, match=message):
+        knots.evaluate(R, P, 0.25, bad)
+
+
+def test_too_few_control_points_and_off_domain_times_are_named():
+    R, P, kv = random_spline(0, n_ctrl=4)
+    with pytest.raises(ValueError, match="at least 4 control points, got n_ctrl=3"):
+        knots.evaluate(R[:3], P[:3], kv[2], kv[:5])
+    with pytest.raises(ValueError, match=r"time .* outside the spline domain"):
+        knots.evaluate(R, P, kv[-3] + 1e-3, kv)
+    end = knots.evaluate(R, P, np.array([kv[2], kv[-3]]), kv).translation  # closed domain
+    assert torch.isfinite(end).all()
