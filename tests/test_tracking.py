@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from tsslam_ref import config, spline
+from tsslam_ref.analytic import AnalyticField
 from tsslam_ref.bundle import DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, joint_optimization
 from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
 from tsslam_ref.render import frame_rays, sample_pixels
@@ -19,18 +20,6 @@ from tsslam_ref.trajectory import BSplineTrajectory
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
 from tsslam_ref.losses import RenderLossSettings
 from tsslam_ref.tracking import constant_velocity_init, track_frame
-
-
-class AnalyticField(torch.nn.Module):
-    """An exact map: colour and normalised TSDF (metric / truncation, clamped to [-1, 1] as the
-    free-space loss expects) of the procedural room."""
-
-    def __init__(self, scene: ProceduralRoom, truncation: float):
-        super().__init__()
-        self.scene, self.truncation = scene, truncation
-
-    def forward(self, points):
-        return self.scene.color(points), (self.scene.sdf(points) / self.truncation).clamp(-1.0, 1.0)
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,8 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
 * 1.5 side, beside the stack (they import layers 0-1 and each other; the command line imports
   them): ``data`` and ``datasets.*`` (loaders), ``synthetic`` (procedural scenes),
   ``trajectory_metrics`` (ATE, RPE), ``reconstruction_metrics`` (culling, Acc/Comp, Depth L1),
-  ``eval`` (their command line), ``conformance`` and ``spline_kit`` (spline conformance kit)
+  ``eval`` (their command line), ``conformance`` and ``spline_kit`` (spline conformance kit),
+  ``analytic`` (an exact stand-in map for the chapters and tests)
 * 2 objective: ``losses`` (Eq. 4), ``mapping`` (map fitting with known poses), ``mesh``
 * 2.5 shared optimisation: ``bundle`` (pose models, keyframe rays, the joint loop)
 * 3 optimisers: ``tracking``, ``local_ba``, ``global_ba``
@@ -59,6 +60,7 @@ LAYERS = {
     "eval": 1.5,
     "conformance": 1.5,
     "spline_kit": 1.5,
+    "analytic": 1.5,
     # 2 objective
     "losses": 2,
     "mapping": 2,
