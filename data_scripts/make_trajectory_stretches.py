@@ -93,8 +93,8 @@ def make(name: str, source: Path, out: Path) -> Path:
         f"# licence: {spec['licence']}",
         f"# cut: {spec['begin']:g} s .. {spec['end']:g} s after the full file's first pose, widened to the nearest "
         f"lines outside (covers {covered_from:.4f} .. {covered_to:.4f} s)",
-        f"# made by data_scripts/make_trajectory_stretches.py; `--start S` of `python -m tsslam_ref.data synthesize` "
-        f"counts from the origin below",
+        "# made by data_scripts/make_trajectory_stretches.py; `--start S` of `python -m tsslam_ref.data synthesize` "
+        "counts from the origin below",
         f"# origin: {origin!r}",
         "# timestamp tx ty tz qx qy qz qw",
     ]

@@ -6,7 +6,6 @@ for v, a, ω, ω̇, central differences, and the basalt golden table (tsslam_ref
 """
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path

@@ -1,6 +1,5 @@
 """Tests for tsslam_ref.mapping: optimiser settings, ray sampling, bounds, mapping with GT poses."""
 
-import dataclasses
 from types import SimpleNamespace
 
 import numpy as np

@@ -190,7 +190,6 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
 def test_resume_from_a_checkpoint_gives_the_same_trajectory(synthetic_sequence, tmp_path):
     cfg = small_config("coslam")
     sequence = data.load_sequence(synthetic_sequence, frame_stop=10)
-    checkpoints = {}
 
     def keep(state):
         if state.done == 5:

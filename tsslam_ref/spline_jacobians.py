@@ -99,7 +99,7 @@ def jacobians(control_rotations: torch.Tensor, control_translations: torch.Tenso
            "J_a": translation_block(B_ddot)}
 
     # Rotation: Jacobians w.r.t. d_1..d_3 (blocks (M, 3, 3) each), then chained to δ_0..δ_3.
-    J_eps_d, J_omega_d, J_omegadot_d = [], [], []
+    J_eps_d = []
     omega = torch.zeros(M, 3, dtype=dtype, device=device)
     omega_dot = torch.zeros_like(omega)
     J_omega = [torch.zeros(M, 3, 3, dtype=dtype, device=device) for _ in range(3)]
