@@ -7,7 +7,8 @@ B-spline with a dynamics regulariser, a sliding-window local bundle adjustment a
 Modules, by layer (a module imports modules of its own layer or lower ones, never higher ones,
 and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks every import):
 
-* 0 base: ``config`` (settings), ``geometry`` (SO(3), poses, pixel rays), ``files`` (atomic
+* 0 base: ``config`` (settings), ``presets`` (their named values), ``config_io`` (overrides,
+  validation, JSON files), ``geometry`` (SO(3), poses, pixel rays), ``files`` (atomic
   writes), ``cli_args`` (command-line value parsing shared by the command lines)
 * 1 math and map: ``spline`` (the curve, Eq. 5-9), ``knots`` (its non-uniform form), ``spline_fit`` (curve approximation, Eq. 11),
   ``spline_jacobians``, ``se3_spline`` (joint SE(3) variant), ``trajectory`` (the spline
@@ -32,6 +33,8 @@ __version__ = "0.1.0"
 LAYERS = {
     # 0 base
     "config": 0,
+    "presets": 0,
+    "config_io": 0,
     "geometry": 0,
     "files": 0,
     "cli_args": 0,

@@ -8,28 +8,25 @@ Layer 0 (base): dataclasses only, no torch.
 * Every field says its unit and its source: "Co-SLAM" means the official YAML/code at commit
   3bb904e (github.com/HengyiWang/Co-SLAM); "paper" means TS-SLAM (ICRA 2025, arXiv:2410.08780);
   "ours" means a choice of this project (see docs/deviations.md).
-* Presets are plain functions registered in :data:`PRESETS`: ``tum``, ``scannet``, ``synthetic``,
+* Presets are functions registered in :data:`PRESETS`: ``tum``, ``scannet``, ``synthetic``,
   ``replica`` (the original numbers), ``tum-cpu`` and ``synthetic-cpu`` (same structure, fewer rays
-  and samples, for 2 CPU cores), and ``tiny`` (tests and notebooks).
-* Overrides are strings ``section.key=value`` (``--set tracking.iters=20`` on the command line),
-  parsed as JSON where possible, else kept as strings.
+  and samples, for 2 CPU cores), and ``tiny`` (tests and notebooks); their values live in
+  presets.py.
 * :func:`load` accepts a preset name or a JSON file written by :func:`save` (every run saves its
   resolved config as ``config.json``).
-* :func:`validate` checks every value's type against its field and the range the field declares
-  (:func:`ranged`, next to the field's default)
-  (a file, an override or a notebook's edit with ``mapping.map_every=0`` or ``tracking.iters="ten"``
-  fails at once, naming the key, the value and what was expected).
+* Overrides (:func:`apply_overrides`, ``--set section.key=value``), :func:`validate` (every value's
+  type and the range its field declares with :func:`ranged`), :func:`to_dict` and :func:`save`
+  live in config_io.py and are re-exported here.
 """
 
-import copy
-import dataclasses
-import json
-import math
 import os
-import re
 from dataclasses import dataclass
 from dataclasses import field as _field
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional
+
+from .config_io import apply_overrides, save, to_dict, validate  # noqa: F401  (re-exported here)
+from .config_io import read_json_values, set_values
+from .presets import PRESET_LAYERS
 
 
 def ranged(default: Any, comparison: str, bound: Any) -> Any:
@@ -320,129 +317,57 @@ class Config:
 
 
 # --------------------------------------------------------------------------------------------
-# Presets (plain functions).  The first four hold the original numbers.
+# Presets (values in presets.py) and loading
+
+
+def from_dict(values: Dict[str, Any], source: str = "<dict>") -> Config:
+    """Build a Config from a nested dict; unknown sections or keys raise ValueError naming them."""
+    return validate(set_values(Config(), values, source), source)
+
+
+def _preset(name: str) -> Config:
+    """The preset ``name``: its value layers (presets.py) applied in order on the defaults."""
+    cfg = Config()
+    for values in PRESET_LAYERS[name]:
+        set_values(cfg, values, source=f"preset {name}")
+    return cfg
 
 
 def replica() -> Config:
     """Co-SLAM's Replica settings (its ``configs/Replica`` YAML)."""
-    cfg = Config(name="replica")
-    cfg.data = DataConfig(dataset="replica", depth_scale=6553.5, depth_trunc=100.0)
-    cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.02)
-    cfg.render = RenderConfig(n_samples=32, n_range_d=11, range_d=0.1, far=5.0, truncation=0.1)
-    cfg.loss = LossConfig(smooth_weight=1e-6, smooth_pts=32, smooth_vox=0.1, smooth_margin=0.05, rgb_missing=0.05)
-    cfg.mapping = MappingConfig(first_iters=200, iters=10)
-    cfg.spline = SplineConfig(dt=0.3)
-    cfg.mesh = MeshConfig(voxel_final=0.02)
-    return cfg
+    return _preset("replica")
 
 
 def synthetic() -> Config:
     """Co-SLAM's NeuralRGBD synthetic settings (its ``configs/Synthetic`` YAML); also our synthetic scenes."""
-    cfg = Config(name="synthetic")
-    cfg.data = DataConfig(dataset="auto", depth_trunc=100.0)
-    cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.01)
-    cfg.render = RenderConfig(n_samples=32, n_range_d=11, range_d=0.1, far=4.0, truncation=0.1)
-    cfg.loss = LossConfig(smooth_weight=1e-5, smooth_pts=32, smooth_vox=0.1, smooth_margin=0.05, rgb_missing=0.05)
-    cfg.mapping = MappingConfig(first_iters=200, iters=10, lr_embed=0.001)
-    cfg.spline = SplineConfig(dt=0.3)
-    cfg.mesh = MeshConfig(voxel_final=0.02)
-    return cfg
+    return _preset("synthetic")
 
 
 def scannet() -> Config:
     """Co-SLAM's ScanNet settings (its ``configs/ScanNet`` YAML)."""
-    cfg = Config(name="scannet")
-    cfg.data = DataConfig(dataset="scannet", crop_edge=10, depth_scale=1000.0, depth_trunc=100.0)
-    cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.04)
-    cfg.render = RenderConfig(n_samples=96, n_range_d=21, range_d=0.25, far=8.0, truncation=0.1)
-    cfg.loss = LossConfig(smooth_weight=1e-3, smooth_pts=64, smooth_vox=0.1, smooth_margin=0.05, rgb_missing=0.0)
-    cfg.mapping = MappingConfig(first_iters=500, iters=10, optim_cur=False, min_pixels_cur=20)
-    cfg.spline = SplineConfig(dt=0.3)
-    return cfg
+    return _preset("scannet")
 
 
 def tum() -> Config:
     """Co-SLAM's TUM RGB-D settings (its ``configs/Tum`` YAML); TS-SLAM uses dt = 0.25 s on TUM."""
-    cfg = Config(name="tum")
-    cfg.data = DataConfig(dataset="tum", crop_edge=8, depth_scale=5000.0, depth_trunc=5.0)
-    cfg.field = FieldConfig(log2_hashmap_size=16, voxel_sdf=0.02)
-    cfg.render = RenderConfig(n_samples=64, n_range_d=21, range_d=0.25, far=5.0, truncation=0.05)
-    cfg.loss = LossConfig(
-        rgb_weight=1.0, depth_weight=0.1, sdf_weight=5000.0, fs_weight=10.0,
-        smooth_weight=1e-8, smooth_pts=64, smooth_vox=0.04, smooth_margin=0.0, rgb_missing=1.0,
-    )
-    cfg.tracking = TrackingConfig(iters=10, lr_rot=1e-2, lr_trans=1e-2, best=False)
-    cfg.mapping = MappingConfig(first_iters=1000, iters=20)
-    cfg.spline = SplineConfig(dt=0.25)
-    return cfg
-
-
-def _two_core_budget(cfg: Config) -> Config:
-    """The settings ``tum-cpu`` and ``synthetic-cpu`` share for 2 CPU cores (ours): 160 px wide
-    images, a smaller hash table and fewer rays, samples and iterations.  Changes ``cfg`` in place."""
-    cfg.data.resize_width = 160
-    cfg.field.log2_hashmap_size = 16
-    cfg.field.voxel_sdf = 0.04
-    cfg.render.n_samples = 32
-    cfg.render.n_range_d = 11
-    cfg.tracking.n_rays = 512
-    cfg.tracking.iters = 20
-    # Adam moves each parameter by at most about lr per iteration, so 20 x 1e-3 (Co-SLAM's Replica
-    # rate) caps a frame's rotation correction near 1.1 deg per axis: too little for hand-held
-    # turns of 4-5 deg per frame (TUM-VI room2); with half of Co-SLAM's rays, 3e-3 also keeps the
-    # steps steady (docs/system.md, "Tracking's step-size cap").
-    cfg.tracking.lr_rot = cfg.tracking.lr_trans = 3e-3
-    cfg.tracking.ignore_edge = 5
-    cfg.mapping.first_iters = 200
-    cfg.mapping.first_n_rays = 1024
-    cfg.mapping.n_rays = 1024
-    cfg.mapping.iters = 20
-    cfg.local_ba.n_rays = 512
-    cfg.mesh.voxel_final = 0.04
-    return cfg
+    return _preset("tum")
 
 
 def tum_cpu() -> Config:
-    """TUM settings for 2 CPU cores: :func:`_two_core_budget` on :func:`tum` (ours).
-
-    Same losses, weights, truncation and schedule structure as :func:`tum`.
-    """
-    cfg = _two_core_budget(tum())
-    cfg.name = "tum-cpu"
-    cfg.data.crop_edge = 0  # in native pixels; the bundled slice is already 160 px wide
-    cfg.tracking.best = True
-    cfg.loss.smooth_pts = 32
-    return cfg
+    """TUM settings for 2 CPU cores: the two-core budget shared with :func:`synthetic_cpu` on
+    :func:`tum` (ours).  Same losses, weights, truncation and schedule structure as :func:`tum`."""
+    return _preset("tum-cpu")
 
 
 def synthetic_cpu() -> Config:
-    """Synthetic-scene settings for 2 CPU cores: :func:`_two_core_budget` on :func:`synthetic` (ours)."""
-    cfg = _two_core_budget(synthetic())
-    cfg.name = "synthetic-cpu"
-    cfg.mapping.lr_embed = 0.01
-    return cfg
+    """Synthetic-scene settings for 2 CPU cores: the two-core budget shared with :func:`tum_cpu` on
+    :func:`synthetic` (ours)."""
+    return _preset("synthetic-cpu")
 
 
 def tiny() -> Config:
     """Smallest sensible settings for unit tests and notebooks (seconds on 2 cores; ours)."""
-    cfg = synthetic_cpu()
-    cfg.name = "tiny"
-    cfg.field.log2_hashmap_size = 14
-    cfg.field.voxel_sdf = 0.08
-    cfg.render.n_samples = 24
-    cfg.render.n_range_d = 8
-    cfg.tracking.n_rays = 128
-    cfg.tracking.iters = 5
-    cfg.tracking.lr_rot = cfg.tracking.lr_trans = 1e-3  # the tests' and notebooks' figures use 1e-3
-    cfg.mapping.first_iters = 30
-    cfg.mapping.first_n_rays = 256
-    cfg.mapping.n_rays = 256
-    cfg.mapping.iters = 10
-    cfg.local_ba.n_rays = 128
-    cfg.local_ba.refine_iters = 5
-    cfg.loss.smooth_pts = 16
-    cfg.mesh.voxel_final = 0.08
-    return cfg
+    return _preset("tiny")
 
 
 PRESETS: Dict[str, Callable[[], Config]] = {
@@ -456,182 +381,12 @@ PRESETS: Dict[str, Callable[[], Config]] = {
 }
 
 
-# --------------------------------------------------------------------------------------------
-# Conversion, overrides, files
-
-
-def to_dict(cfg: Config) -> Dict[str, Any]:
-    """Plain nested dict (JSON-serialisable) of a config."""
-    return dataclasses.asdict(cfg)
-
-
-def from_dict(values: Dict[str, Any], source: str = "<dict>") -> Config:
-    """Build a Config from a nested dict; unknown sections or keys raise ValueError naming them."""
-    cfg = Config()
-    for key, value in values.items():
-        if not hasattr(cfg, key):
-            raise ValueError(f"{source}: unknown config section or key '{key}'")
-        current = getattr(cfg, key)
-        if dataclasses.is_dataclass(current):
-            if not isinstance(value, dict):
-                raise ValueError(f"{source}: section '{key}' must be an object, got {type(value).__name__}")
-            for sub_key, sub_value in value.items():
-                if not hasattr(current, sub_key):
-                    raise ValueError(f"{source}: unknown key '{key}.{sub_key}'")
-                setattr(current, sub_key, sub_value)
-        else:
-            setattr(cfg, key, value)
-    return validate(cfg, source)
-
-
-# Ranges the code relies on (ours): "section.key": (comparison, bound).  Keys not listed only have
-# their type checked.  A value outside its range raises before any work starts, instead of a
-# division by zero or an empty loop deep inside a run.
-def _type_problem(value: Any, annotation: Any) -> Optional[str]:
-    """What is wrong with ``value`` for a field annotated ``annotation`` (None when it fits)."""
-    if getattr(annotation, "__origin__", None) is not None and type(None) in getattr(annotation, "__args__", ()):
-        if value is None:
-            return None
-        annotation = next(arg for arg in annotation.__args__ if arg is not type(None))
-    if annotation is bool:
-        return None if isinstance(value, bool) else "true or false"
-    if annotation is int:
-        return None if isinstance(value, int) and not isinstance(value, bool) else "an integer"
-    if annotation is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-        return None if ok else "a finite number"
-    if annotation is str:
-        return None if isinstance(value, str) else "a string"
-    return None  # lists (field.bound) are checked where they are used
-
-
-def _check_range(value: Any, comparison: str, bound: Any) -> Tuple[bool, str]:
-    """(whether ``value`` keeps the rule, the rule in words) for a field declared with :func:`ranged`."""
-    if comparison == "in":
-        return value in bound, "one of " + ", ".join(bound)
-    if comparison == "[]":
-        return bound[0] <= value <= bound[1], f"an integer in [{bound[0]}, {bound[1]}]"
-    if comparison == "(]":
-        return bound[0] < value <= bound[1], f"in ({bound[0]}, {bound[1]}]"
-    if comparison == "()":
-        return bound[0] < value < bound[1], f"in ({bound[0]}, {bound[1]})"
-    if comparison == ">":
-        return value > bound, f"> {bound}"
-    return value >= bound, f">= {bound}"
-
-
-def validate(cfg: Config, source: str = "config") -> Config:
-    """Check every value's type against its field and the range it declares (:func:`ranged`).
-
-    Raises ValueError naming ``source``, the key, the value and what was expected; returns
-    ``cfg`` unchanged otherwise.  Called by :func:`apply_overrides`, :func:`from_dict` and
-    ``slam.run_slam``.
-    """
-    sections = [("", cfg)] + [(f.name + ".", getattr(cfg, f.name)) for f in dataclasses.fields(cfg)
-                              if dataclasses.is_dataclass(getattr(cfg, f.name))]
-    for prefix, section in sections:
-        for item in dataclasses.fields(section):
-            value = getattr(section, item.name)
-            if dataclasses.is_dataclass(value):
-                continue
-            key = prefix + item.name
-            expected = _type_problem(value, item.type)
-            if expected is not None:
-                raise ValueError(f"{source}: {key} = {value!r} must be {expected}")
-            if "range" not in item.metadata or value is None:
-                continue
-            ok, rule = _check_range(value, *item.metadata["range"])
-            if not ok:
-                raise ValueError(f"{source}: {key} = {value!r} must be {rule}")
-    if not re.fullmatch(r"auto|cpu|cuda(:[0-9]+)?", cfg.device):
-        raise ValueError(f"{source}: device = {cfg.device!r} must be auto, cpu, cuda or cuda:N")
-    _check_bound(cfg.field.bound, source)
-    if cfg.render.far <= cfg.render.near:
-        raise ValueError(f"{source}: render.far = {cfg.render.far!r} must be > render.near = {cfg.render.near!r}")
-    if cfg.local_ba.fit_controls > cfg.local_ba.window:
-        raise ValueError(f"{source}: local_ba.fit_controls = {cfg.local_ba.fit_controls} must be <= "
-                         f"local_ba.window = {cfg.local_ba.window}")
-    return cfg
-
-
-def _check_bound(bound: Any, source: str) -> None:
-    """field.bound: None (estimated from frame 0) or [[xmin, xmax], [ymin, ymax], [zmin, zmax]] in m."""
-    if bound is None:
-        return
-    expected = "None or [[xmin, xmax], [ymin, ymax], [zmin, zmax]] of finite numbers with min < max"
-    try:
-        rows = [[float(v) for v in row] for row in bound]
-        ok = len(rows) == 3 and all(len(row) == 2 for row in rows) and not any(
-            isinstance(v, bool) for row in bound for v in row)
-    except (TypeError, ValueError):
-        ok = False
-    if ok:
-        ok = all(math.isfinite(v) for row in rows for v in row) and all(row[0] < row[1] for row in rows)
-    if not ok:
-        raise ValueError(f"{source}: field.bound = {bound!r} must be {expected}")
-
-
-def _parse_value(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        if text in ("True", "False"):
-            return text == "True"
-        if text == "None":
-            return None
-        return text
-
-
-def apply_overrides(cfg: Config, overrides: Sequence[str]) -> Config:
-    """Return a copy of ``cfg`` with ``section.key=value`` overrides applied.
-
-    Values are parsed as JSON (``3``, ``0.5``, ``true``, ``[[0,1],[0,1],[0,1]]``), else taken as
-    strings; string fields keep the text as typed.  Raises ValueError naming the override for an
-    unknown key, a malformed string, or a value of the wrong type or out of range (:func:`validate`).
-    """
-    cfg = copy.deepcopy(cfg)
-    for item in overrides:
-        if "=" not in item:
-            raise ValueError(f"override '{item}' is not of the form section.key=value")
-        path, text = item.split("=", 1)
-        parts = path.strip().split(".")
-        target = cfg
-        for part in parts[:-1]:
-            if not hasattr(target, part):
-                raise ValueError(f"override '{item}': unknown section '{part}'")
-            target = getattr(target, part)
-        if not hasattr(target, parts[-1]) or dataclasses.is_dataclass(getattr(target, parts[-1])):
-            raise ValueError(f"override '{item}': unknown key '{path}'")
-        value = _parse_value(text.strip())
-        if {f.name: f.type for f in dataclasses.fields(target)}[parts[-1]] is str and not isinstance(value, str):
-            value = text.strip()  # a string field keeps the text as typed (data.path=2024)
-        setattr(target, parts[-1], value)
-    return validate(cfg, "overrides " + " ".join(overrides) if overrides else "config")
-
-
 def load(name_or_file: str) -> Config:
     """A preset by name (see :data:`PRESETS`) or a JSON config file written by :func:`save`."""
     if name_or_file in PRESETS:
         return PRESETS[name_or_file]()
     if os.path.isfile(name_or_file):
-        try:
-            with open(name_or_file, encoding="utf-8") as handle:
-                values = json.load(handle)
-        except UnicodeDecodeError:
-            raise ValueError(f"{name_or_file}: not a text file; expected a JSON config object") from None
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{name_or_file}: not valid JSON ({error}); expected a JSON config object") from None
-        if not isinstance(values, dict):
-            raise ValueError(f"{name_or_file}: the JSON is a {type(values).__name__}; expected an object "
-                             f"{{section: {{key: value}}}} like a run's config.json")
-        return from_dict(values, source=name_or_file)
+        return from_dict(read_json_values(name_or_file), source=name_or_file)
     raise ValueError(
         f"config '{name_or_file}' is neither a preset ({', '.join(PRESETS)}) nor an existing JSON file"
     )
-
-
-def save(cfg: Config, path: str) -> None:
-    """Write the config as JSON atomically (a new file in the same folder, then rename; files.py)."""
-    from .files import atomic_write_text
-
-    atomic_write_text(path, json.dumps(to_dict(cfg), indent=2))
