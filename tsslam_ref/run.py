@@ -45,9 +45,10 @@ from . import checkpoint as checkpoint_module
 from . import config as config_module
 from . import data as data_module
 from . import device as device_module
-from . import eval as eval_module
 from .cli_args import OneLineParser, number_in
-from .files import atomic_path, atomic_write_text, remove_stray_temporaries
+from .files import atomic_write_text, remove_stray_temporaries
+from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
+from .run_outputs import write_outputs, write_partial_trajectory
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
 
@@ -327,166 +328,103 @@ def load_checkpoint(path: Path, device=None):
     return checkpoint_module.load(path, device)
 
 
-def write_partial_trajectory(state, out: Path) -> None:
-    from .export import estimated_trajectory
-
-    poses = estimated_trajectory(state).detach().cpu().double().numpy()
-    data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
-
-
-def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> dict:
-    """ATE / RPE against the sequence's ground truth (frames with a finite GT pose)."""
-    if sequence.gt_poses is None:
-        return {}
-    gt = np.asarray(sequence.gt_poses, dtype=np.float64)
-    known = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
-    if known.sum() < 3:
-        return {}
-    return eval_module.evaluate_trajectory(timestamps[known], gt[known], timestamps, poses)
-
-
-def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
-    """Accuracy / completion / ratio after Co-SLAM-style culling of both meshes.
-
-    Both meshes are culled (frustum + occlusion, eval.cull_mesh) with the ground-truth cameras of
-    every second frame, so that only what the sequence observed is compared (Co-SLAM culls with the
-    GT poses too, in its ``cull_mesh.py``; it also adds hand-picked virtual cameras, which we do not have).
-    """
-    intrinsics = sequence.intrinsics
-    camera = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height)
-    poses = np.asarray(sequence.gt_poses)[::2]
-    culled = eval_module.cull_mesh(mesh, poses, camera)
-    culled_gt = eval_module.cull_mesh(gt_mesh, poses, camera)
-    if len(culled.faces) == 0 or len(culled_gt.faces) == 0:
-        return {"reconstruction_note": "nothing left after culling"}
-    return eval_module.mesh_metrics(culled, culled_gt, n_points=50_000, threshold=0.05, seed=seed)
-
-
-def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, metrics: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure = plt.figure(figsize=(6, 5))
-    axis = figure.add_subplot(projection="3d")
-    axis.plot(*poses[:, :3, 3].T, label="estimate", color="tab:red")
-    if sequence.gt_poses is not None:
-        gt = np.asarray(sequence.gt_poses)
-        axis.plot(*gt[:, :3, 3].T, label="ground truth", color="k", linestyle="--")
-    axis.set_xlabel("x [m]"), axis.set_ylabel("y [m]"), axis.set_zlabel("z [m]")
-    axis.set_title(f"camera-to-world positions, ATE {metrics.get('ate_rmse_m', float('nan')) * 100:.2f} cm")
-    axis.legend()
-    with atomic_path(out / "trajectory.png") as temporary:
-        figure.savefig(temporary, dpi=80, format="png")
-    plt.close(figure)
-    if sequence.gt_poses is not None:
-        gt = np.asarray(sequence.gt_poses)
-        known = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
-        if known.sum() >= 3:
-            result = eval_module.ate(gt[known], poses[known])
-            figure, axis = plt.subplots(figsize=(6, 3))
-            axis.plot(timestamps[known] - timestamps[0], np.asarray(result["errors_m"]) * 100)
-            axis.set_xlabel("time since first frame [s]"), axis.set_ylabel("position error after alignment [cm]")
-            figure.tight_layout()
-            with atomic_path(out / "errors.png") as temporary:
-                figure.savefig(temporary, dpi=80, format="png")
-            plt.close(figure)
-
-
-def execute(plan: Plan) -> int:
-    """Run the prepared command and write its outputs; returns the exit status."""
-    args, cfg, sequence, out = plan.args, plan.cfg, plan.sequence, plan.out
-    if plan.finished:
-        print(f"{out} holds a finished run (metrics.json); nothing to resume. Use --overwrite to run it again.")
-        return EXIT_OK
-    from . import parallel, slam
-
+def _open_output_folder(plan: Plan) -> None:
+    """Create ``plan.out``, remove an earlier run's outputs for ``--overwrite`` and half-written
+    temporaries, and save the resolved config (not on ``--resume``: the saved one stays)."""
+    out = plan.out
     out.mkdir(parents=True, exist_ok=True)
-    if args.overwrite:
+    if plan.args.overwrite:
         remove_previous_outputs(out)
     remove_stray_temporaries(out, is_output_name)
-    if not args.resume:
-        config_module.save(cfg, str(out / "config.json"))
-    state = plan.state
-    checkpoint_path = out / "checkpoint.pt"
-    if state is not None:
-        print(f"resuming at frame {state.done} of {len(sequence)}")
-    device = plan.device
-    device_module.tune_cpu_allocator()
-    progress = None
-    if not args.quiet:
-        from tqdm import tqdm
+    if not plan.args.resume:
+        config_module.save(plan.cfg, str(out / "config.json"))
 
-        progress = tqdm(total=len(sequence), desc=f"{cfg.method} on {sequence.name}", unit="frame",
-                        initial=state.done if state else 0)
-    reached = {"done": state.done if state else 0, "checkpoint": state.done if state else 0}
+
+def _progress_bar(plan: Plan):
+    """A tqdm bar over the sequence's frames (starting at a resumed state's frame), or None for --quiet."""
+    if plan.args.quiet:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=len(plan.sequence), desc=f"{plan.cfg.method} on {plan.sequence.name}", unit="frame",
+                initial=plan.state.done if plan.state else 0)
+
+
+def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
+    """The loop's per-frame callback: it records the frames done in ``reached``, moves the bar, and
+    every ``--checkpoint-every`` frames writes the trajectory so far and the checkpoint."""
+    every, out = plan.args.checkpoint_every, plan.out
 
     def on_frame(current) -> None:
         reached["done"] = current.done
         if progress is not None:
             progress.update(1)
-        if args.checkpoint_every and current.done % args.checkpoint_every == 0:
+        if every and current.done % every == 0:
             write_partial_trajectory(current, out)
-            save_checkpoint(current, checkpoint_path)
+            save_checkpoint(current, out / "checkpoint.pt")
             reached["checkpoint"] = current.done
 
-    print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}), preset {cfg.name}, device {device}, output {out}")
-    try:
-        run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
-        result = run_loop(sequence, cfg, device=device, state=state, on_frame=on_frame)
-    except KeyboardInterrupt:
-        if progress is not None:
-            progress.close()
-        if args.checkpoint_every and checkpoint_path.is_file():
-            where = (f"the checkpoint in {checkpoint_path} holds {reached['checkpoint']} frames; "
-                     f"run the same command with --resume to continue")
-        else:
-            where = "no checkpoint was written; run the same command with --overwrite to start again"
-        print(f"interrupted after frame {reached['done']} of {len(sequence)}; {where}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except slam.TrackingFailure as failure:
-        if progress is not None:
-            progress.close()
-        print(f"error: the run failed: {failure}", file=sys.stderr)
-        atomic_write_text(out / "metrics.json", json.dumps({"failed": True, "reason": str(failure)}, indent=2))
-        return EXIT_TRACKING_FAILURE
-    except (ValueError, OSError) as error:  # a frame that cannot be read (checked cheaply before the run)
-        if progress is not None:
-            progress.close()
-        print(f"error: {error}; the outputs so far are in {out}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    return on_frame
+
+
+def _close(progress) -> None:
+    """Close the progress bar (None: there is none)."""
     if progress is not None:
         progress.close()
+
+
+def _interrupted(plan: Plan, progress, reached: Dict[str, int]) -> int:
+    """Say where an interrupted run stopped and how to continue it; returns EXIT_INTERRUPTED."""
+    _close(progress)
+    checkpoint_path = plan.out / "checkpoint.pt"
+    if plan.args.checkpoint_every and checkpoint_path.is_file():
+        where = (f"the checkpoint in {checkpoint_path} holds {reached['checkpoint']} frames; "
+                 f"run the same command with --resume to continue")
+    else:
+        where = "no checkpoint was written; run the same command with --overwrite to start again"
+    print(f"interrupted after frame {reached['done']} of {len(plan.sequence)}; {where}", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
+def _tracking_failed(plan: Plan, progress, failure: Exception) -> int:
+    """Report a tracking failure on stderr and in metrics.json; returns EXIT_TRACKING_FAILURE."""
+    _close(progress)
+    print(f"error: the run failed: {failure}", file=sys.stderr)
+    atomic_write_text(plan.out / "metrics.json", json.dumps({"failed": True, "reason": str(failure)}, indent=2))
+    return EXIT_TRACKING_FAILURE
+
+
+def execute(plan: Plan) -> int:
+    """Run the prepared command and write its outputs; returns the exit status."""
+    cfg, sequence, out, state = plan.cfg, plan.sequence, plan.out, plan.state
+    if plan.finished:
+        print(f"{out} holds a finished run (metrics.json); nothing to resume. Use --overwrite to run it again.")
+        return EXIT_OK
+    from . import parallel, slam
+
+    _open_output_folder(plan)
+    if state is not None:
+        print(f"resuming at frame {state.done} of {len(sequence)}")
+    device_module.tune_cpu_allocator()
+    progress = _progress_bar(plan)
+    reached = {"done": state.done if state else 0, "checkpoint": state.done if state else 0}
+    on_frame = _frame_callback(plan, progress, reached)
+    print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}), preset {cfg.name}, "
+          f"device {plan.device}, output {out}")
+    try:
+        run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
+        result = run_loop(sequence, cfg, device=plan.device, state=state, on_frame=on_frame)
+    except KeyboardInterrupt:
+        return _interrupted(plan, progress, reached)
+    except slam.TrackingFailure as failure:
+        return _tracking_failed(plan, progress, failure)
+    except (ValueError, OSError) as error:  # a frame that cannot be read (checked cheaply before the run)
+        _close(progress)
+        print(f"error: {error}; the outputs so far are in {out}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    _close(progress)
     write_outputs(plan, result)
     return EXIT_OK
-
-
-def write_outputs(plan: Plan, result) -> None:
-    """trajectory.txt, metrics.json, mesh.ply, the continuous export and the plots of a finished run."""
-    args, cfg, sequence, out = plan.args, plan.cfg, plan.sequence, plan.out
-    from .export import export_continuous
-    from .mesh import extract_mesh, save_mesh
-
-    data_module.write_tum_trajectory(out / "trajectory.txt", result.timestamps, result.poses, overwrite=True)
-    metrics = {"method": cfg.method, "sequence": sequence.name, "frames": int(len(sequence)),
-               "frames_per_second": result.frames_per_second}
-    metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
-    metrics["runtime"] = result.state.timings.table()
-    if not args.no_mesh:
-        mesh = extract_mesh(result.state.field, None, cfg.mesh.voxel_final, sdf_cutoff=cfg.mesh.sdf_cutoff)
-        save_mesh(mesh, out / "mesh.ply", overwrite=True)
-        if plan.gt_mesh is not None and len(mesh.faces) > 0:
-            metrics.update(reconstruction_metrics(mesh, plan.gt_mesh, sequence, cfg.seed))
-    if args.export_rate is not None:
-        export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
-    atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
-    save_plots(out, sequence, result.timestamps, result.poses, metrics)
-    checkpoint_path = out / "checkpoint.pt"
-    if checkpoint_path.exists() and not args.checkpoint_every:
-        checkpoint_path.unlink()
-    summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
-    print(f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s; {summary}; outputs in {out}")
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -507,18 +445,6 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"interrupted while writing the outputs in {plan.out}; run the same command with --resume "
               f"(or --overwrite) to finish", file=sys.stderr)
         return EXIT_INTERRUPTED
-
-
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items() if not (isinstance(v, np.ndarray) and v.size > 16)}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    return value
 
 
 if __name__ == "__main__":

@@ -1,0 +1,132 @@
+"""What a finished (or running) command-line run writes: trajectory, metrics, mesh, plots.
+
+Layer 4 (system support).  :func:`write_outputs` writes ``trajectory.txt``, ``metrics.json``
+(ATE / RPE against the ground truth, the runtime table, and the reconstruction metrics after
+Co-SLAM-style culling when a ground-truth mesh is known), ``mesh.ply``, the continuous export and
+the plots of a finished run; :func:`write_partial_trajectory` writes the trajectory so far while
+the run goes.  Every file is written atomically (``files.py``).  ``run.py`` prepares the run and
+calls these.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from . import data as data_module
+from . import eval as eval_module
+from .files import atomic_path, atomic_write_text
+
+
+def write_partial_trajectory(state, out: Path) -> None:
+    """The trajectory estimated so far as ``out/trajectory.txt`` (TUM format), atomically."""
+    from .export import estimated_trajectory
+
+    poses = estimated_trajectory(state).detach().cpu().double().numpy()
+    data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
+
+
+def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> dict:
+    """ATE / RPE against the sequence's ground truth (frames with a finite GT pose)."""
+    if sequence.gt_poses is None:
+        return {}
+    gt = np.asarray(sequence.gt_poses, dtype=np.float64)
+    known = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
+    if known.sum() < 3:
+        return {}
+    return eval_module.evaluate_trajectory(timestamps[known], gt[known], timestamps, poses)
+
+
+def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
+    """Accuracy / completion / ratio after Co-SLAM-style culling of both meshes.
+
+    Both meshes are culled (frustum + occlusion, eval.cull_mesh) with the ground-truth cameras of
+    every second frame, so that only what the sequence observed is compared (Co-SLAM culls with the
+    GT poses too, in its ``cull_mesh.py``; it also adds hand-picked virtual cameras, which we do not have).
+    """
+    intrinsics = sequence.intrinsics
+    camera = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height)
+    poses = np.asarray(sequence.gt_poses)[::2]
+    culled = eval_module.cull_mesh(mesh, poses, camera)
+    culled_gt = eval_module.cull_mesh(gt_mesh, poses, camera)
+    if len(culled.faces) == 0 or len(culled_gt.faces) == 0:
+        return {"reconstruction_note": "nothing left after culling"}
+    return eval_module.mesh_metrics(culled, culled_gt, n_points=50_000, threshold=0.05, seed=seed)
+
+
+def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, metrics: dict) -> None:
+    """``trajectory.png`` (positions, with the ground truth when known) and ``errors.png`` (position
+    error after alignment over time, when at least 3 frames have a ground-truth pose)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure = plt.figure(figsize=(6, 5))
+    axis = figure.add_subplot(projection="3d")
+    axis.plot(*poses[:, :3, 3].T, label="estimate", color="tab:red")
+    if sequence.gt_poses is not None:
+        gt = np.asarray(sequence.gt_poses)
+        axis.plot(*gt[:, :3, 3].T, label="ground truth", color="k", linestyle="--")
+    axis.set_xlabel("x [m]"), axis.set_ylabel("y [m]"), axis.set_zlabel("z [m]")
+    axis.set_title(f"camera-to-world positions, ATE {metrics.get('ate_rmse_m', float('nan')) * 100:.2f} cm")
+    axis.legend()
+    with atomic_path(out / "trajectory.png") as temporary:
+        figure.savefig(temporary, dpi=80, format="png")
+    plt.close(figure)
+    if sequence.gt_poses is not None:
+        gt = np.asarray(sequence.gt_poses)
+        known = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
+        if known.sum() >= 3:
+            result = eval_module.ate(gt[known], poses[known])
+            figure, axis = plt.subplots(figsize=(6, 3))
+            axis.plot(timestamps[known] - timestamps[0], np.asarray(result["errors_m"]) * 100)
+            axis.set_xlabel("time since first frame [s]"), axis.set_ylabel("position error after alignment [cm]")
+            figure.tight_layout()
+            with atomic_path(out / "errors.png") as temporary:
+                figure.savefig(temporary, dpi=80, format="png")
+            plt.close(figure)
+
+
+def write_outputs(plan, result) -> None:
+    """trajectory.txt, metrics.json, mesh.ply, the continuous export and the plots of a finished run.
+
+    ``plan`` is ``run.Plan`` (its args, cfg, sequence, out and gt_mesh), ``result`` what
+    ``slam.run_slam`` returns.
+    """
+    args, cfg, sequence, out = plan.args, plan.cfg, plan.sequence, plan.out
+    from .export import export_continuous
+    from .mesh import extract_mesh, save_mesh
+
+    data_module.write_tum_trajectory(out / "trajectory.txt", result.timestamps, result.poses, overwrite=True)
+    metrics = {"method": cfg.method, "sequence": sequence.name, "frames": int(len(sequence)),
+               "frames_per_second": result.frames_per_second}
+    metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
+    metrics["runtime"] = result.state.timings.table()
+    if not args.no_mesh:
+        mesh = extract_mesh(result.state.field, None, cfg.mesh.voxel_final, sdf_cutoff=cfg.mesh.sdf_cutoff)
+        save_mesh(mesh, out / "mesh.ply", overwrite=True)
+        if plan.gt_mesh is not None and len(mesh.faces) > 0:
+            metrics.update(reconstruction_metrics(mesh, plan.gt_mesh, sequence, cfg.seed))
+    if args.export_rate is not None:
+        export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
+    atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
+    save_plots(out, sequence, result.timestamps, result.poses, metrics)
+    checkpoint_path = out / "checkpoint.pt"
+    if checkpoint_path.exists() and not args.checkpoint_every:
+        checkpoint_path.unlink()
+    summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
+    print(f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s; {summary}; outputs in {out}")
+
+
+def _jsonable(value):
+    """``value`` with numpy arrays and scalars as lists and numbers (arrays over 16 values in a dict dropped)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items() if not (isinstance(v, np.ndarray) and v.size > 16)}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    return value
