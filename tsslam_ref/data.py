@@ -123,6 +123,42 @@ def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int,
     return chosen
 
 
+def _layout_of(folder: Path, dataset: str) -> str:
+    """The layout of ``folder``: ``dataset`` itself, or detected for 'auto'; raises for a missing
+    folder or an unknown layout name."""
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: dataset folder not found")
+    kind = detect_dataset(folder) if dataset == "auto" else dataset
+    if kind not in LAYOUTS:
+        raise ValueError(f"dataset '{dataset}' unknown; expected 'auto' or one of {sorted(LAYOUTS)}")
+    return kind
+
+
+def _parse_layout(folder: Path, kind: str, fps: float, max_time_diff: float):
+    """The frame index (paths, timestamps, ground truth, intrinsics) of ``folder`` in layout ``kind``."""
+    if kind == "tum":
+        return parse_tum(folder, fps, max_time_diff)
+    if kind == "scannet":
+        return parse_scannet(folder, fps)
+    if kind == "neural_rgbd":
+        return parse_neural_rgbd(folder, fps)
+    if kind == "replica":
+        return parse_replica(folder, fps)
+    return parse_folder(folder, fps, max_time_diff)
+
+
+def _keep_frames_with_gt(index, folder: Path, max_time_diff: float) -> None:
+    """Drop, in place, the frames of ``index`` whose ground-truth pose is unknown (not finite);
+    ValueError when none is left."""
+    known = np.flatnonzero(np.isfinite(index.gt_poses).all(axis=(1, 2)))
+    if len(known) == 0:
+        raise ValueError(f"{folder}: no frame has a ground-truth pose within {max_time_diff} s (pass require_gt=False to keep them)")
+    index.rgb_paths = [index.rgb_paths[i] for i in known]
+    index.depth_paths = [index.depth_paths[i] for i in known]
+    index.timestamps = index.timestamps[known]
+    index.gt_poses = index.gt_poses[known]
+
+
 def load_sequence(
     path,
     dataset: str = "auto",
@@ -160,31 +196,12 @@ def load_sequence(
         frame is left (never a silent empty sequence).
     """
     folder = Path(path)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: dataset folder not found")
-    kind = detect_dataset(folder) if dataset == "auto" else dataset
-    if kind not in LAYOUTS:
-        raise ValueError(f"dataset '{dataset}' unknown; expected 'auto' or one of {sorted(LAYOUTS)}")
+    kind = _layout_of(folder, dataset)
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
-    if kind == "tum":
-        index = parse_tum(folder, fps, max_time_diff)
-    elif kind == "scannet":
-        index = parse_scannet(folder, fps)
-    elif kind == "neural_rgbd":
-        index = parse_neural_rgbd(folder, fps)
-    elif kind == "replica":
-        index = parse_replica(folder, fps)
-    else:
-        index = parse_folder(folder, fps, max_time_diff)
+    index = _parse_layout(folder, kind, fps, max_time_diff)
     if require_gt and index.gt_poses is not None:
-        known = np.flatnonzero(np.isfinite(index.gt_poses).all(axis=(1, 2)))
-        if len(known) == 0:
-            raise ValueError(f"{folder}: no frame has a ground-truth pose within {max_time_diff} s (pass require_gt=False to keep them)")
-        index.rgb_paths = [index.rgb_paths[i] for i in known]
-        index.depth_paths = [index.depth_paths[i] for i in known]
-        index.timestamps = index.timestamps[known]
-        index.gt_poses = index.gt_poses[known]
+        _keep_frames_with_gt(index, folder, max_time_diff)
     chosen = _select(index, frame_start, frame_stop, frame_step, folder)
     if depth_scale is None:
         depth_scale = index.depth_scale if index.depth_scale is not None else DEPTH_SCALES[kind]
@@ -269,8 +286,8 @@ def _print_check(sequence: RGBDSequence, n_files: int) -> None:
           f"depth_valid_fraction is sampled from 5 frames", file=sys.stderr)
 
 
-def main(argv=None) -> int:
-    """Command-line entry (see the module docstring).  Returns the exit status."""
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``python -m tsslam_ref.data``: the ``info`` and ``synthesize`` commands."""
     parser = OneLineParser(prog="python -m tsslam_ref.data", description="RGB-D dataset tools",
                            epilog="Exit status: 0 done, 2 bad input (one line naming the file and what was expected).")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
@@ -294,26 +311,30 @@ def main(argv=None) -> int:
     synth.add_argument("--mesh-voxel", type=number_in("--mesh-voxel", 0.005, 1.0), default=0.03,
                        help="marching-cubes voxel of gt_mesh.ply (m), 0.005 to 1")
     synth.add_argument("--force", action="store_true", help="replace a non-empty --out folder written by this command")
+    return parser
+
+
+def _info(args: argparse.Namespace) -> int:
+    """``info PATH [--json]``: check every frame's files and print the sequence's summary."""
     try:
-        args = parser.parse_args(argv)
-    except SystemExit as stop:  # a usage error (one line already printed) or --help
-        return int(stop.code or 0)
-    if args.command == "info":
-        try:
-            sequence = load_sequence(args.path, require_gt=False)
-            n_files = sequence.check_files()
-            summary = sequence_info(sequence)
-        except (ValueError, OSError) as error:
-            print(f"error: {error}", file=sys.stderr)
-            return 2
-        summary["files_checked"] = n_files
-        _print_check(sequence, n_files)
-        if args.json:
-            print(json.dumps(summary, indent=2))
-        else:
-            for key, value in summary.items():
-                print(f"{key:>22}: {value}")
-        return 0
+        sequence = load_sequence(args.path, require_gt=False)
+        n_files = sequence.check_files()
+        summary = sequence_info(sequence)
+    except (ValueError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    summary["files_checked"] = n_files
+    _print_check(sequence, n_files)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        for key, value in summary.items():
+            print(f"{key:>22}: {value}")
+    return 0
+
+
+def _synthesize(args: argparse.Namespace) -> int:
+    """``synthesize --out DIR ...``: render a synthetic TUM-layout sequence; prints its folder."""
     from tsslam_ref import synthetic  # lazy: the renderer needs torch
     try:
         _check_synthesize_out(Path(args.out), args.force)
@@ -336,6 +357,15 @@ def main(argv=None) -> int:
         return 2
     print(out)
     return 0
+
+
+def main(argv=None) -> int:
+    """Command-line entry (see the module docstring).  Returns the exit status."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as stop:  # a usage error (one line already printed) or --help
+        return int(stop.code or 0)
+    return _info(args) if args.command == "info" else _synthesize(args)
 
 
 if __name__ == "__main__":
