@@ -24,7 +24,7 @@ J_r the right Jacobian of SO(3)):
 Layer 1 (math).  Imports ``spline`` and ``geometry``.
 """
 
-from typing import Dict
+from typing import Dict, List, NamedTuple, Optional, Tuple
 
 import torch
 
@@ -63,6 +63,97 @@ def right_jacobian_inverse(phi: torch.Tensor) -> torch.Tensor:
     return torch.eye(3, dtype=phi.dtype, device=phi.device) + 0.5 * K + c * (K @ K)
 
 
+def _translation_block(weights: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
+    """∂(p, v or a)/∂τ_i = w_i I, w the non-cumulative weights of the cumulative ``weights``
+    (B, Ḃ or B̈), (M, 4) -> (M, 4, 3, 3)."""
+    w = torch.stack([weights[:, 0] - weights[:, 1], weights[:, 1] - weights[:, 2],
+                     weights[:, 2] - weights[:, 3], weights[:, 3]], dim=1)  # (M, 4)
+    return w[..., None, None] * eye  # (M, 4, 3, 3)
+
+
+class _Factor(NamedTuple):
+    """The factor A_j = Exp(B_j d_j) of the cumulative product and what its derivatives need."""
+
+    index: int
+    """Which relative rotation it holds: 0..2 for d_1..d_3."""
+    d: torch.Tensor
+    """(M, 3) d_j = Log(R_{j−1}ᵀ R_j)."""
+    A_T: torch.Tensor
+    """(M, 3, 3) A_jᵀ."""
+    Jr_scaled: torch.Tensor
+    """(M, 3, 3) B_j J_r(B_j d_j): the tangent of A_j differentiated by d_j."""
+    b_dot: torch.Tensor
+    """(M, 1) Ḃ_j."""
+    b_ddot: torch.Tensor
+    """(M, 1) B̈_j."""
+
+
+def _omega_step(f: _Factor, omega: torch.Tensor, J_omega: List[torch.Tensor],
+                eye: torch.Tensor) -> Tuple[torch.Tensor, List[torch.Tensor]]:
+    """ω^(j+1) = A_jᵀ ω^(j) + Ḃ_j d_j, (M, 3), and its Jacobians w.r.t. d_1..d_3 (3 x (M, 3, 3))."""
+    rotated_omega = (f.A_T @ omega.unsqueeze(-1)).squeeze(-1)
+    new_omega = rotated_omega + f.b_dot * f.d
+    new_J_omega = [f.A_T @ J for J in J_omega]
+    new_J_omega[f.index] = new_J_omega[f.index] + skew(rotated_omega) @ f.Jr_scaled + f.b_dot[..., None] * eye
+    return new_omega, new_J_omega
+
+
+def _omegadot_step(f: _Factor, new_omega: torch.Tensor, new_J_omega: List[torch.Tensor], omega_dot: torch.Tensor,
+                   J_omegadot: List[torch.Tensor], eye: torch.Tensor) -> Tuple[torch.Tensor, List[torch.Tensor]]:
+    """ω̇^(j+1) = Ḃ_j ω^(j+1) × d_j + A_jᵀ ω̇^(j) + B̈_j d_j, (M, 3), and its Jacobians w.r.t.
+    d_1..d_3 (3 x (M, 3, 3)), given ω^(j+1) and its Jacobians from :func:`_omega_step`."""
+    rotated_omegadot = (f.A_T @ omega_dot.unsqueeze(-1)).squeeze(-1)
+    new_omega_dot = f.b_dot * torch.linalg.cross(new_omega, f.d) + rotated_omegadot + f.b_ddot * f.d
+    new_J_omegadot = []
+    for k in range(3):
+        block = -f.b_dot[..., None] * (skew(f.d) @ new_J_omega[k]) + f.A_T @ J_omegadot[k]
+        if k == f.index:
+            block = (block + f.b_dot[..., None] * skew(new_omega)
+                     + skew(rotated_omegadot) @ f.Jr_scaled + f.b_ddot[..., None] * eye)
+        new_J_omegadot.append(block)
+    return new_omega_dot, new_J_omegadot
+
+
+def _rotation_jacobians_wrt_d(R_win: torch.Tensor, d: torch.Tensor, B: torch.Tensor, B_dot: torch.Tensor,
+                              B_ddot: torch.Tensor):
+    """∂ε, ∂ω_body and ∂ω̇_body w.r.t. d_1..d_3: three lists of 3 blocks (M, 3, 3), by the forward
+    recursion over the factors A_1..A_3 (R_win (M, 4, 3, 3), d (M, 3, 3), B.. (M, 4))."""
+    M, dtype, device = d.shape[0], d.dtype, d.device
+    eye = torch.eye(3, dtype=dtype, device=device)
+    J_eps_d = []
+    omega = torch.zeros(M, 3, dtype=dtype, device=device)
+    omega_dot = torch.zeros_like(omega)
+    J_omega = [torch.zeros(M, 3, 3, dtype=dtype, device=device) for _ in range(3)]
+    J_omegadot = [torch.zeros(M, 3, 3, dtype=dtype, device=device) for _ in range(3)]
+    prefix = R_win[:, 0]  # R_0 A_1 ⋯ A_j
+    for j in range(3):
+        scaled = B[:, j + 1, None] * d[:, j]  # (M, 3)
+        A = so3_exp(scaled)
+        factor = _Factor(j, d[:, j], A.transpose(-1, -2), B[:, j + 1, None, None] * right_jacobian(scaled),
+                         B_dot[:, j + 1, None], B_ddot[:, j + 1, None])
+        prefix = prefix @ A
+        J_eps_d.append(prefix @ factor.Jr_scaled)
+        omega, new_J_omega = _omega_step(factor, omega, J_omega, eye)
+        omega_dot, J_omegadot = _omegadot_step(factor, omega, new_J_omega, omega_dot, J_omegadot, eye)
+        J_omega = new_J_omega
+    return J_eps_d, J_omega, J_omegadot
+
+
+def _chain_to_control_points(blocks: List[torch.Tensor], dd_ddelta: torch.Tensor,
+                             direct: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Blocks w.r.t. d_1..d_3 (3 x (M, 3, 3)) -> w.r.t. δ_0..δ_3 (M, 4, 3, 3), by ∂d_j/∂δ_j =
+    ``dd_ddelta[:, j-1]`` and ∂d_j/∂δ_{j−1} = −(the same); ``direct`` (M, 3, 3) adds a direct ∂/∂δ_0."""
+    M = dd_ddelta.shape[0]
+    result = torch.zeros(M, 4, 3, 3, dtype=dd_ddelta.dtype, device=dd_ddelta.device)
+    if direct is not None:
+        result[:, 0] = direct
+    for j in range(3):  # d_{j+1} joins control points j and j + 1
+        contribution = blocks[j] @ dd_ddelta[:, j]
+        result[:, j + 1] = result[:, j + 1] + contribution
+        result[:, j] = result[:, j] - contribution
+    return result
+
+
 def jacobians(control_rotations: torch.Tensor, control_translations: torch.Tensor, times, dt: float, t0: float,
               convention: str = "paper") -> Dict[str, torch.Tensor]:
     """Jacobians of R, p, v, a, ω_body, ω̇_body w.r.t. the 4 active control points (module docstring).
@@ -80,7 +171,6 @@ def jacobians(control_rotations: torch.Tensor, control_translations: torch.Tenso
     dtype, device = control_translations.dtype, control_translations.device
     u = u.detach().to(device=device, dtype=dtype)
     first = first.to(device)
-    M = u.shape[0]
     eye = torch.eye(3, dtype=dtype, device=device)
     window = first[:, None] + torch.arange(4, device=device)  # (M, 4)
     R_win = control_rotations[window]  # (M, 4, 3, 3)
@@ -88,63 +178,12 @@ def jacobians(control_rotations: torch.Tensor, control_translations: torch.Tenso
     B = spline.basis(u, 0)  # (M, 4)
     B_dot = spline.basis(u, 1) / dt
     B_ddot = spline.basis(u, 2) / dt**2
-
-    # Translation: non-cumulative weights.
-    def translation_block(weights: torch.Tensor) -> torch.Tensor:
-        w = torch.stack([weights[:, 0] - weights[:, 1], weights[:, 1] - weights[:, 2],
-                         weights[:, 2] - weights[:, 3], weights[:, 3]], dim=1)  # (M, 4)
-        return w[..., None, None] * eye  # (M, 4, 3, 3)
-
-    out = {"first": first, "J_p": translation_block(B), "J_v": translation_block(B_dot),
-           "J_a": translation_block(B_ddot)}
-
-    # Rotation: Jacobians w.r.t. d_1..d_3 (blocks (M, 3, 3) each), then chained to δ_0..δ_3.
-    J_eps_d = []
-    omega = torch.zeros(M, 3, dtype=dtype, device=device)
-    omega_dot = torch.zeros_like(omega)
-    J_omega = [torch.zeros(M, 3, 3, dtype=dtype, device=device) for _ in range(3)]
-    J_omegadot = [torch.zeros(M, 3, 3, dtype=dtype, device=device) for _ in range(3)]
-    prefix = R_win[:, 0]  # R_0 A_1 ⋯ A_j
-    for j in range(3):
-        d_j = d[:, j]
-        scaled = B[:, j + 1, None] * d_j  # (M, 3)
-        A = so3_exp(scaled)
-        A_T = A.transpose(-1, -2)
-        Jr_scaled = B[:, j + 1, None, None] * right_jacobian(scaled)  # ∂(B_j d_j)-tangent / ∂d_j
-        prefix = prefix @ A
-        J_eps_d.append(prefix @ Jr_scaled)
-        # ω step
-        rotated_omega = (A_T @ omega.unsqueeze(-1)).squeeze(-1)
-        new_omega = rotated_omega + B_dot[:, j + 1, None] * d_j
-        new_J_omega = [A_T @ J for J in J_omega]
-        new_J_omega[j] = new_J_omega[j] + skew(rotated_omega) @ Jr_scaled + B_dot[:, j + 1, None, None] * eye
-        # ω̇ step
-        rotated_omegadot = (A_T @ omega_dot.unsqueeze(-1)).squeeze(-1)
-        new_omega_dot = (B_dot[:, j + 1, None] * torch.linalg.cross(new_omega, d_j) + rotated_omegadot
-                         + B_ddot[:, j + 1, None] * d_j)
-        new_J_omegadot = []
-        for k in range(3):
-            block = -B_dot[:, j + 1, None, None] * (skew(d_j) @ new_J_omega[k]) + A_T @ J_omegadot[k]
-            if k == j:
-                block = (block + B_dot[:, j + 1, None, None] * skew(new_omega)
-                         + skew(rotated_omegadot) @ Jr_scaled + B_ddot[:, j + 1, None, None] * eye)
-            new_J_omegadot.append(block)
-        omega, omega_dot, J_omega, J_omegadot = new_omega, new_omega_dot, new_J_omega, new_J_omegadot
-
+    out = {"first": first, "J_p": _translation_block(B, eye), "J_v": _translation_block(B_dot, eye),
+           "J_a": _translation_block(B_ddot, eye)}
+    J_eps_d, J_omega, J_omegadot = _rotation_jacobians_wrt_d(R_win, d, B, B_dot, B_ddot)
     # ∂d_j/∂δ: +J_r⁻¹(d_j) R_jᵀ for point j, −(same) for point j − 1.
     dd_ddelta = right_jacobian_inverse(d) @ R_win[:, 1:].transpose(-1, -2)  # (M, 3, 3, 3)
-
-    def chain(blocks, direct=None) -> torch.Tensor:
-        result = torch.zeros(M, 4, 3, 3, dtype=dtype, device=device)
-        if direct is not None:
-            result[:, 0] = direct
-        for j in range(3):  # d_{j+1} joins control points j and j + 1
-            contribution = blocks[j] @ dd_ddelta[:, j]
-            result[:, j + 1] = result[:, j + 1] + contribution
-            result[:, j] = result[:, j] - contribution
-        return result
-
-    out["J_R"] = chain(J_eps_d, direct=eye.expand(M, 3, 3))
-    out["J_omega_body"] = chain(J_omega)
-    out["J_omegadot_body"] = chain(J_omegadot)
+    out["J_R"] = _chain_to_control_points(J_eps_d, dd_ddelta, direct=eye.expand(d.shape[0], 3, 3))
+    out["J_omega_body"] = _chain_to_control_points(J_omega, dd_ddelta)
+    out["J_omegadot_body"] = _chain_to_control_points(J_omegadot, dd_ddelta)
     return out
