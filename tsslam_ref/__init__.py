@@ -41,6 +41,7 @@ LAYERS = {
     # 1 math and map
     "spline": 1,
     "knots": 1,
+    "knot_policy": 1,
     "spline_fit": 1,
     "spline_jacobians": 1,
     "se3_spline": 1,

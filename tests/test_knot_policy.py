@@ -1,0 +1,53 @@
+"""Knot policy: interval lengths from tracked motion, checked against hand-derived expectations."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tsslam_ref import knot_policy
+
+ARGS = dict(dt_min=0.05, dt_max=0.4, rotation_tolerance=0.005, position_tolerance=0.005)
+
+
+def _track(angle_fn, position_fn, n=7, rate=30.0):
+    times = np.arange(n) / rate
+    rotations = Rotation.from_rotvec(np.stack([[0.0, 0.0, angle_fn(t)] for t in times])).as_matrix()
+    positions = np.stack([position_fn(t) for t in times])
+    return times, rotations, positions
+
+
+def test_constant_velocity_gives_dt_max():
+    track = _track(lambda t: 0.8 * t, lambda t: np.array([0.3 * t, -0.1 * t, 0.05 * t]))
+    assert knot_policy.next_interval(*track, **ARGS) == ARGS["dt_max"]
+
+
+def test_known_linear_acceleration_matches_formula():
+    # x = a t²/2 with a = 2 m/s²: exact second difference, so h = sqrt(6 ε / a)
+    track = _track(lambda t: 0.0, lambda t: np.array([t * t, 0.0, 0.0]))
+    angular, linear = knot_policy.tracked_accelerations(*track)
+    assert angular == pytest.approx(0.0, abs=1e-9) and linear == pytest.approx(2.0, rel=1e-9)
+    assert knot_policy.next_interval(*track, **ARGS) == pytest.approx(np.sqrt(6 * 0.005 / 2.0), rel=1e-9)
+
+
+def test_sharp_turn_shortens_interval_and_stays_in_bounds():
+    steady = _track(lambda t: 0.5 * t, lambda t: np.zeros(3))
+    turn = _track(lambda t: 2.0 * t * t, lambda t: np.zeros(3))   # 4 rad/s² angular acceleration
+    violent = _track(lambda t: 100.0 * t * t, lambda t: np.zeros(3))
+    lengths = [knot_policy.next_interval(*x, **ARGS) for x in (steady, turn, violent)]
+    assert lengths[0] > lengths[1] > lengths[2]
+    assert lengths[1] == pytest.approx(np.sqrt(6 * 0.005 / 4.0), rel=1e-6)
+    assert lengths[2] == ARGS["dt_min"]
+    assert all(ARGS["dt_min"] <= h <= ARGS["dt_max"] for h in lengths)
+
+
+def test_deterministic():
+    track = _track(lambda t: np.sin(3 * t), lambda t: np.array([np.cos(2 * t), t, 0.0]))
+    assert knot_policy.next_interval(*track, **ARGS) == knot_policy.next_interval(*track, **ARGS)
+
+
+def test_bad_input_names_value():
+    track = _track(lambda t: 0.0, lambda t: np.zeros(3))
+    with pytest.raises(ValueError, match="dt_min"):
+        knot_policy.next_interval(*track, **{**ARGS, "dt_min": 0.5})
+    with pytest.raises(ValueError, match="strictly increasing"):
+        knot_policy.next_interval(track[0][::-1].copy(), *track[1:], **ARGS)

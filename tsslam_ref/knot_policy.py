@@ -1,0 +1,79 @@
+"""Knot policy: the length of the next spline interval from the motion tracking has seen.
+
+Extends TS-SLAM §III-B (Eq. 5-7), whose knots are equally spaced (its Sec. V names fixed
+intervals as a limitation).  A cubic B-spline whose control points sit on a smooth motion
+approximates it with error ≈ h² |a| / 6 over an interval of length h (a = the motion's second
+derivative; the B-spline smooths a quadratic by h²/6 of its curvature).  Asking that error to stay
+below a tolerance ε gives h = sqrt(6 ε / |a|): slow, steady motion gets long intervals, turns and
+jerks get short ones.  The policy applies this separately to rotation (ε_rot in radians, |a| =
+angular acceleration) and translation (ε_pos in metres, |a| = linear acceleration), takes the
+shorter, and clips to [dt_min, dt_max].
+
+Accelerations come from second finite differences of the most recent tracked poses (world
+positions; rotation increments through the SO(3) log).  Pure numpy, deterministic.
+
+Layer 1 (math): imports nothing from the package.
+"""
+
+from typing import Tuple
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def _check_track(times: np.ndarray, rotations: np.ndarray, positions: np.ndarray) -> None:
+    """Raise ValueError naming the bad input. times (K,), rotations (K, 3, 3), positions (K, 3)."""
+    if times.ndim != 1 or times.shape[0] < 3:
+        raise ValueError(f"times must be a 1-D array of at least 3 tracked times, got shape {times.shape}")
+    if rotations.shape != (times.shape[0], 3, 3):
+        raise ValueError(f"rotations must have shape ({times.shape[0]}, 3, 3), got {rotations.shape}")
+    if positions.shape != (times.shape[0], 3):
+        raise ValueError(f"positions must have shape ({times.shape[0]}, 3), got {positions.shape}")
+    if np.any(np.diff(times) <= 0):
+        raise ValueError(f"times must be strictly increasing, got {times.tolist()}")
+
+
+def tracked_accelerations(times, rotations, positions) -> Tuple[float, float]:
+    """Peak angular (rad/s²) and linear (m/s²) acceleration of a tracked pose sequence.
+
+    times (K,) float64 s, rotations (K, 3, 3) world-from-camera, positions (K, 3) world metres, K ≥ 3.
+    Velocities are finite differences between consecutive poses (angular in the body frame via the
+    SO(3) log of R_kᵀ R_{k+1}); accelerations are differences of those over the mid-point spacing.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    rotations = np.asarray(rotations, dtype=np.float64)
+    positions = np.asarray(positions, dtype=np.float64)
+    _check_track(times, rotations, positions)
+    step = np.diff(times)                                               # (K-1,)
+    relative = np.einsum("kji,kjl->kil", rotations[:-1], rotations[1:])  # R_kᵀ R_{k+1}
+    angular_velocity = Rotation.from_matrix(relative).as_rotvec() / step[:, None]
+    linear_velocity = np.diff(positions, axis=0) / step[:, None]
+    mid_step = 0.5 * (step[:-1] + step[1:])[:, None]
+    angular_acc = np.linalg.norm(np.diff(angular_velocity, axis=0) / mid_step, axis=1)
+    linear_acc = np.linalg.norm(np.diff(linear_velocity, axis=0) / mid_step, axis=1)
+    return float(angular_acc.max()), float(linear_acc.max())
+
+
+def interval_for_acceleration(acceleration: float, tolerance: float, dt_max: float) -> float:
+    """Longest h with h² · acceleration / 6 ≤ tolerance, capped at dt_max (zero acceleration → dt_max)."""
+    if acceleration <= 0.0:
+        return dt_max
+    return min(dt_max, float(np.sqrt(6.0 * tolerance / acceleration)))
+
+
+def next_interval(times, rotations, positions, dt_min: float, dt_max: float,
+                  rotation_tolerance: float, position_tolerance: float) -> float:
+    """Length (s) of the next spline interval, within [dt_min, dt_max].
+
+    times (K,), rotations (K, 3, 3), positions (K, 3): the recent tracked poses (K ≥ 3).
+    rotation_tolerance (rad) and position_tolerance (m): the approximation error allowed per interval.
+    """
+    if not 0.0 < dt_min <= dt_max:
+        raise ValueError(f"need 0 < dt_min <= dt_max, got dt_min={dt_min}, dt_max={dt_max}")
+    if rotation_tolerance <= 0.0 or position_tolerance <= 0.0:
+        raise ValueError(f"tolerances must be > 0, got rotation_tolerance={rotation_tolerance}, "
+                         f"position_tolerance={position_tolerance}")
+    angular_acc, linear_acc = tracked_accelerations(times, rotations, positions)
+    length = min(interval_for_acceleration(angular_acc, rotation_tolerance, dt_max),
+                 interval_for_acceleration(linear_acc, position_tolerance, dt_max))
+    return float(np.clip(length, dt_min, dt_max))
