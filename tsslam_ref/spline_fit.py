@@ -98,34 +98,62 @@ def fit_control_points(
     if target_poses.shape != (times.shape[0], 4, 4):
         raise ValueError(f"target_poses must be ({times.shape[0]}, 4, 4) to match times, got {tuple(target_poses.shape)}")
     out_dtype, device = target_poses.dtype, target_poses.device
-    work = torch.float64
     first, u, _ = _locate(times, n_ctrl, dt, t0, convention)  # raises on out-of-domain times
+    fixed = _fixed_mask(fixed, n_ctrl, device)
+    rotations, translations = _starting_control_points(
+        times, target_poses, dt, t0, n_ctrl, convention, init_rotations, init_translations, fixed
+    )
+    free = (~fixed).nonzero().reshape(-1)  # (F,)
+    if free.shape[0] > 0:
+        residuals = _pose_residuals(target_poses, free, first, u, dt)
+        rotations, translations = _levenberg_marquardt(residuals, rotations, translations, free, iters, tolerance)
+    return rotations.to(out_dtype), translations.to(out_dtype)
+
+
+def _fixed_mask(fixed: Optional[torch.Tensor], n_ctrl: int, device: torch.device) -> torch.Tensor:
+    """(N,) bool mask of control points kept at their initial value (None = none fixed)."""
     if fixed is None:
         fixed = torch.zeros(n_ctrl, dtype=torch.bool)
     fixed = torch.as_tensor(fixed, dtype=torch.bool).reshape(-1).to(device)
     if fixed.shape[0] != n_ctrl:
         raise ValueError(f"fixed mask must have n_ctrl={n_ctrl} entries, got {fixed.shape[0]}")
+    return fixed
+
+
+def _starting_control_points(times: np.ndarray, target_poses: torch.Tensor, dt: float, t0: float, n_ctrl: int,
+                             convention: str, init_rotations: Optional[torch.Tensor],
+                             init_translations: Optional[torch.Tensor],
+                             fixed: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The LM start, float64 copies: the given values, else :func:`initial_control_points_from_poses`.
+
+    Returns rotations (N, 3, 3) and translations (N, 3); fixed points require given values.
+    """
+    device, work = target_poses.device, torch.float64
     guess_R, guess_p = initial_control_points_from_poses(times, target_poses.detach(), dt, t0, n_ctrl, convention)
     if bool(fixed.any()) and (init_rotations is None or init_translations is None):
         raise ValueError("fixed control points need init_rotations and init_translations")
     rotations = (init_rotations if init_rotations is not None else guess_R).detach().to(device, work).clone()
     translations = (init_translations if init_translations is not None else guess_p).detach().to(device, work).clone()
-    target_R = target_poses[:, :3, :3].detach().to(work)
-    target_p = target_poses[:, :3, 3].detach().to(work)
-    free = (~fixed).nonzero().reshape(-1)  # (F,)
-    if free.shape[0] > 0:
+    return rotations, translations
 
-        def residuals(rotations: torch.Tensor, translations: torch.Tensor, increments: torch.Tensor) -> torch.Tensor:
-            """Control points and (F, 6) increments [δ, τ] of the free ones -> (K*6,) stacked
-            rotation and translation residuals."""
-            R = rotations.index_copy(0, free, so3_exp(increments[:, :3]) @ rotations[free])
-            p = translations.index_copy(0, free, translations[free] + increments[:, 3:])
-            sample = evaluate_segments(R, p, first, u, dt, 0)
-            rot_res = so3_log(target_R.transpose(-1, -2) @ sample.rotation)  # (K, 3)
-            return torch.cat([rot_res, target_p - sample.translation], dim=-1).reshape(-1)
 
-        rotations, translations = _levenberg_marquardt(residuals, rotations, translations, free, iters, tolerance)
-    return rotations.to(out_dtype), translations.to(out_dtype)
+def _pose_residuals(target_poses: torch.Tensor, free: torch.Tensor, first, u, dt: float):
+    """Eq. (11)'s residual function for :func:`_levenberg_marquardt`.
+
+    The returned function maps control points and (F, 6) increments [δ, τ] of the free ones to the
+    (K*6,) stacked rotation residuals Log(R_kᵀ R(t_k)) and translation residuals t_k − t(t_k).
+    """
+    target_R = target_poses[:, :3, :3].detach().to(torch.float64)
+    target_p = target_poses[:, :3, 3].detach().to(torch.float64)
+
+    def residuals(rotations: torch.Tensor, translations: torch.Tensor, increments: torch.Tensor) -> torch.Tensor:
+        R = rotations.index_copy(0, free, so3_exp(increments[:, :3]) @ rotations[free])
+        p = translations.index_copy(0, free, translations[free] + increments[:, 3:])
+        sample = evaluate_segments(R, p, first, u, dt, 0)
+        rot_res = so3_log(target_R.transpose(-1, -2) @ sample.rotation)  # (K, 3)
+        return torch.cat([rot_res, target_p - sample.translation], dim=-1).reshape(-1)
+
+    return residuals
 
 
 def _levenberg_marquardt(residual_fn, rotations: torch.Tensor, translations: torch.Tensor, free: torch.Tensor,
