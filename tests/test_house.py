@@ -85,7 +85,7 @@ def test_counters_on_a_snippet_counted_by_eye():
 
 
 def test_the_package_is_read_whole():
-    """The scan sees nested packages and this branch's own modules (guards against an empty scan)."""
+    """The scan sees nested packages and the modules split out of config and run (guards against an empty scan)."""
     names = set(package_sources())
     assert {"config", "presets", "config_io", "run", "run_outputs", "datasets.layouts"} <= names
 

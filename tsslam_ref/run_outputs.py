@@ -26,14 +26,22 @@ def write_partial_trajectory(state, out: Path) -> None:
     data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
 
 
-def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> dict:
-    """ATE / RPE against the sequence's ground truth (frames with a finite GT pose)."""
+def _known_ground_truth(sequence):
+    """(gt (N, 4, 4) float64 camera-to-world, known (N,) bool: a finite GT pose), or None when the
+    sequence has no ground truth or fewer than 3 frames with one (too few to align)."""
     if sequence.gt_poses is None:
-        return {}
+        return None
     gt = np.asarray(sequence.gt_poses, dtype=np.float64)
     known = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
-    if known.sum() < 3:
+    return (gt, known) if known.sum() >= 3 else None
+
+
+def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> dict:
+    """ATE / RPE against the sequence's ground truth (frames with a finite GT pose)."""
+    ground_truth = _known_ground_truth(sequence)
+    if ground_truth is None:
         return {}
+    gt, known = ground_truth
     return eval_module.evaluate_trajectory(timestamps[known], gt[known], timestamps, poses)
 
 
@@ -74,18 +82,17 @@ def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, m
     with atomic_path(out / "trajectory.png") as temporary:
         figure.savefig(temporary, dpi=80, format="png")
     plt.close(figure)
-    if sequence.gt_poses is not None:
-        gt = np.asarray(sequence.gt_poses)
-        known = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
-        if known.sum() >= 3:
-            result = eval_module.ate(gt[known], poses[known])
-            figure, axis = plt.subplots(figsize=(6, 3))
-            axis.plot(timestamps[known] - timestamps[0], np.asarray(result["errors_m"]) * 100)
-            axis.set_xlabel("time since first frame [s]"), axis.set_ylabel("position error after alignment [cm]")
-            figure.tight_layout()
-            with atomic_path(out / "errors.png") as temporary:
-                figure.savefig(temporary, dpi=80, format="png")
-            plt.close(figure)
+    ground_truth = _known_ground_truth(sequence)
+    if ground_truth is not None:
+        gt, known = ground_truth
+        result = eval_module.ate(gt[known], poses[known])
+        figure, axis = plt.subplots(figsize=(6, 3))
+        axis.plot(timestamps[known] - timestamps[0], np.asarray(result["errors_m"]) * 100)
+        axis.set_xlabel("time since first frame [s]"), axis.set_ylabel("position error after alignment [cm]")
+        figure.tight_layout()
+        with atomic_path(out / "errors.png") as temporary:
+            figure.savefig(temporary, dpi=80, format="png")
+        plt.close(figure)
 
 
 def write_outputs(plan, result) -> None:
