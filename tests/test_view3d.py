@@ -145,7 +145,7 @@ def test_bundle_draws_a_mesh_and_rgb_points():
 
 @pytest.mark.parametrize("call, message", [
     (lambda: view3d.point_cloud(np.zeros((5, 2))), r"points has shape \(5, 2\), expected \(N, 3\)"),
-    (lambda: view3d.point_cloud(np.zeros((5, 3)), np.zeros(4)), r"color has shape \(4,\), expected \(5\)"),
+    (lambda: view3d.point_cloud(np.zeros((5, 3)), np.zeros(4)), r"color has shape \(4,\), expected \(5,\)"),
     (lambda: view3d.point_cloud(np.full((2, 3), np.nan)), "non-finite"),
     (lambda: view3d.point_cloud(np.zeros((2, 3)), 2 * np.ones((2, 3))), r"RGB color must lie in \[0, 1\]"),
     (lambda: view3d.point_cloud(np.zeros((2, 3)), np.zeros(2), colorscale="Jet"), "colorscale = 'Jet'"),

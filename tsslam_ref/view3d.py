@@ -56,7 +56,7 @@ def _array(value, name: str, shape: tuple) -> np.ndarray:
     array = np.asarray(value, dtype=np.float64)
     fits = array.ndim == len(shape) and all(s is None or s == n for s, n in zip(shape, array.shape))
     if not fits:
-        wanted = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        wanted = "(" + ", ".join("N" if s is None else str(s) for s in shape) + (",)" if len(shape) == 1 else ")")
         raise ValueError(f"{name} has shape {tuple(array.shape)}, expected {wanted}")
     if not np.isfinite(array).all():
         raise ValueError(f"{name} holds non-finite values (NaN or inf); drop them first")
