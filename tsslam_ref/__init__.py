@@ -18,7 +18,8 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
   them): ``data`` and ``datasets.*`` (loaders), ``synthetic`` (procedural scenes),
   ``trajectory_metrics`` (ATE, RPE), ``reconstruction_metrics`` (culling, Acc/Comp, Depth L1),
   ``eval`` (their command line), ``conformance`` and ``spline_kit`` (spline conformance kit),
-  ``analytic`` (an exact stand-in map for the chapters and tests)
+  ``analytic`` (an exact stand-in map for the chapters and tests), ``view3d`` (interactive 3-D
+  figures with a static picture)
 * 2 objective: ``losses`` (Eq. 4), ``mapping`` (map fitting with known poses), ``mesh``
 * 2.5 shared optimisation: ``bundle`` (pose models, keyframe rays, the joint loop)
 * 3 optimisers: ``tracking``, ``local_ba``, ``global_ba``
@@ -65,6 +66,7 @@ LAYERS = {
     "conformance": 1.5,
     "spline_kit": 1.5,
     "analytic": 1.5,
+    "view3d": 1.5,
     # 2 objective
     "losses": 2,
     "mapping": 2,
