@@ -50,6 +50,7 @@ from .global_ba import CurrentFrame, coslam_global_ba, tsslam_global_ba
 from .losses import RenderLossSettings
 from .mapping import estimate_bound, fit_map, make_map_optimizer
 from .render import RayBatch
+from .spline import first_segment_offset
 from .timings import Timings
 from .tracking import TrackingResult, constant_velocity_init, track_frame
 from .trajectory import BSplineTrajectory
@@ -349,7 +350,7 @@ def map_interval(state: SLAMState, frame: FrameTensors) -> None:
     else:
         discrete_pose_interval(state, frame, n)
     state.intervals_done = n + 1
-    drop_old_rays(state, state.trajectory.interval(n)[1])
+    drop_old_rays(state, n)
 
 
 def add_control_point(state: SLAMState, frame: FrameTensors, n: int) -> BSplineTrajectory:
@@ -422,7 +423,7 @@ def discrete_pose_interval(state: SLAMState, frame: FrameTensors, n: int) -> Non
     cfg = state.cfg
     times = state.timestamps[: frame.index + 1]
     interval_end = state.trajectory.interval(n)[1]
-    window_start = interval_end - cfg.local_ba.window * state.trajectory.dt
+    window_start = state.trajectory.knot_time_before(interval_end_knot(state.trajectory, n), cfg.local_ba.window)
     with state.timings.stage("lba_others", cfg.local_ba.refine_iters + cfg.local_ba.joint_iters):
         frames = [j for j in sorted(state.window_rays) if window_start <= times[j] < interval_end]
         if frames:
@@ -433,9 +434,16 @@ def discrete_pose_interval(state: SLAMState, frame: FrameTensors, n: int) -> Non
     discrete_global_ba(state, frame)
 
 
-def drop_old_rays(state: SLAMState, interval_end: float) -> None:
-    """Forget the tracking rays of frames older than any later window can reach."""
-    oldest_needed = interval_end - (state.cfg.local_ba.window + 2) * state.trajectory.dt
+def interval_end_knot(trajectory: BSplineTrajectory, n: int) -> int:
+    """Index k of the knot t_k that ends interval n: n + o + 1 (o: the convention's first-segment offset)."""
+    return n + first_segment_offset(trajectory.convention) + 1
+
+
+def drop_old_rays(state: SLAMState, n: int) -> None:
+    """Forget the tracking rays of frames older than any window after interval ``n`` can reach
+    (``local_ba.window`` + 2 intervals before its end)."""
+    oldest_needed = state.trajectory.knot_time_before(interval_end_knot(state.trajectory, n),
+                                                      state.cfg.local_ba.window + 2)
     for j in [j for j in state.window_rays if state.timestamps[j] < oldest_needed]:
         del state.window_rays[j]
 
