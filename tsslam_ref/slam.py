@@ -12,7 +12,8 @@
   - ``method="tsslam"``: the trajectory is a cubic B-spline (``trajectory.py``).  When a frame's
     time passes the end of the newest interval, :func:`map_interval` runs that interval's stages:
     add the control point by curve approximation, local BA in the window, global BA outside it,
-    commit with the deviation check.  On every ``mapping.tsslam_map_every``-th frame where no
+    commit with the deviation check (with ``spline.knots="adaptive"`` the end of the next interval
+    is decided first, ``knot_schedule.py``).  On every ``mapping.tsslam_map_every``-th frame where no
     interval ends, Co-SLAM's global BA runs on what the spline does not reach yet
     (:func:`tsslam_map_update`, ours; 0 gives the paper's schedule).  Keyframe every
     ``keyframe_every`` frames.
@@ -39,7 +40,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from . import local_ba
+from . import knot_schedule, local_ba
 from .bundle import KeyframeDatabase
 from .config import Config, validate
 from .device import FrameTensors, frame_to_device, resolve_device
@@ -140,6 +141,7 @@ def prepare_run(sequence, cfg: Config, device: Optional[torch.device], state: Op
         raise ValueError(f"a SLAM run needs at least 2 frames, the sequence has {len(sequence)}")
     if np.any(np.diff(np.asarray(sequence.timestamps, dtype=np.float64)) <= 0):
         raise ValueError("frame timestamps must be strictly increasing")
+    knot_schedule.check_knot_settings(cfg)
     device = device or resolve_device(cfg.device)
     if state is None:
         state = initial_state(sequence, cfg, device)
@@ -342,6 +344,8 @@ def map_interval(state: SLAMState, frame: FrameTensors) -> None:
     """The mapping step of interval ``state.intervals_done``, triggered by ``frame`` (Fig. 2)."""
     n = state.intervals_done
     if state.cfg.local_ba.use_spline:
+        if state.cfg.spline.knots == "adaptive":
+            knot_schedule.plan_next_interval(state, frame.index, n)
         trajectory = add_control_point(state, frame, n)
         if state.cfg.local_ba.enabled:
             trajectory = local_ba_in_window(state, frame, trajectory)
