@@ -116,21 +116,21 @@ def constant_velocity_control_points(trajectory: BSplineTrajectory, times: np.nd
         rate = (elapsed[:, None] * rotvecs).sum(0) / weight
     else:
         velocity = rate = torch.zeros(3, dtype=torch.float64)
-    elapsed_at_points = control_point_offsets(trajectory)  # (4, 1) s
-    translations = offset + velocity * elapsed_at_points  # (4, 3)
-    rotations = first_rotation @ so3_exp(rate * elapsed_at_points)  # (4, 3, 3)
+    translations = offset + line_at_control_points(trajectory, velocity)  # (4, 3)
+    rotations = first_rotation @ so3_exp(line_at_control_points(trajectory, rate))  # (4, 3, 3)
     return rotations.to(poses.dtype), translations.to(poses.dtype)
 
 
-def control_point_offsets(trajectory: BSplineTrajectory) -> torch.Tensor:
-    """(4, 1) float64 times (s) of the first four control points after the first frame, where a
-    line's control points sit: (k - 1) dt when uniform, else the Greville abscissae of the
-    trajectory's own knots minus the first interval's start (:func:`knots.greville_times`)."""
-    k = torch.arange(4, dtype=torch.float64)[:, None] - 1.0  # (4, 1)
+def line_at_control_points(trajectory: BSplineTrajectory, rate: torch.Tensor) -> torch.Tensor:
+    """(4, 3) float64: ``rate`` (3,) times each of the first four control points' time after the
+    first frame, where a line's control points sit: (k - 1) dt when uniform, else the Greville
+    abscissae of the trajectory's own knots minus the first interval's start
+    (:func:`knots.greville_times`)."""
     if trajectory.uniform:
-        return trajectory.dt * k
+        k = torch.arange(4, dtype=torch.float64)[:, None] - 1.0  # (4, 1)
+        return rate * trajectory.dt * k  # this order of products, as the uniform loop always had
     greville = knots_module.greville_times(trajectory.knot_vector(4)) - trajectory.interval(0)[0]
-    return torch.as_tensor(greville, dtype=torch.float64)[:, None]
+    return rate * torch.as_tensor(greville, dtype=torch.float64)[:, None]
 
 
 def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses: torch.Tensor,
