@@ -119,3 +119,19 @@ def test_damaged_and_foreign_files_are_refused_naming_the_file(state, tmp_path):
     torch.save(plain, tmp_path / "partial.pt")
     with pytest.raises(checkpoint.CheckpointError, match="partial.pt: checkpoint entry 'frame_poses' is missing"):
         checkpoint.load(tmp_path / "partial.pt")
+
+
+def test_knot_times_survive_a_checkpoint_and_older_checkpoints_load_as_uniform(state, tmp_path):
+    uneven = state.trajectory.clone()
+    uneven.plan_interval_end(uneven.n_ctrl - 3, uneven.domain()[1] + 0.037)
+    state_uneven = checkpoint.from_plain(checkpoint.to_plain(state))
+    state_uneven.trajectory = uneven
+    checkpoint.save(state_uneven, tmp_path / "uneven.pt")
+    back = checkpoint.load(tmp_path / "uneven.pt").trajectory
+    assert not back.uniform and np.array_equal(back.knot_vector(uneven.n_ctrl + 1), uneven.knot_vector(uneven.n_ctrl + 1))
+    plain = checkpoint.to_plain(state)
+    assert plain["trajectory"]["knot_times"] is None  # a uniform run stores no knot times
+    for key in ("knot_times", "knot_offset"):  # as written before knot times were saved
+        del plain["trajectory"][key]
+    older = checkpoint.from_plain(plain).trajectory
+    assert older.uniform and older.dt == state.trajectory.dt and older.t0 == state.trajectory.t0

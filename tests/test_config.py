@@ -30,6 +30,8 @@ def test_every_preset_passes_its_own_checks(name):
     ("mapping.kf_pixel_fraction=1.5", "mapping.kf_pixel_fraction = 1.5 must be in (0, 1]"),
     ("dynamics.barrier_limit=1", "dynamics.barrier_limit = 1 must be in (0, 1)"),
     ("spline.convention=cumulative", "spline.convention = 'cumulative' must be one of paper, basalt"),
+    ("spline.knots=random", "spline.knots = 'random' must be one of uniform, adaptive"),
+    ("spline.dt_min=0", "spline.dt_min = 0 must be in (0, 10]"),
     ("method=orbslam", "method = 'orbslam' must be one of tsslam, coslam"),
     ("local_ba.fit_controls=7", "local_ba.fit_controls = 7 must be <= local_ba.window = 6"),
     ("render.far=0", "render.far = 0 must be > render.near = 0.0"),

@@ -51,3 +51,22 @@ def test_bad_input_names_value():
         knot_policy.next_interval(*track, **{**ARGS, "dt_min": 0.5})
     with pytest.raises(ValueError, match="strictly increasing"):
         knot_policy.next_interval(track[0][::-1].copy(), *track[1:], **ARGS)
+
+
+def test_interval_scale_samples_are_first_middle_last_or_none():
+    times = 2.0 + np.arange(10) / 30.0
+    assert knot_policy.interval_scale_samples(times, 0.1).tolist() == [0, 4, 9]  # 4 and 5 tie: the first
+    assert knot_policy.interval_scale_samples(times, 0.5).size == 0  # spans 0.3 s < 0.5 s
+    assert knot_policy.interval_scale_samples(times[:2], 0.01).size == 0
+
+
+def test_interval_scale_samples_see_a_known_acceleration_without_the_frame_noise():
+    """x = a t²/2 plus 1 mm tracking noise: frame-spacing differences report tens of m/s², the
+    interval-scale samples the true 2 m/s² within the noise's (h/Δ)²-smaller effect."""
+    rng = np.random.default_rng(0)
+    track = _track(lambda t: 0.0, lambda t: np.array([t * t, 0.0, 0.0]), n=19)
+    noisy = (track[0], track[1], track[2] + 0.001 * rng.standard_normal(track[2].shape))
+    assert knot_policy.tracked_accelerations(*noisy)[1] > 5.0
+    pick = knot_policy.interval_scale_samples(noisy[0], 0.3)
+    linear = knot_policy.tracked_accelerations(*(array[pick] for array in noisy))[1]
+    assert abs(linear - 2.0) < 0.5, linear

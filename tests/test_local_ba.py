@@ -9,7 +9,7 @@ import copy
 import numpy as np
 import torch
 
-from tsslam_ref import config, local_ba, spline
+from tsslam_ref import config, knots, local_ba, spline
 from tsslam_ref.geometry import make_pose, so3_exp
 from tsslam_ref.synthetic import builtin_trajectory
 from tsslam_ref.trajectory import BSplineTrajectory
@@ -139,3 +139,39 @@ def test_the_spline_starts_at_frame_0_and_keeps_starting_there():
     moved = float((grown.control_translations[2] - first.control_translations[2]).norm())
     assert moved > 1e-4  # the fits moved point 2 ...
     assert torch.allclose(grown.poses(TIMES[:1])[0], poses[0], atol=1e-9)  # ... and frame 0 did not move
+
+
+def test_first_interval_fit_is_exact_for_constant_velocity_motion_on_uneven_knots():
+    """With the next interval planned shorter, the line's control points sit at the knots' Greville
+    abscissae; the non-uniform spline (knots.evaluate) then reproduces the motion exactly."""
+    first = 10.0
+    times = first + np.arange(8) / 30.0
+    velocity = torch.tensor([0.3, -0.1, 0.05], dtype=torch.float64)
+    rate = torch.tensor([0.2, 0.4, -0.3], dtype=torch.float64)
+    elapsed = torch.as_tensor(times - first)
+    poses = make_pose(so3_exp(elapsed[:, None] * rate), 1.0 + elapsed[:, None] * velocity)
+    trajectory = BSplineTrajectory.empty(first, 0.25, poses)
+    trajectory.plan_interval_end(1, trajectory.interval(0)[1] + 0.12)
+    rotations, translations = local_ba.constant_velocity_control_points(trajectory, times, poses)
+    sample = knots.evaluate(rotations, translations, times, trajectory.knot_vector(4), derivatives=2)
+    assert torch.allclose(make_pose(sample.rotation, sample.translation), poses, atol=1e-10)
+    assert torch.allclose(sample.velocity_world, velocity.expand(8, 3), atol=1e-10)
+    assert float(sample.acceleration_world.abs().max()) < 1e-10
+
+
+def test_curve_approximation_on_uneven_knots_keeps_them_and_stays_at_the_noise_level():
+    """Intervals alternating 0.15 s and 0.3 s: the fit follows the ground truth as on uniform knots."""
+    cfg = config.tiny()
+    poses = noisy_truth(0.002)
+    truth = torch.as_tensor(builtin_trajectory(TIMES), dtype=poses.dtype)
+    trajectory = BSplineTrajectory.empty(float(TIMES[0]), cfg.spline.dt, poses)
+    for n in range(9):
+        trajectory.plan_interval_end(n + 1, trajectory.interval(n)[1] + (0.15 if n % 2 else 0.3))
+        start, end = local_ba.fit_time_range(trajectory, n, cfg.local_ba)
+        inside = np.nonzero((TIMES >= start) & (TIMES < end))[0]
+        trajectory = local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba)
+    lengths = np.diff(trajectory.knot_times()[2:])
+    assert np.allclose(lengths[1:], [0.3 if n % 2 else 0.15 for n in range(1, len(lengths))], atol=1e-9)
+    covered = trajectory.covers(TIMES)
+    error = (trajectory.poses(TIMES[covered])[:, :3, 3] - truth[covered, :3, 3]).norm(dim=-1)
+    assert float(error.max()) < 0.01, float(error.max())

@@ -52,6 +52,35 @@ def test_slam_tracks_a_synthetic_sequence(synthetic_sequence, method):
         assert np.allclose(result.poses, spline_poses, atol=1e-6)  # outputs are the spline's poses
 
 
+def test_adaptive_knots_run_end_to_end_with_uneven_intervals(synthetic_sequence):
+    """spline.knots=adaptive: the run completes, its knots are uneven and within [dt_min, dt_max]
+    after the first interval (which is dt long), the outputs are the spline's poses and they
+    follow the ground truth as the uniform run does."""
+    cfg = config.apply_overrides(small_config("tsslam"), ["spline.knots=adaptive", "spline.dt_min=0.1",
+                                                      "spline.dt_max=0.3", "spline.position_tolerance=0.0005"])
+    sequence = data.load_sequence(synthetic_sequence)
+    result = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+    trajectory = result.state.trajectory
+    lengths = np.diff(trajectory.knot_times()[2:])  # interval n is [t_{n+2}, t_{n+3})
+    assert not trajectory.uniform and lengths[0] == pytest.approx(cfg.spline.dt)
+    assert np.all(lengths[1:] >= 0.1 - 1e-9) and np.all(lengths[1:] <= 0.3 + 1e-9)
+    assert np.ptp(lengths) > 0.02, lengths  # not one spacing
+    assert trajectory.covers(sequence.timestamps).all()
+    assert np.allclose(result.poses, trajectory.poses(sequence.timestamps).double().numpy(), atol=1e-6)
+    metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
+    assert metrics["ate_rmse_m"] < 0.03, metrics
+
+
+def test_adaptive_knot_settings_that_cannot_run_are_named(synthetic_sequence):
+    sequence = data.load_sequence(synthetic_sequence)
+    cfg = config.apply_overrides(small_config("tsslam"), ["spline.knots=adaptive", "spline.dt_min=0.5", "spline.dt_max=0.2"])
+    with pytest.raises(ValueError, match="spline.dt_min = 0.5 s must be <= spline.dt_max = 0.2 s"):
+        slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+    cfg = config.apply_overrides(small_config("tsslam"), ["spline.knots=adaptive", "local_ba.use_spline=false"])
+    with pytest.raises(ValueError, match="local_ba.use_spline must be true"):
+        slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+
+
 def test_tsslam_map_update_between_intervals_moves_only_the_map(synthetic_sequence, monkeypatch):
     """mapping.tsslam_map_every: a global BA on every n-th frame on which no interval completes;
     it must leave the spline and the poses of the frames it reaches as they were, move the map and

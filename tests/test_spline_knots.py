@@ -10,8 +10,8 @@ import pytest
 import torch
 from scipy.interpolate import BSpline
 
-from tsslam_ref import knots, spline
-from tsslam_ref.geometry import so3_exp, so3_log
+from tsslam_ref import knots, spline, spline_fit
+from tsslam_ref.geometry import make_pose, so3_exp, so3_log
 
 F64 = torch.float64
 
@@ -129,3 +129,34 @@ def test_too_few_control_points_and_off_domain_times_are_named():
         knots.evaluate(R, P, kv[-3] + 1e-3, kv)
     end = knots.evaluate(R, P, np.array([kv[2], kv[-3]]), kv).translation  # closed domain
     assert torch.isfinite(end).all()
+
+
+def test_curve_approximation_on_a_knot_vector_recovers_the_curve():
+    """Eq. (11) on a non-uniform layout: from poses of a known non-uniform spline and a start at the
+    Greville abscissae, the fitted curve is that spline (oracle: knots.evaluate, checked against scipy)."""
+    rotations, translations, knot_vector = random_spline(5, n_ctrl=8, step=0.3)
+    times = interior_times(knot_vector, 60)
+    sample = knots.evaluate(rotations, translations, times, knot_vector)
+    target = make_pose(sample.rotation, sample.translation)
+    fit_R, fit_P = spline_fit.fit_control_points(times, target, 1.0, 0.0, 8, iters=50, knots=knot_vector)
+    refit = knots.evaluate(fit_R, fit_P, times, knot_vector)
+    assert torch.allclose(refit.translation, sample.translation, atol=1e-9)
+    assert float(so3_log(refit.rotation.transpose(-1, -2) @ sample.rotation).norm(dim=-1).max()) < 1e-8
+    # equally spaced knots: the same fit as the uniform layout
+    even = knots.uniform_knots(8, 0.25, 3.0)
+    times = interior_times(even, 40)
+    sample = knots.evaluate(rotations, translations, times, even)
+    target = make_pose(sample.rotation, sample.translation)
+    by_knots = spline_fit.fit_control_points(times, target, 1.0, 0.0, 8, iters=30, knots=even)
+    by_spacing = spline_fit.fit_control_points(times, target, 0.25, 3.0, 8, iters=30)
+    for a, b in zip(by_knots, by_spacing):
+        assert torch.allclose(a, b, atol=1e-9)
+
+
+def test_greville_times_are_where_a_line_puts_its_control_points():
+    _, _, knot_vector = random_spline(6, n_ctrl=9)
+    greville = knots.greville_times(knot_vector)
+    line = np.stack([2.0 + 0.5 * greville, -1.0 * greville, 0.3 + 0 * greville], axis=-1)
+    times = interior_times(knot_vector, 31)
+    oracle = BSpline(np.r_[knot_vector[0] - 1.0, knot_vector, knot_vector[-1] + 1.0], line, 3)(times)
+    assert np.allclose(oracle, np.stack([2.0 + 0.5 * times, -times, 0.3 + 0 * times], -1), atol=1e-9, rtol=0)

@@ -226,3 +226,39 @@ def test_bad_knot_times_are_named():
         BSplineTrajectory(R, P, 0.25, 0.1, knots=[0.0, 0.5, 0.6, 0.7, 0.9])
     with pytest.raises(ValueError, match="must hold knot 0"):
         BSplineTrajectory(R, P, 0.25, 0.0, knots=[0.0, 0.5], knot_offset=1)
+
+
+def test_planning_an_interval_end_sets_that_knot_and_only_uncovered_intervals_can_be_planned():
+    R, P = random_controls(35, 6)
+    traj = BSplineTrajectory.empty(1.0, 0.25, torch.zeros(1, dtype=F64))
+    traj.plan_interval_end(1, traj.interval(0)[1] + 0.1)  # before any control point, as the loop does
+    assert traj.interval(1) == (1.25, 1.35) and not traj.uniform
+    for k in range(5):
+        traj.push_back(R[k], P[k])
+    assert traj.knot_times()[4] == 1.35 and traj.domain() == (1.0, 1.35)  # intervals 0, 1 covered
+    with pytest.raises(ValueError, match="interval 1 is already covered by the 5 control points"):
+        traj.plan_interval_end(1, 1.4)
+    traj.plan_interval_end(2, 1.5)
+    traj.push_back(R[5], P[5])
+    assert traj.interval(2) == (1.35, 1.5)
+    # the curve is the non-uniform spline on exactly these knots (knots.evaluate, checked against scipy)
+    knot_vector = np.r_[1.0 - 2 * 0.25 + 0.25 * np.arange(4), 1.35, 1.5, 1.75, 2.0]
+    times = np.linspace(*traj.domain(), 13)
+    for a, b in zip(traj.evaluate(times, 2), knots.evaluate(R, P, times, knot_vector, 2)):
+        assert torch.equal(a, b)
+
+
+def test_knot_time_before_is_the_uniform_arithmetic_or_the_stored_knot():
+    uniform = BSplineTrajectory.empty(1e9 + 0.1, 0.3, torch.zeros(1, dtype=F64))
+    assert uniform.knot_time_before(7, 3) == uniform.knot_time(7) - 3 * 0.3  # bit for bit, not t0 + 4 dt
+    uneven = uneven_trajectory()
+    assert uneven.knot_time_before(7, 3) == uneven.knot_time(4)
+
+
+def test_spline_poses_keep_the_knot_times():
+    traj = uneven_trajectory(36, 8)
+    times = np.linspace(*traj.domain(), 11)
+    model = SplinePoses(traj, [3, 4], times, traj.poses(times), 1e-3, 1e-3)
+    rebuilt = model.trajectory()
+    assert np.array_equal(rebuilt.knot_vector(), traj.knot_vector())
+    assert torch.allclose(model.poses(), traj.poses(times), atol=1e-12)

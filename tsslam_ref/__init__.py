@@ -24,7 +24,8 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
 * 2.5 shared optimisation: ``bundle`` (pose models, keyframe rays, the joint loop)
 * 3 optimisers: ``tracking``, ``local_ba``, ``global_ba``
 * 4 system: ``slam`` (the loop), ``parallel`` (tracking and mapping in two threads), ``run``
-  (command line) with ``run_outputs`` (what a run writes), and their support ``device``, ``timings``, ``export``, ``checkpoint`` (the run's state on disk)
+  (command line) with ``run_outputs`` (what a run writes), and their support ``device``, ``timings``, ``export``,
+  ``knot_schedule`` (adaptive knots in the loop), ``checkpoint`` (the run's state on disk)
 
 Importing the package imports nothing heavy; import the module you need.
 """
@@ -85,6 +86,7 @@ LAYERS = {
     "device": 4,
     "timings": 4,
     "export": 4,
+    "knot_schedule": 4,
     "checkpoint": 4,
 }
 """Layer of every module (dotted name below the package); an import may point to the same or a

@@ -155,6 +155,7 @@ class SplinePoses(torch.nn.Module):
         self.rotation_delta = torch.nn.Parameter(torch.zeros_like(translations))
         self.translation_delta = torch.nn.Parameter(torch.zeros_like(translations))
         self.dt, self.t0, self.convention = trajectory.dt, trajectory.t0, trajectory.convention
+        self.knot_timing = trajectory.timing()  # the trajectory's own knot times (none when uniform)
         self.slot_times = np.asarray(slot_times, dtype=np.float64)
         self.slot_valid = trajectory.covers(self.slot_times)
         self.register_buffer("fallback", fallback_poses.detach().clone())
@@ -178,7 +179,8 @@ class SplinePoses(torch.nn.Module):
     def trajectory(self) -> BSplineTrajectory:
         """The current trajectory, differentiable in the free control points (detach it to keep it)."""
         rotations, translations = self.control_points()
-        return BSplineTrajectory(rotations, translations, self.dt, self.t0, self.convention, self.start_pose)
+        return BSplineTrajectory(rotations, translations, self.dt, self.t0, self.convention, self.start_pose,
+                                 **self.knot_timing)
 
     def poses(self) -> torch.Tensor:
         """(P, 4, 4) slot poses: the spline's where it covers the slot's time, the fallback elsewhere."""

@@ -49,7 +49,9 @@ def to_plain(state) -> Dict[str, Any]:
                       "control_rotations": spline.control_rotations.detach(),
                       "control_translations": spline.control_translations.detach(),
                       "convention": str(spline.convention),
-                      "start_pose": None if spline.start_pose is None else spline.start_pose.detach()}
+                      "start_pose": None if spline.start_pose is None else spline.start_pose.detach(),
+                      "knot_times": None if spline.uniform else torch.from_numpy(spline.timing()["knots"]),
+                      "knot_offset": int(spline.knot_offset)}
     keyframes = state.keyframes
     return {
         "format": FORMAT,
@@ -76,6 +78,18 @@ def to_plain(state) -> Dict[str, Any]:
     }
 
 
+def _trajectory_from_plain(plain: Dict[str, Any], device):
+    """The spline of :func:`to_plain`; checkpoints written before knot times were saved are uniform."""
+    from .trajectory import BSplineTrajectory
+
+    knot_times = plain.get("knot_times")
+    timing = {} if knot_times is None else {"knots": knot_times.numpy().astype(np.float64),
+                                            "knot_offset": int(plain.get("knot_offset", 0))}
+    return BSplineTrajectory(plain["control_rotations"].to(device), plain["control_translations"].to(device),
+                             plain["dt"], plain["t0"], plain["convention"],
+                             None if plain["start_pose"] is None else plain["start_pose"].to(device), **timing)
+
+
 def from_plain(values: Dict[str, Any], device=None):
     """Rebuild a ``slam.SLAMState`` from :func:`to_plain`'s dict (tensors moved to ``device``)."""
     from .bundle import KeyframeDatabase
@@ -83,7 +97,6 @@ def from_plain(values: Dict[str, Any], device=None):
     from .mapping import make_map_optimizer
     from .slam import SLAMState
     from .timings import Timings
-    from .trajectory import BSplineTrajectory
 
     cfg = config_module.from_dict(json.loads(values["config"]), source="the checkpoint's config")
     device = torch.device(device) if device is not None else values["frame_poses"].device
@@ -98,10 +111,7 @@ def from_plain(values: Dict[str, Any], device=None):
         keyframes.add(index, stamp, _rays_from_plain({k: v.to(device) for k, v in rays.items()}))
     trajectory = None
     if values["trajectory"] is not None:
-        plain = values["trajectory"]
-        trajectory = BSplineTrajectory(plain["control_rotations"].to(device), plain["control_translations"].to(device),
-                                       plain["dt"], plain["t0"], plain["convention"],
-                                       None if plain["start_pose"] is None else plain["start_pose"].to(device))
+        trajectory = _trajectory_from_plain(values["trajectory"], device)
     generator = torch.Generator(device="cpu")
     if values["generator_state"] is not None:
         generator.set_state(values["generator_state"])

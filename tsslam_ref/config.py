@@ -209,7 +209,7 @@ class MappingConfig:
 
 @dataclass
 class SplineConfig:
-    """Uniform cubic B-spline trajectory (Sec. III-B)."""
+    """Cubic B-spline trajectory (Sec. III-B): uniform knots, or knots placed by the motion (ours)."""
 
     dt: float = ranged(0.3, "(]", (0, 10))
     """Knot spacing Delta t in seconds (paper: 0.30 ScanNet/synthetic, 0.25 TUM); at most 10 s: the
@@ -218,6 +218,24 @@ class SplineConfig:
     (t - t0) / dt loses precision (at 1e6 s positions fall onto a 1/64 m grid)."""
     convention: str = ranged("paper", "in", ('paper', 'basalt'))
     """Index convention: 'paper' (segment [t_i, t_i+1) uses points i-2..i+1) or 'basalt' (i..i+3)."""
+    knots: str = ranged("uniform", "in", ('uniform', 'adaptive'))
+    """'uniform': every interval dt long (the paper).  'adaptive' (ours, beyond the paper): the first
+    interval is dt long, each later one's length is chosen by the knot policy from the motion
+    tracked over the last two intervals, h = sqrt(6 eps / a) within [dt_min, dt_max] (knot_policy.py)."""
+    dt_min: float = ranged(0.1, "(]", (0, 10))
+    """Shortest adaptive interval (s): at the 30 Hz of RGB-D cameras 0.1 s holds about three frames,
+    the fewest whose tracked poses still constrain the interval's new control point."""
+    dt_max: float = ranged(0.4, "(]", (0, 10))
+    """Longest adaptive interval (s): hand-held and walking motion changes direction at 1-2 Hz (gait,
+    turns of the head), and a cubic B-spline needs at least about two intervals per half period
+    to bend with it, which 0.4 s still gives at 1 Hz."""
+    rotation_tolerance: float = ranged(0.005, ">", 0)
+    """Approximation error (rad, about 0.3 deg) the adaptive policy allows per interval: below the
+    few-tenths-of-a-degree rotation error of RGB-D tracking, so the curve's smoothing stays under
+    what tracking can resolve."""
+    position_tolerance: float = ranged(0.005, ">", 0)
+    """Approximation error (m) the adaptive policy allows per interval: the depth noise of RGB-D
+    sensors at 1-2 m (a few mm), below which tracked positions do not resolve the motion."""
 
 
 @dataclass

@@ -63,6 +63,17 @@ def valid_time_range(knots: np.ndarray) -> Tuple[float, float]:
     return float(knots[2]), float(knots[-3])
 
 
+def greville_times(knots: np.ndarray) -> np.ndarray:
+    """(N,) float64 time each control point dominates (its Greville abscissa, s) on a (N + 2,) knot vector.
+
+    Control point k acts on [κ_{k−1}, κ_{k+3}]; its abscissa is (κ_k + κ_{k+1} + κ_{k+2}) / 3, the
+    time the spline of a linear motion puts it at (control points on a line at these times give
+    that line exactly).  Equally spaced knots: κ_{k+1}, the uniform spline's peak time.
+    """
+    knots = np.asarray(knots, dtype=np.float64)
+    return (knots[:-2] + knots[1:-1] + knots[2:]) / 3.0
+
+
 def _polynomial_times_linear(poly: torch.Tensor, root: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """Coefficients (..., 4) of poly(u)·(u − root)·scale, powers 1, u, u², u³ (degree stays ≤ 3)."""
     shifted = torch.cat([torch.zeros_like(poly[..., :1]), poly[..., :-1]], dim=-1)  # u·poly

@@ -29,8 +29,12 @@ Ablations of paper Table V: ``local_ba.use_spline=False`` ("w/o B-S.",
 ``local_ba.enabled=False`` ("w/o LBA") keeps only the extrapolated control point;
 ``local_ba.use_dynamics=False`` ("w/o DR") drops L_DR.
 
-Layer 3 (optimiser): uses trajectory, spline_fit, losses (its settings type), bundle; never tracking
-or global_ba.
+Variable intervals: every time range here comes from the trajectory's own knot times
+(:meth:`trajectory.BSplineTrajectory.knot_time`), so the window of ``M`` control points spans ``M``
+intervals of whatever lengths the knots give (uniform or chosen by the knot policy).
+
+Layer 3 (optimiser): uses trajectory, knots, spline_fit, losses (its settings type), bundle; never
+tracking or global_ba.
 Taught in notebooks/06_local_ba.ipynb.
 """
 
@@ -39,12 +43,14 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from . import knots as knots_module
 from . import spline_fit
 from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, dynamics_term, joint_optimization, slotted
 from .config import DynamicsConfig, LocalBAConfig
 from .geometry import so3_exp, so3_log
 from .losses import RenderLossSettings
 from .render import RayBatch
+from .spline import first_segment_offset
 from .trajectory import BSplineTrajectory
 
 
@@ -110,10 +116,21 @@ def constant_velocity_control_points(trajectory: BSplineTrajectory, times: np.nd
         rate = (elapsed[:, None] * rotvecs).sum(0) / weight
     else:
         velocity = rate = torch.zeros(3, dtype=torch.float64)
-    k = torch.arange(4, dtype=torch.float64)[:, None] - 1.0  # (4, 1)
-    translations = offset + velocity * trajectory.dt * k  # (4, 3)
-    rotations = first_rotation @ so3_exp(rate * trajectory.dt * k)  # (4, 3, 3)
+    translations = offset + line_at_control_points(trajectory, velocity)  # (4, 3)
+    rotations = first_rotation @ so3_exp(line_at_control_points(trajectory, rate))  # (4, 3, 3)
     return rotations.to(poses.dtype), translations.to(poses.dtype)
+
+
+def line_at_control_points(trajectory: BSplineTrajectory, rate: torch.Tensor) -> torch.Tensor:
+    """(4, 3) float64: ``rate`` (3,) times each of the first four control points' time after the
+    first frame, where a line's control points sit: (k - 1) dt when uniform, else the Greville
+    abscissae of the trajectory's own knots minus the first interval's start
+    (:func:`knots.greville_times`)."""
+    if trajectory.uniform:
+        k = torch.arange(4, dtype=torch.float64)[:, None] - 1.0  # (4, 1)
+        return rate * trajectory.dt * k  # this order of products, as the uniform loop always had
+    greville = knots_module.greville_times(trajectory.knot_vector(4)) - trajectory.interval(0)[0]
+    return rate * torch.as_tensor(greville, dtype=torch.float64)[:, None]
 
 
 def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses: torch.Tensor,
@@ -155,17 +172,20 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
             rotations, translations = spline_fit.fit_control_points(
                 np.asarray(times, dtype=np.float64), poses, trajectory.dt, trajectory.t0, rotations.shape[0],
                 init_rotations=rotations, init_translations=translations, fixed=fixed,
-                iters=local_ba.fit_iters, convention=trajectory.convention)
+                iters=local_ba.fit_iters, convention=trajectory.convention,
+                knots=None if trajectory.uniform else trajectory.knot_vector(rotations.shape[0]))
             rotations, translations = spline_fit.pin_first_control_point(rotations, translations, start_pose)
     return BSplineTrajectory(rotations.detach().to(poses.dtype), translations.detach().to(poses.dtype),
-                             trajectory.dt, trajectory.t0, trajectory.convention, start_pose)
+                             trajectory.dt, trajectory.t0, trajectory.convention, start_pose, **trajectory.timing())
 
 
 def fit_time_range(trajectory: BSplineTrajectory, n: int, local_ba: LocalBAConfig) -> Tuple[float, float]:
     """[start, end) in s of the frames :func:`curve_approximation` fits when mapping interval ``n``:
     interval n and the ``local_ba.fit_controls - 1`` before it."""
-    start, end = trajectory.interval(n)
-    return max(trajectory.interval(0)[0], start - (local_ba.fit_controls - 1) * trajectory.dt), end
+    start_knot = n + first_segment_offset(trajectory.convention)  # interval n is [t_{n+o}, t_{n+o+1})
+    first_start = trajectory.knot_time_before(start_knot, local_ba.fit_controls - 1)
+    end = trajectory.interval(n)[1]
+    return max(trajectory.interval(0)[0], first_start), end
 
 
 def window_dynamics_range(trajectory: BSplineTrajectory, local_ba: LocalBAConfig) -> Optional[Tuple[float, float]]:

@@ -12,7 +12,8 @@
   - ``method="tsslam"``: the trajectory is a cubic B-spline (``trajectory.py``).  When a frame's
     time passes the end of the newest interval, :func:`map_interval` runs that interval's stages:
     add the control point by curve approximation, local BA in the window, global BA outside it,
-    commit with the deviation check.  On every ``mapping.tsslam_map_every``-th frame where no
+    commit with the deviation check (with ``spline.knots="adaptive"`` the end of the next interval
+    is decided first, ``knot_schedule.py``).  On every ``mapping.tsslam_map_every``-th frame where no
     interval ends, Co-SLAM's global BA runs on what the spline does not reach yet
     (:func:`tsslam_map_update`, ours; 0 gives the paper's schedule).  Keyframe every
     ``keyframe_every`` frames.
@@ -39,7 +40,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from . import local_ba
+from . import knot_schedule, local_ba
 from .bundle import KeyframeDatabase
 from .config import Config, validate
 from .device import FrameTensors, frame_to_device, resolve_device
@@ -50,6 +51,7 @@ from .global_ba import CurrentFrame, coslam_global_ba, tsslam_global_ba
 from .losses import RenderLossSettings
 from .mapping import estimate_bound, fit_map, make_map_optimizer
 from .render import RayBatch
+from .spline import first_segment_offset
 from .timings import Timings
 from .tracking import TrackingResult, constant_velocity_init, track_frame
 from .trajectory import BSplineTrajectory
@@ -139,6 +141,7 @@ def prepare_run(sequence, cfg: Config, device: Optional[torch.device], state: Op
         raise ValueError(f"a SLAM run needs at least 2 frames, the sequence has {len(sequence)}")
     if np.any(np.diff(np.asarray(sequence.timestamps, dtype=np.float64)) <= 0):
         raise ValueError("frame timestamps must be strictly increasing")
+    knot_schedule.check_knot_settings(cfg)
     device = device or resolve_device(cfg.device)
     if state is None:
         state = initial_state(sequence, cfg, device)
@@ -341,6 +344,8 @@ def map_interval(state: SLAMState, frame: FrameTensors) -> None:
     """The mapping step of interval ``state.intervals_done``, triggered by ``frame`` (Fig. 2)."""
     n = state.intervals_done
     if state.cfg.local_ba.use_spline:
+        if state.cfg.spline.knots == "adaptive":
+            knot_schedule.plan_next_interval(state, frame.index, n)
         trajectory = add_control_point(state, frame, n)
         if state.cfg.local_ba.enabled:
             trajectory = local_ba_in_window(state, frame, trajectory)
@@ -349,7 +354,7 @@ def map_interval(state: SLAMState, frame: FrameTensors) -> None:
     else:
         discrete_pose_interval(state, frame, n)
     state.intervals_done = n + 1
-    drop_old_rays(state, state.trajectory.interval(n)[1])
+    drop_old_rays(state, n)
 
 
 def add_control_point(state: SLAMState, frame: FrameTensors, n: int) -> BSplineTrajectory:
@@ -422,7 +427,7 @@ def discrete_pose_interval(state: SLAMState, frame: FrameTensors, n: int) -> Non
     cfg = state.cfg
     times = state.timestamps[: frame.index + 1]
     interval_end = state.trajectory.interval(n)[1]
-    window_start = interval_end - cfg.local_ba.window * state.trajectory.dt
+    window_start = state.trajectory.knot_time_before(interval_end_knot(state.trajectory, n), cfg.local_ba.window)
     with state.timings.stage("lba_others", cfg.local_ba.refine_iters + cfg.local_ba.joint_iters):
         frames = [j for j in sorted(state.window_rays) if window_start <= times[j] < interval_end]
         if frames:
@@ -433,9 +438,16 @@ def discrete_pose_interval(state: SLAMState, frame: FrameTensors, n: int) -> Non
     discrete_global_ba(state, frame)
 
 
-def drop_old_rays(state: SLAMState, interval_end: float) -> None:
-    """Forget the tracking rays of frames older than any later window can reach."""
-    oldest_needed = interval_end - (state.cfg.local_ba.window + 2) * state.trajectory.dt
+def interval_end_knot(trajectory: BSplineTrajectory, n: int) -> int:
+    """Index k of the knot t_k that ends interval n: n + o + 1 (o: the convention's first-segment offset)."""
+    return n + first_segment_offset(trajectory.convention) + 1
+
+
+def drop_old_rays(state: SLAMState, n: int) -> None:
+    """Forget the tracking rays of frames older than any window after interval ``n`` can reach
+    (``local_ba.window`` + 2 intervals before its end)."""
+    oldest_needed = state.trajectory.knot_time_before(interval_end_knot(state.trajectory, n),
+                                                      state.cfg.local_ba.window + 2)
     for j in [j for j in state.window_rays if state.timestamps[j] < oldest_needed]:
         del state.window_rays[j]
 

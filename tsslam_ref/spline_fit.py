@@ -15,23 +15,29 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
+from tsslam_ref import knots as knots_module
 from tsslam_ref.geometry import so3_exp, so3_log
-from tsslam_ref.spline import _locate, evaluate_segments, first_segment_offset
+from tsslam_ref.spline import CumulativeWeights, _locate, evaluate_weights, first_segment_offset, uniform_weights
 from tsslam_ref.trajectory import BSplineTrajectory
 
 
-def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "paper") -> np.ndarray:
+def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "paper",
+                        knots: Optional[np.ndarray] = None) -> np.ndarray:
     """(N,) float64 time at which each control point dominates the curve (its basis peak).
 
     paper: t_{k+1} = t0 + (k+1)Δt; basalt: t_{k−1}.  Initialising R_k, t_k from the pose at these
-    times avoids a one-Δt lag of the curve (docs/spline.md).
+    times avoids a one-Δt lag of the curve (docs/spline.md).  With a (N + 2,) knot vector
+    (:mod:`tsslam_ref.knots`) instead: its Greville abscissae (:func:`knots.greville_times`).
     """
+    if knots is not None:
+        return knots_module.greville_times(knots_module.check_knots(knots, n_ctrl))
     offset = first_segment_offset(convention)
     return float(t0) + dt * (np.arange(n_ctrl, dtype=np.float64) + offset - 1)
 
 
 def initial_control_points_from_poses(
-    times: np.ndarray, target_poses: torch.Tensor, dt: float, t0: float, n_ctrl: int, convention: str = "paper"
+    times: np.ndarray, target_poses: torch.Tensor, dt: float, t0: float, n_ctrl: int, convention: str = "paper",
+    knots: Optional[np.ndarray] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Initial control points from discrete poses: nearest-in-time rotation, linearly interpolated
     translation, both at :func:`control_point_times` (constant extrapolation beyond the data).
@@ -44,7 +50,7 @@ def initial_control_points_from_poses(
     """
     times = np.asarray(times, dtype=np.float64)
     order = np.argsort(times)
-    ctrl_times = control_point_times(n_ctrl, dt, t0, convention)
+    ctrl_times = control_point_times(n_ctrl, dt, t0, convention, knots)
     nearest = order[np.abs(times[order][None, :] - ctrl_times[:, None]).argmin(axis=1)]  # (N,)
     rotations = target_poses[torch.as_tensor(nearest, device=target_poses.device), :3, :3]
     positions = target_poses[:, :3, 3].detach().cpu().double().numpy()[order]  # (K, 3)
@@ -64,6 +70,7 @@ def fit_control_points(
     iters: int = 100,
     convention: str = "paper",
     tolerance: float = 1e-12,
+    knots: Optional[np.ndarray] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Curve approximation, Eq. (11): control points whose spline best matches discrete poses.
 
@@ -87,6 +94,8 @@ def fit_control_points(
             fixed points); missing ones come from the poses.
         fixed: (N,) bool mask of control points kept at their initial value.
         iters: maximum LM iterations.
+        knots: (N + 2,) knot vector of a non-uniform spline (:mod:`tsslam_ref.knots`); it replaces
+            dt, t0 and convention as the layout.
 
     Returns:
         rotations (N, 3, 3), translations (N, 3) in target_poses' dtype and device (detached).
@@ -98,16 +107,30 @@ def fit_control_points(
     if target_poses.shape != (times.shape[0], 4, 4):
         raise ValueError(f"target_poses must be ({times.shape[0]}, 4, 4) to match times, got {tuple(target_poses.shape)}")
     out_dtype, device = target_poses.dtype, target_poses.device
-    first, u, _ = _locate(times, n_ctrl, dt, t0, convention)  # raises on out-of-domain times
+    first, weights = _segment_weights(times, n_ctrl, dt, t0, convention, knots, device)  # raises off the domain
     fixed = _fixed_mask(fixed, n_ctrl, device)
     rotations, translations = _starting_control_points(
-        times, target_poses, dt, t0, n_ctrl, convention, init_rotations, init_translations, fixed
+        times, target_poses, dt, t0, n_ctrl, convention, init_rotations, init_translations, fixed, knots
     )
     free = (~fixed).nonzero().reshape(-1)  # (F,)
     if free.shape[0] > 0:
-        residuals = _pose_residuals(target_poses, free, first, u, dt)
+        residuals = _pose_residuals(target_poses, free, first, weights)
         rotations, translations = _levenberg_marquardt(residuals, rotations, translations, free, iters, tolerance)
     return rotations.to(out_dtype), translations.to(out_dtype)
+
+
+def _segment_weights(times: np.ndarray, n_ctrl: int, dt: float, t0: float, convention: str,
+                     knots: Optional[np.ndarray], device: torch.device) -> Tuple[torch.Tensor, CumulativeWeights]:
+    """Each time's segment (K,) int64 and its cumulative weights B_1..B_3 ((K, 3, 1) float64 on
+    ``device``), fixed during the fit: uniform (dt, t0, convention) or from the knot vector;
+    ValueError off the domain."""
+    if knots is None:
+        first, u, _ = _locate(times, n_ctrl, dt, t0, convention)
+        return first, uniform_weights(u.to(device=device, dtype=torch.float64), dt, 0)
+    knots = knots_module.check_knots(knots, n_ctrl)
+    first, u, _ = knots_module.locate(times, knots)
+    knots_t = torch.as_tensor(knots, dtype=torch.float64, device=device)
+    return first, knots_module.cumulative_weights(knots_t, first.to(device), u.to(device), 0)
 
 
 def _fixed_mask(fixed: Optional[torch.Tensor], n_ctrl: int, device: torch.device) -> torch.Tensor:
@@ -122,14 +145,15 @@ def _fixed_mask(fixed: Optional[torch.Tensor], n_ctrl: int, device: torch.device
 
 def _starting_control_points(times: np.ndarray, target_poses: torch.Tensor, dt: float, t0: float, n_ctrl: int,
                              convention: str, init_rotations: Optional[torch.Tensor],
-                             init_translations: Optional[torch.Tensor],
-                             fixed: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+                             init_translations: Optional[torch.Tensor], fixed: torch.Tensor,
+                             knots: Optional[np.ndarray] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """The LM start, float64 copies: the given values, else :func:`initial_control_points_from_poses`.
 
     Returns rotations (N, 3, 3) and translations (N, 3); fixed points require given values.
     """
     device, work = target_poses.device, torch.float64
-    guess_R, guess_p = initial_control_points_from_poses(times, target_poses.detach(), dt, t0, n_ctrl, convention)
+    guess_R, guess_p = initial_control_points_from_poses(times, target_poses.detach(), dt, t0, n_ctrl, convention,
+                                                         knots)
     if bool(fixed.any()) and (init_rotations is None or init_translations is None):
         raise ValueError("fixed control points need init_rotations and init_translations")
     rotations = (init_rotations if init_rotations is not None else guess_R).detach().to(device, work).clone()
@@ -137,7 +161,7 @@ def _starting_control_points(times: np.ndarray, target_poses: torch.Tensor, dt: 
     return rotations, translations
 
 
-def _pose_residuals(target_poses: torch.Tensor, free: torch.Tensor, first, u, dt: float):
+def _pose_residuals(target_poses: torch.Tensor, free: torch.Tensor, first: torch.Tensor, weights: CumulativeWeights):
     """Eq. (11)'s residual function for :func:`_levenberg_marquardt`.
 
     The returned function maps control points and (F, 6) increments [δ, τ] of the free ones to the
@@ -149,7 +173,7 @@ def _pose_residuals(target_poses: torch.Tensor, free: torch.Tensor, first, u, dt
     def residuals(rotations: torch.Tensor, translations: torch.Tensor, increments: torch.Tensor) -> torch.Tensor:
         R = rotations.index_copy(0, free, so3_exp(increments[:, :3]) @ rotations[free])
         p = translations.index_copy(0, free, translations[free] + increments[:, 3:])
-        sample = evaluate_segments(R, p, first, u, dt, 0)
+        sample = evaluate_weights(R, p, first, weights, 0)
         rot_res = so3_log(target_R.transpose(-1, -2) @ sample.rotation)  # (K, 3)
         return torch.cat([rot_res, target_p - sample.translation], dim=-1).reshape(-1)
 

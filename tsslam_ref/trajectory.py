@@ -103,8 +103,8 @@ class BSplineTrajectory:
         """True when every knot is t0 + k dt (no stored knot times)."""
         return self._knots is None
 
-    def _timing(self) -> dict:
-        """Keyword arguments that carry the knot times into a new trajectory."""
+    def timing(self) -> dict:
+        """Keyword arguments (``knots``, ``knot_offset``) that carry the knot times into a new trajectory."""
         return {} if self._knots is None else {"knots": self._knots.copy(), "knot_offset": self.knot_offset}
 
     @classmethod
@@ -122,7 +122,7 @@ class BSplineTrajectory:
     def with_controls(self, control_rotations: torch.Tensor, control_translations: torch.Tensor) -> "BSplineTrajectory":
         """The same timing and start pose with other control points, detached: (M, 3, 3), (M, 3)."""
         return BSplineTrajectory(control_rotations.detach(), control_translations.detach(), self.dt, self.t0,
-                                 self.convention, self.start_pose, **self._timing())
+                                 self.convention, self.start_pose, **self.timing())
 
     # --- sizes, knots, intervals, domain
     @property
@@ -150,10 +150,21 @@ class BSplineTrajectory:
             return self.t0 + self.dt * np.arange(self.n_ctrl, dtype=np.float64)
         return np.array([self.knot_time(k) for k in range(self.n_ctrl)], dtype=np.float64)
 
-    def knot_vector(self) -> np.ndarray:
-        """(N + 2,) the knots of :mod:`tsslam_ref.knots`: t_{j-o}, j = 0..N+1 (o: first-segment offset)."""
+    def knot_vector(self, n_ctrl: Optional[int] = None) -> np.ndarray:
+        """(n + 2,) the knots of :mod:`tsslam_ref.knots`: t_{j-o}, j = 0..n+1 (o: first-segment offset).
+
+        n_ctrl: n, default N; a larger n gives the knots the trajectory would have with n points.
+        """
         offset = spline_module.first_segment_offset(self.convention)
-        return np.array([self.knot_time(j + offset - 2) for j in range(self.n_ctrl + 2)], dtype=np.float64)
+        n_ctrl = self.n_ctrl if n_ctrl is None else int(n_ctrl)
+        return np.array([self.knot_time(j + offset - 2) for j in range(n_ctrl + 2)], dtype=np.float64)
+
+    def knot_time_before(self, k: int, steps: int) -> float:
+        """t_{k-steps} (s).  Uniform: computed as t_k - steps dt, the arithmetic the uniform loop has
+        always used for its time ranges (so a uniform run's frame selections stay bit for bit)."""
+        if self._knots is None:
+            return self.knot_time(k) - steps * self.dt
+        return self.knot_time(k - steps)
 
     def interval(self, n: int) -> Tuple[float, float]:
         """[start, end) of interval n (s): [t_{n+o}, t_{n+o+1})."""
@@ -223,6 +234,18 @@ class BSplineTrajectory:
         kept = [self.knot_time(j) for j in range(first, k)]
         self._set_knots(np.array(kept + [time], dtype=np.float64), first)
 
+    def plan_interval_end(self, n: int, end_time: float) -> None:
+        """Decide the end time (s) of interval n before its control point arrives: t_{n+o+1} = end_time.
+
+        Only intervals the trajectory does not cover yet (n >= N - 3) can be planned; the knots
+        after it are forgotten (they were assumed).  The knot policy's hook (``slam.py``).
+        """
+        if n < self.n_ctrl - 3:
+            raise ValueError(f"interval {n} is already covered by the {self.n_ctrl} control points; only "
+                             f"intervals >= {max(self.n_ctrl - 3, 0)} can be planned")
+        offset = spline_module.first_segment_offset(self.convention)
+        self._set_knot(n + offset + 1, float(end_time))
+
     def pop_front(self) -> None:
         """Drop control point 0 and advance t0 by dt; the curve is unchanged where still defined."""
         if self.n_ctrl <= 4:
@@ -253,7 +276,7 @@ class BSplineTrajectory:
         start = None if self.start_pose is None else self.start_pose.to(*args, **kwargs)
         return BSplineTrajectory(self.control_rotations.to(*args, **kwargs),
                                  self.control_translations.to(*args, **kwargs), self.dt, self.t0, self.convention, start,
-                                 **self._timing())
+                                 **self.timing())
 
     def detach(self) -> "BSplineTrajectory":
         return self.with_controls(self.control_rotations, self.control_translations)
@@ -261,7 +284,7 @@ class BSplineTrajectory:
     def clone(self) -> "BSplineTrajectory":
         return BSplineTrajectory(self.control_rotations.clone(), self.control_translations.clone(), self.dt, self.t0,
                                  self.convention, None if self.start_pose is None else self.start_pose.clone(),
-                                 **self._timing())
+                                 **self.timing())
 
     def __repr__(self) -> str:
         start, end = self.domain()

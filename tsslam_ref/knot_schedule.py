@@ -1,0 +1,43 @@
+"""Where the SLAM loop's spline intervals end: the knot policy wired into TS-SLAM's schedule (ours).
+
+TS-SLAM (Sec. III-B, Fig. 2) maps one interval of a uniform spline every Δt of sequence time;
+its Sec. V names the fixed Δt as a limitation.  With ``spline.knots = "adaptive"`` the loop
+(``slam.map_interval``) calls :func:`plan_next_interval` when a frame completes interval n, before
+that interval's control point is added: the end of interval n + 1 is set on the trajectory
+(:meth:`trajectory.BSplineTrajectory.plan_interval_end`) from the motion tracked over intervals
+n - 1 and n (:mod:`tsslam_ref.knot_policy`).  So the next mapping step is triggered, and its
+control point placed, by the motion; the first interval is ``spline.dt`` long.  With the default
+``"uniform"`` nothing here runs.
+
+Layer 4 (system support): reads the loop's state (``slam.SLAMState``) and its config; imports
+``knot_policy``.  User doc: docs/system.md, "Adaptive knots".
+"""
+
+import numpy as np
+
+from . import knot_policy
+from .config import Config
+
+
+def plan_next_interval(state, frame_index: int, n: int) -> None:
+    """Adaptive knots: where interval n + 1 ends, decided once interval n's frames are tracked
+    (``frame_index`` is the first frame after it), from the stored poses of intervals n - 1 and n
+    (:func:`knot_policy.interval_from_track`; too few frames keep interval n's length)."""
+    spline_cfg, trajectory = state.cfg.spline, state.trajectory
+    start, (end_start, end) = trajectory.interval(max(n - 1, 0))[0], trajectory.interval(n)
+    times = state.timestamps[: frame_index + 1]
+    frames = np.nonzero((times >= start) & (times < end))[0]
+    poses = state.frame_poses[frames].detach().cpu().double().numpy()
+    length = knot_policy.interval_from_track(times[frames], poses[:, :3, :3], poses[:, :3, 3], end - end_start,
+                                             spline_cfg.dt_min, spline_cfg.dt_max, spline_cfg.rotation_tolerance,
+                                             spline_cfg.position_tolerance)
+    trajectory.plan_interval_end(n + 1, end + length)
+
+
+def check_knot_settings(cfg: Config) -> None:
+    """ValueError naming the values when adaptive knots cannot run (dt_min > dt_max, or no spline)."""
+    if cfg.method == "tsslam" and cfg.spline.knots == "adaptive":
+        if cfg.spline.dt_min > cfg.spline.dt_max:
+            raise ValueError(f"spline.dt_min = {cfg.spline.dt_min} s must be <= spline.dt_max = {cfg.spline.dt_max} s")
+        if not cfg.local_ba.use_spline:
+            raise ValueError("spline.knots = 'adaptive' needs the spline: local_ba.use_spline must be true")
