@@ -10,6 +10,9 @@ Prints, in the form of the paper's tables:
 * with ``--ablations``: w/o B-S., w/o DR, w/o LBA, with local BA's joint stage (off by default),
   the paper's schedule without our map update between intervals (``mapping.tsslam_map_every=0``)
   and a dt sweep (paper Table V);
+* with ``--adaptive``: TS-SLAM with knots placed by the motion (``spline.knots=adaptive``, ours,
+  beyond the paper) on the same seeds as the main rows; ``--skip baseline tsslam`` leaves out rows
+  already measured;
 * a control row that is not a SLAM method: the spline of the preset's dt fitted offline to the
   baseline's final trajectory (:func:`tsslam_ref.spline_fit.fit_trajectory`).  It asks whether the
   spline helps because TS-SLAM learns it with the map, or only because it smooths.
@@ -18,6 +21,10 @@ Prints, in the form of the paper's tables:
     python -m tsslam_ref.data synthesize --trajectory tum_vi_room1 --start 16 --out data/room1_16
     python benchmarks/bench_system.py --data data/room1_16 --config synthetic-cpu --seeds 0 1 2 --json out.json
     python benchmarks/bench_system.py --ablations --dts 0.15 0.25 0.35
+    python benchmarks/bench_system.py --adaptive --dts 0.15 --ablation-seeds 0 1 2 --seeds 0 1 2
+
+The JSON file (``--json``) holds ``settings`` (preset, data, frames, seeds, each row's overrides)
+and ``results`` (per row: every seed's metrics and runtime, and their mean).
 
 The README's "Results" section lists the commands behind each of its tables; the synthetic sequences
 are rendered along the trajectory stretches that ship with the package (``--trajectory NAME``).
@@ -41,6 +48,7 @@ from tsslam_ref.run import atomic_write_text, trajectory_metrics
 
 
 CONTROL = "Co-SLAM + spline fit (offline control)"
+ADAPTIVE = "TS-SLAM, adaptive knots"
 
 
 def metrics_cm(sequence, timestamps: np.ndarray, poses: np.ndarray) -> Dict[str, float]:
@@ -72,6 +80,9 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
                wall_fps=len(sequence) / wall, runtime=runtime)
     if cfg.method == "coslam":
         row["spline_fit"] = spline_fit_control(sequence, result, cfg.spline.dt)
+    if cfg.method == "tsslam" and result.state.intervals_done:
+        row["intervals"] = int(result.state.intervals_done)
+        row["mean_interval_s"] = float(result.timestamps[-1] - result.timestamps[0]) / result.state.intervals_done
     if "tracking" in runtime:
         tracking = runtime["tracking"]
         row["theoretical_fps"] = 1000.0 / (tracking["ms_per_iteration"] * tracking["iterations_per_call"])
@@ -101,6 +112,20 @@ def runtime_line(name: str, runtime: Dict[str, Dict[str, float]]) -> str:
             f"| {cell('map_update')} | {cell('first_frame_mapping')} |")
 
 
+def print_ratios(results: Dict[str, Dict]) -> None:
+    """Each measured row against the baseline of the same run (ATE and RPE ratios)."""
+    if "Co-SLAM (baseline)" not in results or "failed" in results["Co-SLAM (baseline)"]["mean"]:
+        return
+    baseline = results["Co-SLAM (baseline)"]["mean"]
+    print()
+    for name, result in results.items():
+        mean = result["mean"]
+        if name != "Co-SLAM (baseline)" and "failed" not in mean:
+            note = " (paper: RPE -78.5 % on TUM, -40.5 % on ScanNet)" if name == "TS-SLAM" else ""
+            print(f"{name} / baseline: ATE x{mean['ate_cm'] / baseline['ate_cm']:.2f}, "
+                  f"RPE x{mean['rpe_cm'] / baseline['rpe_cm']:.2f}{note}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM slice)")
@@ -112,6 +137,10 @@ def main() -> None:
     parser.add_argument("--dts", type=float, nargs="+", default=[], help="dt values for the sweep (s)")
     parser.add_argument("--ablation-seeds", type=int, nargs="+", default=None,
                         help="seeds for the ablation and dt-sweep rows (default: the first of --seeds)")
+    parser.add_argument("--adaptive", action="store_true",
+                        help="also run TS-SLAM with knots placed by the motion (spline.knots=adaptive) on --seeds")
+    parser.add_argument("--skip", nargs="+", default=[], choices=["baseline", "tsslam"],
+                        help="leave out the Co-SLAM baseline (and with it the offline control) or the default TS-SLAM row")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--json", default=None, help="write every row to this JSON file")
     parser.add_argument("--overwrite", action="store_true", help="allow replacing an existing --json file")
@@ -129,6 +158,11 @@ def main() -> None:
         base.data.frame_start, base.data.frame_stop, base.data.frame_step = parse_frames(args.frames)
     sequence = data.load_from_config(base.data)
     variants = {"Co-SLAM (baseline)": ["method=coslam"], "TS-SLAM": ["method=tsslam"]}
+    if args.adaptive:
+        variants[ADAPTIVE] = ["method=tsslam", "spline.knots=adaptive"]
+    for skipped, name in (("baseline", "Co-SLAM (baseline)"), ("tsslam", "TS-SLAM")):
+        if skipped in args.skip:
+            del variants[name]
     if args.ablations:
         variants["w/o B-S."] = ["method=tsslam", "local_ba.use_spline=false"]
         variants["w/o DR"] = ["method=tsslam", "local_ba.use_dynamics=false"]
@@ -140,8 +174,12 @@ def main() -> None:
 
     print(f"sequence {sequence.name}: {len(sequence)} frames, {sequence.intrinsics.width}x{sequence.intrinsics.height}, "
           f"preset {base.name}, seeds {args.seeds}, {args.threads} threads")
-    main_variants = ("Co-SLAM (baseline)", "TS-SLAM")
+    main_variants = ("Co-SLAM (baseline)", "TS-SLAM", ADAPTIVE)
     ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else args.seeds[:1]
+    settings = {"preset": base.name, "data": args.data or "bundled", "sequence": sequence.name,
+                "frames": len(sequence), "frame_range": args.frames, "threads": args.threads,
+                "overrides": args.overrides, "seeds": args.seeds, "ablation_seeds": ablation_seeds,
+                "variants": variants, "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
     results = {}
     for name, overrides in variants.items():
         rows = []
@@ -150,14 +188,15 @@ def main() -> None:
             row = run_once(sequence, cfg)
             rows.append(row)
             summary = "failed: " + row["failed"] if "failed" in row else (
-                f"ATE {row['ate_cm']:.2f} cm, RPE {row['rpe_cm']:.3f} cm / {row['rpe_deg']:.3f} deg, {row['wall_fps']:.2f} frames/s")
+                f"ATE {row['ate_cm']:.2f} cm, RPE {row['rpe_cm']:.3f} cm / {row['rpe_deg']:.3f} deg, {row['wall_fps']:.2f} frames/s"
+                + (f", {row['intervals']} intervals (mean {row['mean_interval_s']:.3f} s)" if "intervals" in row else ""))
             print(f"  {name:22s} seed {seed}: {summary}", flush=True)
             results[name] = {"rows": rows, "mean": mean_rows(rows)}
             if name == "Co-SLAM (baseline)":
                 control = [row.get("spline_fit", row) for row in rows]
                 results[CONTROL] = {"rows": control, "mean": mean_rows(control)}
             if args.json:  # after every run, so that an interrupted benchmark keeps what it measured
-                atomic_write_text(Path(args.json), json.dumps(results, indent=2))
+                atomic_write_text(Path(args.json), json.dumps({"settings": settings, "results": results}, indent=2))
 
     print("\n| method | ATE RMSE (cm) | RPE RMSE (cm) | RPE (deg) | runs |")
     print("|---|---|---|---|---|")
@@ -168,15 +207,7 @@ def main() -> None:
             continue
         print(f"| {name} | {mean['ate_cm']:.2f} +- {mean['ate_cm_std']:.2f} | {mean['rpe_cm']:.3f} +- {mean['rpe_cm_std']:.3f} "
               f"| {mean['rpe_deg']:.3f} | {mean['runs']} |")
-    baseline, ours = results["Co-SLAM (baseline)"]["mean"], results["TS-SLAM"]["mean"]
-    if "failed" not in baseline and "failed" not in ours:
-        print(f"\nTS-SLAM / baseline: ATE x{ours['ate_cm'] / baseline['ate_cm']:.2f}, "
-              f"RPE x{ours['rpe_cm'] / baseline['rpe_cm']:.2f} (paper: RPE -78.5 % on TUM, -40.5 % on ScanNet)")
-
-    control = results[CONTROL]["mean"]
-    if "failed" not in baseline and "failed" not in control:
-        print(f"{CONTROL} / baseline: ATE x{control['ate_cm'] / baseline['ate_cm']:.2f}, "
-              f"RPE x{control['rpe_cm'] / baseline['rpe_cm']:.2f}")
+    print_ratios(results)
 
     print("\n| method | tracking ms x it | LBA init ms x it | LBA others ms x it | GBA ms x it | map update ms x it | first frame ms x it | wall FPS | theoretical FPS |")
     print("|---|---|---|---|---|---|---|---|---|")
