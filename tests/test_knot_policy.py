@@ -70,3 +70,32 @@ def test_interval_scale_samples_see_a_known_acceleration_without_the_frame_noise
     pick = knot_policy.interval_scale_samples(noisy[0], 0.3)
     linear = knot_policy.tracked_accelerations(*(array[pick] for array in noisy))[1]
     assert abs(linear - 2.0) < 0.5, linear
+
+
+def test_place_knots_follows_the_motion_and_covers_every_time():
+    # 1 s at constant angular velocity, then 1 s turning with angular acceleration 8 rad/s^2:
+    # hand-derived interval lengths: dt_max while steady, sqrt(6 * 0.005 / 8) = 0.061 -> dt_min in the turn
+    rate, steady = 30.0, 1.0
+
+    def angle(t):
+        return 0.5 * t + (4.0 * (t - steady) ** 2 if t > steady else 0.0)
+
+    times, rotations, positions = _track(angle, lambda t: np.zeros(3), n=60, rate=rate)
+    args = dict(ARGS, dt_min=0.1)
+    ends = knot_policy.place_knots(times, rotations, positions, 0.3, **args)
+    lengths = np.diff(ends)
+    assert ends[0] == times[0] and ends[-2] <= times[-1] < ends[-1]
+    assert lengths[0] == 0.3
+    steady_lengths = lengths[(ends[1:] < steady - 0.1) & (np.arange(len(lengths)) > 0)]
+    turn_lengths = lengths[ends[:-1] > steady + 0.4]
+    assert steady_lengths.size and np.allclose(steady_lengths, args["dt_max"])
+    assert turn_lengths.size and np.allclose(turn_lengths, args["dt_min"])
+
+
+def test_place_knots_names_bad_input():
+    times, rotations, positions = _track(lambda t: t, lambda t: np.zeros(3), n=10)
+    with pytest.raises(ValueError, match="first_interval"):
+        knot_policy.place_knots(times, rotations, positions, 0.0, **ARGS)
+    times[4] = times[3]
+    with pytest.raises(ValueError, match=r"times\[3\]"):
+        knot_policy.place_knots(times, rotations, positions, 0.3, **ARGS)

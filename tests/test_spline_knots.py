@@ -160,3 +160,32 @@ def test_greville_times_are_where_a_line_puts_its_control_points():
     times = interior_times(knot_vector, 31)
     oracle = BSpline(np.r_[knot_vector[0] - 1.0, knot_vector, knot_vector[-1] + 1.0], line, 3)(times)
     assert np.allclose(oracle, np.stack([2.0 + 0.5 * times, -times, 0.3 + 0 * times], -1), atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("convention", ["paper", "basalt"])
+def test_fit_trajectory_on_boundaries(convention):
+    """fit_trajectory(boundaries=): equal boundaries give the uniform fit; uneven ones recover a known
+    non-uniform curve whose intervals they are (oracle: knots.evaluate on the same knot vector)."""
+    rotations, translations, _ = random_spline(7, n_ctrl=8, step=0.3)
+    boundaries = 50.0 + np.cumsum(np.r_[0.0, np.random.default_rng(7).uniform(0.05, 0.5, 5)])  # 5 uneven intervals
+    knot_vector = knots.knots_from_boundaries(boundaries, 0.3)
+    assert np.allclose(knot_vector, np.r_[boundaries[0] - 0.6, boundaries[0] - 0.3, boundaries,
+                                          boundaries[-1] + 0.3, boundaries[-1] + 0.6], atol=0, rtol=0)
+    times = np.linspace(boundaries[0], boundaries[-1], 90, endpoint=False)
+    sample = knots.evaluate(rotations, translations, times, knot_vector)
+    fitted = spline_fit.fit_trajectory(times, make_pose(sample.rotation, sample.translation), 0.3, convention,
+                                       iters=50, boundaries=boundaries)
+    assert fitted.n_ctrl == len(boundaries) + 2 and not fitted.uniform
+    refit = fitted.poses(times)
+    assert torch.allclose(refit[:, :3, 3], sample.translation, atol=1e-9)
+    assert float(so3_log(refit[:, :3, :3].transpose(-1, -2) @ sample.rotation).norm(dim=-1).max()) < 1e-8
+    # equally spaced boundaries from the first time: the uniform fit of fit_trajectory
+    even_times = 10.0 + np.arange(40) / 30.0
+    even_poses = make_pose(so3_exp(torch.as_tensor(np.stack([np.sin(even_times), 0.3 * even_times, 0 * even_times], -1))),
+                           torch.as_tensor(np.stack([even_times ** 2, np.cos(even_times), even_times], -1)))
+    uniform = spline_fit.fit_trajectory(even_times, even_poses, 0.25, convention)
+    by_boundaries = spline_fit.fit_trajectory(even_times, even_poses, 0.25, convention,
+                                              boundaries=even_times[0] + 0.25 * np.arange(uniform.n_ctrl - 2))
+    assert torch.allclose(uniform.poses(even_times), by_boundaries.poses(even_times), atol=1e-9)
+    with pytest.raises(ValueError, match="the boundaries span"):
+        spline_fit.fit_trajectory(even_times, even_poses, 0.25, convention, boundaries=np.array([10.0, 10.5]))

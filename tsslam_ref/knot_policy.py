@@ -30,7 +30,9 @@ def _check_track(times: np.ndarray, rotations: np.ndarray, positions: np.ndarray
     if positions.shape != (times.shape[0], 3):
         raise ValueError(f"positions must have shape ({times.shape[0]}, 3), got {positions.shape}")
     if np.any(np.diff(times) <= 0):
-        raise ValueError(f"times must be strictly increasing, got {times.tolist()}")
+        j = int(np.flatnonzero(np.diff(times) <= 0)[0])
+        raise ValueError(f"times must be strictly increasing, got times[{j}] = {times[j]!r} s and "
+                         f"times[{j + 1}] = {times[j + 1]!r} s")
 
 
 def tracked_accelerations(times, rotations, positions) -> Tuple[float, float]:
@@ -107,3 +109,33 @@ def interval_from_track(times, rotations, positions, fallback: float, dt_min: fl
         return float(fallback)
     return next_interval(np.asarray(times)[pick], np.asarray(rotations)[pick], np.asarray(positions)[pick],
                          dt_min, dt_max, rotation_tolerance, position_tolerance)
+
+
+def place_knots(times, rotations, positions, first_interval: float, dt_min: float, dt_max: float,
+                rotation_tolerance: float, position_tolerance: float) -> np.ndarray:
+    """Interval boundaries the online policy would choose along a whole pose sequence (offline).
+
+    The SLAM loop's rule (``knot_schedule``) replayed on given poses: interval 0 starts at the first
+    time and is ``first_interval`` (s) long; once interval n is complete, the end of interval n + 1
+    is :func:`interval_from_track` of the poses in intervals n - 1 and n (too few: interval n's
+    length).  Unlike the loop, which sees tracked poses that mapping has partly smoothed, this
+    sees exactly the poses it is given.
+
+    times (K,) increasing float64 s, rotations (K, 3, 3), positions (K, 3); other arguments as in
+    :func:`next_interval`.  Returns the (m + 1,) boundaries e_0 = times[0] < ... < e_m, with
+    e_m > times[-1], so that the intervals [e_n, e_n+1) cover every time.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    rotations, positions = np.asarray(rotations, dtype=np.float64), np.asarray(positions, dtype=np.float64)
+    _check_track(times, rotations, positions)
+    if not first_interval > 0:
+        raise ValueError(f"first_interval must be > 0 s, got {first_interval}")
+    ends = [float(times[0]), float(times[0]) + float(first_interval)]
+    while ends[-1] <= times[-1]:
+        n = len(ends) - 2  # interval n = [ends[n], ends[n + 1]) is complete
+        start, end = ends[max(n - 1, 0)], ends[n + 1]
+        inside = (times >= start) & (times < end)
+        length = interval_from_track(times[inside], rotations[inside], positions[inside], end - ends[n],
+                                     dt_min, dt_max, rotation_tolerance, position_tolerance)
+        ends.append(end + length)
+    return np.array(ends)

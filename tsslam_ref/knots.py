@@ -58,6 +58,22 @@ def uniform_knots(n_ctrl: int, dt: float, t0: float, convention: str = "paper") 
     return float(t0) + float(dt) * (np.arange(n_ctrl + 2, dtype=np.float64) + offset - 2)
 
 
+def knots_from_boundaries(boundaries, spacing: float) -> np.ndarray:
+    """(m + 5,) knot vector whose m intervals are [e_n, e_n+1) of the (m + 1,) ``boundaries`` (s).
+
+    The valid range [κ_2, κ_{N-1}] is [e_0, e_m] (N = m + 3 control points); the two knots
+    before and the two after are ``spacing`` (s) apart, as the SLAM trajectory continues its knots.
+    """
+    boundaries = np.asarray(boundaries, dtype=np.float64).reshape(-1)
+    if boundaries.shape[0] < 2:
+        raise ValueError(f"need at least 2 interval boundaries, got {boundaries.shape[0]}")
+    if not spacing > 0:
+        raise ValueError(f"spacing must be > 0 s, got {spacing}")
+    before = boundaries[0] - spacing * np.array([2.0, 1.0])
+    after = boundaries[-1] + spacing * np.array([1.0, 2.0])
+    return check_knots(np.concatenate([before, boundaries, after]), boundaries.shape[0] + 2)
+
+
 def valid_time_range(knots: np.ndarray) -> Tuple[float, float]:
     """Closed domain [κ_2, κ_{N−1}] in s of a checked knot vector."""
     return float(knots[2]), float(knots[-3])

@@ -218,7 +218,8 @@ def _levenberg_marquardt(residual_fn, rotations: torch.Tensor, translations: tor
 
 
 def fit_trajectory(
-    times: np.ndarray, poses: torch.Tensor, dt: float, convention: str = "paper", iters: int = 100
+    times: np.ndarray, poses: torch.Tensor, dt: float, convention: str = "paper", iters: int = 100,
+    boundaries: Optional[np.ndarray] = None,
 ) -> BSplineTrajectory:
     """The spline of knot spacing ``dt`` closest to a whole discrete trajectory (Eq. (11), every point free).
 
@@ -230,10 +231,16 @@ def fit_trajectory(
 
     Args:
         times: (K,) float64 seconds, increasing; poses: (K, 4, 4) camera-to-world.
+        boundaries: optional (m + 1,) interval boundaries e_0 = times[0] < ... < e_m, e_m > times[-1]
+            (s), e.g. from :func:`tsslam_ref.knot_policy.place_knots`: a non-uniform spline with
+            these intervals (m + 3 control points; ``dt`` spaces the knots outside them).
 
     Returns:
         the fitted :class:`trajectory.BSplineTrajectory` (poses' dtype and device).
     """
+    if boundaries is not None:
+        return _fit_on_boundaries(np.asarray(times, dtype=np.float64).reshape(-1), poses, dt, convention, iters,
+                                  boundaries)
     times = np.asarray(times, dtype=np.float64).reshape(-1)
     if times.shape[0] < 2 or not np.all(np.diff(times) > 0):
         raise ValueError(f"fit_trajectory needs at least 2 strictly increasing times, got {times.shape[0]} "
@@ -245,6 +252,19 @@ def fit_trajectory(
     n_ctrl, t0 = 3 + intervals, float(times[0]) - offset * dt
     rotations, translations = fit_control_points(times, poses, dt, t0, n_ctrl, iters=iters, convention=convention)
     return BSplineTrajectory(rotations, translations, dt, t0, convention)
+
+
+def _fit_on_boundaries(times: np.ndarray, poses: torch.Tensor, dt: float, convention: str, iters: int,
+                       boundaries) -> BSplineTrajectory:
+    """:func:`fit_trajectory` on a knot vector built from interval boundaries (s)."""
+    knot_vector = knots_module.knots_from_boundaries(boundaries, dt)
+    if not (knot_vector[2] <= times[0] and times[-1] < knot_vector[-3]):
+        raise ValueError(f"the boundaries span [{knot_vector[2]!r}, {knot_vector[-3]!r}) s but the times run "
+                         f"from {times[0]!r} to {times[-1]!r} s")
+    n_ctrl, knot_offset = knot_vector.shape[0] - 2, first_segment_offset(convention) - 2
+    rotations, translations = fit_control_points(times, poses, dt, 0.0, n_ctrl, iters=iters, knots=knot_vector)
+    return BSplineTrajectory(rotations, translations, dt, float(knot_vector[-knot_offset]), convention,
+                             knots=knot_vector, knot_offset=knot_offset)
 
 
 def first_control_point(
