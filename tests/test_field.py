@@ -163,7 +163,8 @@ def test_compiled_kernel_gradcheck_and_skipped_gradients(compiled_kernel):
 
 def test_compiled_kernel_is_deterministic_across_thread_counts(compiled_kernel):
     """Each level's table gradient is summed by one thread in point order, each point's gradient by
-    one thread: bit-identical results with 1 and 2 threads (the seed alone fixes a run)."""
+    one thread: bit-identical results with 1 and 2 threads (the seed alone fixes a run), although
+    the points are split into blocks of other sizes."""
     torch.manual_seed(5)
     grid = HashGridEncoding(200, log2_hashmap_size=10)  # small table: many points share rows
     points = torch.rand(30000, 3)
@@ -175,12 +176,14 @@ def test_compiled_kernel_is_deterministic_across_thread_counts(compiled_kernel):
             torch.set_num_threads(n_threads)
             grid.table.grad = None
             x = points.clone().requires_grad_(True)
-            (grid._encode_compiled(x) * upstream).sum().backward()
-            results.append((grid.table.grad.clone(), x.grad.clone()))
+            features = grid._encode_compiled(x)
+            (features * upstream).sum().backward()
+            results.append((grid.table.grad.clone(), x.grad.clone(), features.detach()))
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(results[0][0], results[1][0])
     assert torch.equal(results[0][1], results[1][1])
+    assert torch.equal(results[0][2], results[1][2])  # the point blocks differ (15 vs 16): same bits
 
 
 def test_trilinear_lookup_gradcheck_float64():

@@ -123,18 +123,28 @@ void check_inputs(const at::Tensor& points, const at::Tensor& table) {
   TORCH_CHECK(points.scalar_type() == table.scalar_type(), "hash_grid: points and table must share a dtype");
 }
 
-// Points per block of the point loops.  Inside a block the loops run level by level, so the
-// random reads and writes of one level stay in one table of at most 2^T rows (512 KiB at T = 16,
-// float32, F = 2), which fits the core's L2 cache, instead of hopping over all L tables per point.
+// Points per block of the point loops, at most.  Inside a block the loops run level by level, so
+// the random reads and writes of one level stay in one table of at most 2^T rows (512 KiB at
+// T = 16, float32, F = 2), which fits the core's L2 cache, instead of hopping over all L tables per
+// point.
 constexpr int64_t kBlock = 2048;
 
-// Runs body(begin, end) over blocks of at most kBlock points, blocks split among threads.
+// Runs body(begin, end) over blocks of at most kBlock points, blocks split among threads.  The
+// number of blocks is a multiple of the thread count and the blocks are of equal size (to one
+// point), so every thread gets the same number of points: with fixed 2048-point blocks the 22016
+// points of a tracking iteration made 11 blocks, 6 on one thread and 5 (one partial) on the other.
+// Each point's result does not depend on the blocking.
 template <typename Body>
 void for_point_blocks(int64_t n_points, const Body& body) {
-  const int64_t n_blocks = (n_points + kBlock - 1) / kBlock;
+  if (n_points == 0) return;
+  const int64_t threads = std::max<int64_t>(1, at::get_num_threads());
+  int64_t n_blocks = (n_points + kBlock - 1) / kBlock;
+  n_blocks = std::min(n_points, (n_blocks + threads - 1) / threads * threads);
+  const int64_t block_size = (n_points + n_blocks - 1) / n_blocks;
+  n_blocks = (n_points + block_size - 1) / block_size;
   at::parallel_for(0, n_blocks, 1, [&](int64_t first, int64_t last) {
     for (int64_t block = first; block < last; ++block) {
-      body(block * kBlock, std::min(n_points, (block + 1) * kBlock));
+      body(block * block_size, std::min(n_points, (block + 1) * block_size));
     }
   });
 }
