@@ -35,6 +35,7 @@ Every number comes from runs made by this script; nothing is hard-coded.
 import argparse
 import json
 import os
+import resource
 import time
 from pathlib import Path
 from typing import Dict, List
@@ -216,6 +217,7 @@ def main() -> None:
         if good:
             line = runtime_line(name, good[0]["runtime"])
             print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")
+    print(f"\npeak RSS of this process (all runs above): {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 
 
 if __name__ == "__main__":
