@@ -325,3 +325,23 @@ def test_global_ba_names_a_fixed_mask_of_the_wrong_length():
         global_ba.coslam_global_ba(None, None, KeyframeDatabase(), torch.zeros(0, 4, 4), current,
                                    config.tiny().mapping, RenderLossSettings.from_config(config.tiny()),
                                    fixed=torch.tensor([True, False]))
+
+
+def test_parallel_tracking_lead_is_one_interval_of_the_trajectory_being_tracked():
+    """Oracle: frames per interval counted by hand at 30 Hz (uniform 0.3 s: 9; a planned 0.1 s: 3)."""
+    from types import SimpleNamespace
+
+    from tsslam_ref.trajectory import BSplineTrajectory
+
+    timestamps = np.arange(30) / 30.0
+    trajectory = BSplineTrajectory.empty(0.0, 0.3, torch.zeros(1, dtype=torch.float64))
+    for knots, expected in (("uniform", 9), ("adaptive", 3)):
+        cfg = config.apply_overrides(small_config("tsslam"), [f"spline.knots={knots}", "spline.dt=0.3",
+                                                               "mapping.tsslam_map_every=0"])
+        planned = BSplineTrajectory.empty(0.0, 0.3, torch.zeros(1, dtype=torch.float64))
+        planned.plan_interval_end(1, 0.4)  # interval 1: [0.3, 0.4)
+        state = SimpleNamespace(cfg=cfg, timestamps=timestamps, trajectory=planned if knots == "adaptive" else trajectory,
+                                intervals_done=1)
+        assert parallel.tracking_lag(state) == expected
+    cfg.mapping.tsslam_map_every = 2
+    assert parallel.tracking_lag(state) == 2

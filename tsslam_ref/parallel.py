@@ -46,13 +46,18 @@ from .device import frame_to_device
 
 
 def tracking_lag(state: "slam.SLAMState") -> int:
-    """Frames tracking may run ahead of mapping, one mapping period: ``map_every`` (Co-SLAM), one dt
-    interval (TS-SLAM), or ``tsslam_map_every`` when TS-SLAM also maps between intervals and that is shorter."""
+    """Frames tracking may run ahead of mapping, one mapping period: ``map_every`` (Co-SLAM), one
+    spline interval (TS-SLAM: dt, or with adaptive knots the length of the interval being tracked),
+    or ``tsslam_map_every`` when TS-SLAM also maps between intervals and that is shorter."""
     cfg = state.cfg
     if cfg.method == "coslam":
         return max(1, cfg.mapping.map_every)
-    spacing = float(np.median(np.diff(state.timestamps))) if len(state.timestamps) > 1 else cfg.spline.dt
-    interval = max(1, int(math.ceil(cfg.spline.dt / max(spacing, 1e-9))))
+    length = cfg.spline.dt
+    if cfg.spline.knots == "adaptive" and state.trajectory is not None:
+        start, end = state.trajectory.interval(state.intervals_done)
+        length = end - start
+    spacing = float(np.median(np.diff(state.timestamps))) if len(state.timestamps) > 1 else length
+    interval = max(1, int(math.ceil(length / max(spacing, 1e-9) - 1e-6)))  # 0.3 s / (1 / 30 s) is 9 frames, not 10
     return min(interval, cfg.mapping.tsslam_map_every) if cfg.mapping.tsslam_map_every > 0 else interval
 
 
