@@ -345,3 +345,18 @@ def test_parallel_tracking_lead_is_one_interval_of_the_trajectory_being_tracked(
         assert parallel.tracking_lag(state) == expected
     cfg.mapping.tsslam_map_every = 2
     assert parallel.tracking_lag(state) == 2
+
+
+def test_a_non_finite_mapping_loss_ends_the_run_as_a_tracking_failure(monkeypatch):
+    """bundle.joint_optimization raises FloatingPointError on a NaN loss; the loop must turn it into
+    TrackingFailure (the benchmark and the command line handle that) naming the frame."""
+    from types import SimpleNamespace
+
+    def diverge(state, frame):
+        raise FloatingPointError("joint optimisation loss is not finite at iteration 0")
+
+    for method in ("coslam", "tsslam"):
+        monkeypatch.setattr(slam, f"{method}_after_tracking", diverge)
+        state = SimpleNamespace(cfg=small_config(method))
+        with pytest.raises(slam.TrackingFailure, match=r"after frame 7 \(t = 0.233 s\).*not finite"):
+            slam.after_tracking(state, SimpleNamespace(index=7, timestamp=7 / 30))

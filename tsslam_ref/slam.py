@@ -208,11 +208,15 @@ def start_map(state: SLAMState, frame: FrameTensors) -> None:
 
 def after_tracking(state: SLAMState, frame: FrameTensors) -> None:
     """The method's mapping schedule for a tracked frame (:func:`tsslam_after_tracking` or
-    :func:`coslam_after_tracking`)."""
-    if state.cfg.method == "tsslam":
-        tsslam_after_tracking(state, frame)
-    else:
-        coslam_after_tracking(state, frame)
+    :func:`coslam_after_tracking`).  A non-finite loss in a mapping stage ends the run as a
+    :class:`TrackingFailure` naming the frame, like every other divergence."""
+    try:
+        if state.cfg.method == "tsslam":
+            tsslam_after_tracking(state, frame)
+        else:
+            coslam_after_tracking(state, frame)
+    except FloatingPointError as error:
+        raise TrackingFailure(f"mapping after frame {frame.index} (t = {frame.timestamp:.3f} s) diverged: {error}") from error
 
 
 def add_keyframe(state: SLAMState, frame: FrameTensors) -> None:
