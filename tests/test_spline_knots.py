@@ -189,3 +189,26 @@ def test_fit_trajectory_on_boundaries(convention):
     assert torch.allclose(uniform.poses(even_times), by_boundaries.poses(even_times), atol=1e-9)
     with pytest.raises(ValueError, match="the boundaries span"):
         spline_fit.fit_trajectory(even_times, even_poses, 0.25, convention, boundaries=np.array([10.0, 10.5]))
+
+
+def test_start_pose_gauge_on_uneven_knots():
+    """Oracle: a random non-uniform spline's own control point 0, recovered from its start pose
+    (knots.evaluate at κ_2) and points 1, 2 with the knots' start weights; equal spacing gives (5/6, 1/6)."""
+    rotations, translations, knot_vector = random_spline(11, n_ctrl=7, step=0.5)
+    start = knots.evaluate(rotations, translations, np.array([knot_vector[2]]), knot_vector)
+    weights = knots.start_weights(knot_vector)
+    garbled_R, garbled_P = rotations.clone(), translations.clone()
+    garbled_R[0], garbled_P[0] = rotations[4], translations[4] + 3.0
+    rotation_0, translation_0 = spline_fit.first_control_point(garbled_R, garbled_P, start.rotation[0],
+                                                               start.translation[0], weights)
+    assert torch.allclose(rotation_0, rotations[0], atol=1e-9) and torch.allclose(translation_0, translations[0], atol=1e-9)
+    # the uniform formula is wrong on these knots: the curve would not start at the start pose
+    uniform_R, uniform_P = spline_fit.first_control_point(garbled_R, garbled_P, start.rotation[0], start.translation[0])
+    assert float((uniform_P - translations[0]).norm()) > 1e-3
+    assert np.allclose(knots.start_weights(knots.uniform_knots(6, 0.3, 2.0)), (5 / 6, 1 / 6), atol=1e-12, rtol=0)
+    # the trajectory type hands its weights to the gauge; uniform trajectories hand None
+    from tsslam_ref.trajectory import BSplineTrajectory
+
+    uneven = BSplineTrajectory(rotations, translations, 0.3, float(knot_vector[0]), knots=knot_vector)
+    assert np.allclose(uneven.start_weights(), weights, atol=1e-12, rtol=0)
+    assert BSplineTrajectory(rotations, translations, 0.3, 0.0).start_weights() is None

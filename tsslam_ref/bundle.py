@@ -156,6 +156,7 @@ class SplinePoses(torch.nn.Module):
         self.translation_delta = torch.nn.Parameter(torch.zeros_like(translations))
         self.dt, self.t0, self.convention = trajectory.dt, trajectory.t0, trajectory.convention
         self.knot_timing = trajectory.timing()  # the trajectory's own knot times (none when uniform)
+        self.start_weights = trajectory.start_weights()  # the gauge's weights at the domain start (None: uniform)
         self.slot_times = np.asarray(slot_times, dtype=np.float64)
         self.slot_valid = trajectory.covers(self.slot_times)
         self.register_buffer("fallback", fallback_poses.detach().clone())
@@ -173,7 +174,8 @@ class SplinePoses(torch.nn.Module):
         rotations = so3_exp(self.rotation_delta * mask) @ self.rotations0
         translations = self.translations0 + self.translation_delta * mask
         if bool(self.free_mask[1:3].any()):  # point 0 only changes when point 1 or 2 can
-            rotations, translations = spline_fit.pin_first_control_point(rotations, translations, self.start_pose)
+            rotations, translations = spline_fit.pin_first_control_point(rotations, translations, self.start_pose,
+                                                                         self.start_weights)
         return rotations, translations
 
     def trajectory(self) -> BSplineTrajectory:

@@ -174,7 +174,8 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
                 init_rotations=rotations, init_translations=translations, fixed=fixed,
                 iters=local_ba.fit_iters, convention=trajectory.convention,
                 knots=None if trajectory.uniform else trajectory.knot_vector(rotations.shape[0]))
-            rotations, translations = spline_fit.pin_first_control_point(rotations, translations, start_pose)
+            rotations, translations = spline_fit.pin_first_control_point(rotations, translations, start_pose,
+                                                                         trajectory.start_weights())
     return BSplineTrajectory(rotations.detach().to(poses.dtype), translations.detach().to(poses.dtype),
                              trajectory.dt, trajectory.t0, trajectory.convention, start_pose, **trajectory.timing())
 

@@ -272,6 +272,7 @@ def first_control_point(
     control_translations: torch.Tensor,
     start_rotation: torch.Tensor,
     start_translation: torch.Tensor,
+    weights: Optional[Tuple[float, float]] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Control point 0 that makes the curve start at a given pose, from control points 1 and 2.
 
@@ -290,10 +291,16 @@ def first_control_point(
     control points 1 and 2, which is how local and global BA keep frame 0's pose fixed while every
     other control point moves (the gauge Co-SLAM fixes by holding keyframe 0).
 
+    Non-uniform knots (:mod:`tsslam_ref.knots`): with the start weights (B̃_1, B̃_2) of
+    :func:`tsslam_ref.knots.start_weights` and N_0 = 1 − B̃_1 in place of (5/6, 1/6) and 1/6,
+
+        t_0 = (t_start − (B̃_1 − B̃_2) t_1 − B̃_2 t_2) / N_0,   R_0 = R_1 Exp(Log(R_1ᵀ R_start Exp(−B̃_2 d_2)) / N_0).
+
     Args:
         control_rotations: (N, 3, 3), N >= 3 (only rows 1 and 2 are read).
         control_translations: (N, 3).
         start_rotation: (3, 3) and start_translation: (3,), the pose the curve must start at.
+        weights: (B̃_1, B̃_2) at the domain start; None: equally spaced knots, (5/6, 1/6).
 
     Returns:
         R_0 (3, 3), t_0 (3,) in the control points' dtype.
@@ -303,14 +310,24 @@ def first_control_point(
     rotation_1, rotation_2 = control_rotations[1], control_rotations[2]
     start_rotation = start_rotation.to(control_rotations)
     d_2 = so3_log(rotation_1.transpose(-1, -2) @ rotation_2)  # (3,)
-    target = start_rotation @ so3_exp(-d_2 / 6.0)  # = R_1 Exp(-d_1 / 6)
-    rotation_0 = rotation_1 @ so3_exp(6.0 * so3_log(rotation_1.transpose(-1, -2) @ target))
-    translation_0 = 6.0 * start_translation.to(control_translations) - 4.0 * control_translations[1] - control_translations[2]
+    start_translation = start_translation.to(control_translations)
+    if weights is None:  # the uniform formula, kept literally so that uniform runs keep their numbers bit for bit
+        target = start_rotation @ so3_exp(-d_2 / 6.0)  # = R_1 Exp(-d_1 / 6)
+        rotation_0 = rotation_1 @ so3_exp(6.0 * so3_log(rotation_1.transpose(-1, -2) @ target))
+        translation_0 = 6.0 * start_translation - 4.0 * control_translations[1] - control_translations[2]
+        return rotation_0, translation_0
+    weight_1, weight_2 = weights
+    weight_0 = 1.0 - weight_1  # N_0, the plain weight of point 0
+    target = start_rotation @ so3_exp(-weight_2 * d_2)  # = R_1 Exp(-N_0 d_1)
+    rotation_0 = rotation_1 @ so3_exp(so3_log(rotation_1.transpose(-1, -2) @ target) / weight_0)
+    translation_0 = (start_translation - (weight_1 - weight_2) * control_translations[1]
+                     - weight_2 * control_translations[2]) / weight_0
     return rotation_0, translation_0
 
 
 def pin_first_control_point(
-    control_rotations: torch.Tensor, control_translations: torch.Tensor, start_pose: Optional[torch.Tensor]
+    control_rotations: torch.Tensor, control_translations: torch.Tensor, start_pose: Optional[torch.Tensor],
+    weights: Optional[Tuple[float, float]] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """The control points with point 0 replaced by :func:`first_control_point` for ``start_pose``.
 
@@ -318,6 +335,7 @@ def pin_first_control_point(
         control_rotations: (N, 3, 3); control_translations: (N, 3).
         start_pose: (4, 4) camera-to-world pose the curve must start at, or None (nothing changes;
             neither does anything with fewer than 3 points).
+        weights: the start weights of non-uniform knots (:func:`tsslam_ref.knots.start_weights`), None when uniform.
 
     Returns:
         (N, 3, 3), (N, 3), differentiable in control points 1 and 2.
@@ -325,6 +343,6 @@ def pin_first_control_point(
     if start_pose is None or control_rotations.shape[0] < 3:
         return control_rotations, control_translations
     rotation_0, translation_0 = first_control_point(control_rotations, control_translations,
-                                                    start_pose[:3, :3], start_pose[:3, 3])
+                                                    start_pose[:3, :3], start_pose[:3, 3], weights)
     return (torch.cat([rotation_0.unsqueeze(0), control_rotations[1:]], dim=0),
             torch.cat([translation_0.unsqueeze(0), control_translations[1:]], dim=0))

@@ -107,6 +107,13 @@ class BSplineTrajectory:
         """Keyword arguments (``knots``, ``knot_offset``) that carry the knot times into a new trajectory."""
         return {} if self._knots is None else {"knots": self._knots.copy(), "knot_offset": self.knot_offset}
 
+    def start_weights(self) -> Optional[Tuple[float, float]]:
+        """(B̃_1, B̃_2) of control points 1 and 2 at the domain start (:func:`knots.start_weights`),
+        for the start-pose gauge (:func:`spline_fit.pin_first_control_point`); None when uniform."""
+        if self._knots is None:
+            return None
+        return knots_module.start_weights(self.knot_vector(max(self.n_ctrl, 3)))
+
     @classmethod
     def empty(cls, first_time: float, dt: float, like: torch.Tensor, convention: str = "paper") -> "BSplineTrajectory":
         """No control points yet; interval 0 starts at ``first_time`` (s).  ``like``: dtype and device."""
