@@ -262,3 +262,16 @@ def test_spline_poses_keep_the_knot_times():
     rebuilt = model.trajectory()
     assert np.array_equal(rebuilt.knot_vector(), traj.knot_vector())
     assert torch.allclose(model.poses(), traj.poses(times), atol=1e-12)
+
+
+def test_planned_interval_assumes_its_own_length_for_the_knots_after_it():
+    """The knots after a planned interval end continue at the planned spacing (three stored), not at dt;
+    planning the next interval replaces them."""
+    trajectory = BSplineTrajectory.empty(1.0, 0.3, torch.zeros(1, dtype=torch.float64))
+    trajectory.plan_interval_end(1, 1.4, assumed_spacing=0.1)  # interval 1: [1.3, 1.4)
+    assert [round(trajectory.interval(n)[1], 12) for n in range(5)] == [1.3, 1.4, 1.5, 1.6, 1.7]
+    assert round(trajectory.interval(5)[1], 12) == 2.0  # beyond the three assumed knots: dt again
+    trajectory.plan_interval_end(2, 1.55, assumed_spacing=0.15)
+    assert [round(trajectory.interval(n)[1], 12) for n in range(6)] == [1.3, 1.4, 1.55, 1.7, 1.85, 2.0]
+    with pytest.raises(ValueError, match="assumed_spacing"):
+        trajectory.plan_interval_end(3, 1.8, assumed_spacing=0.0)

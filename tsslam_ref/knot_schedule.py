@@ -31,7 +31,7 @@ def plan_next_interval(state, frame_index: int, n: int) -> None:
     length = knot_policy.interval_from_track(times[frames], poses[:, :3, :3], poses[:, :3, 3], end - end_start,
                                              spline_cfg.dt_min, spline_cfg.dt_max, spline_cfg.rotation_tolerance,
                                              spline_cfg.position_tolerance)
-    trajectory.plan_interval_end(n + 1, end + length)
+    trajectory.plan_interval_end(n + 1, end + length, assumed_spacing=length)
 
 
 def check_knot_settings(cfg: Config) -> None:

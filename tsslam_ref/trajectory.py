@@ -241,17 +241,27 @@ class BSplineTrajectory:
         kept = [self.knot_time(j) for j in range(first, k)]
         self._set_knots(np.array(kept + [time], dtype=np.float64), first)
 
-    def plan_interval_end(self, n: int, end_time: float) -> None:
+    def plan_interval_end(self, n: int, end_time: float, assumed_spacing: Optional[float] = None) -> None:
         """Decide the end time (s) of interval n before its control point arrives: t_{n+o+1} = end_time.
 
         Only intervals the trajectory does not cover yet (n >= N - 3) can be planned; the knots
-        after it are forgotten (they were assumed).  The knot policy's hook (``slam.py``).
+        after it are forgotten (they were assumed).  ``assumed_spacing`` (s): the knots after it are
+        assumed that far apart until they are planned (three are stored), instead of ``dt``.  The
+        newest control point's weight in the newest interval depends on them: with intervals much
+        shorter than the assumed spacing it shrinks, and the curve approximation, fitting the
+        interval's poses through that small weight, throws the point far off.  The knot policy's
+        hook (``knot_schedule.py``).
         """
         if n < self.n_ctrl - 3:
             raise ValueError(f"interval {n} is already covered by the {self.n_ctrl} control points; only "
                              f"intervals >= {max(self.n_ctrl - 3, 0)} can be planned")
         offset = spline_module.first_segment_offset(self.convention)
         self._set_knot(n + offset + 1, float(end_time))
+        if assumed_spacing is not None:
+            if not assumed_spacing > 0:
+                raise ValueError(f"assumed_spacing must be > 0 s, got {assumed_spacing}")
+            assumed = float(end_time) + float(assumed_spacing) * np.arange(1, 4, dtype=np.float64)
+            self._knots = np.concatenate([self._knots, assumed])
 
     def pop_front(self) -> None:
         """Drop control point 0 and advance t0 by dt; the curve is unchanged where still defined."""
