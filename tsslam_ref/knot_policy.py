@@ -133,9 +133,19 @@ def place_knots(times, rotations, positions, first_interval: float, dt_min: floa
     ends = [float(times[0]), float(times[0]) + float(first_interval)]
     while ends[-1] <= times[-1]:
         n = len(ends) - 2  # interval n = [ends[n], ends[n + 1]) is complete
-        start, end = ends[max(n - 1, 0)], ends[n + 1]
-        inside = (times >= start) & (times < end)
-        length = interval_from_track(times[inside], rotations[inside], positions[inside], end - ends[n],
-                                     dt_min, dt_max, rotation_tolerance, position_tolerance)
-        ends.append(end + length)
+        ends.append(next_interval_end(times, rotations, positions, ends[max(n - 1, 0)], ends[n], ends[n + 1],
+                                      dt_min, dt_max, rotation_tolerance, position_tolerance))
     return np.array(ends)
+
+
+def next_interval_end(times, rotations, positions, previous_start: float, start: float, end: float,
+                      dt_min: float, dt_max: float, rotation_tolerance: float, position_tolerance: float) -> float:
+    """End (s) of the interval after [start, end): end + :func:`interval_from_track` of the poses in
+    [previous_start, end) (intervals n - 1 and n), falling back to end - start.  The one rule of the
+    SLAM loop (``knot_schedule``) and of :func:`place_knots`.  times (K,) s, rotations (K, 3, 3),
+    positions (K, 3): every pose known so far; other arguments as in :func:`next_interval`."""
+    times = np.asarray(times, dtype=np.float64)
+    inside = (times >= previous_start) & (times < end)
+    length = interval_from_track(times[inside], np.asarray(rotations)[inside], np.asarray(positions)[inside],
+                                 end - start, dt_min, dt_max, rotation_tolerance, position_tolerance)
+    return end + length

@@ -13,8 +13,6 @@ Layer 4 (system support): reads the loop's state (``slam.SLAMState``) and its co
 ``knot_policy``.  User doc: docs/system.md, "Adaptive knots".
 """
 
-import numpy as np
-
 from . import knot_policy
 from .config import Config
 
@@ -24,14 +22,12 @@ def plan_next_interval(state, frame_index: int, n: int) -> None:
     (``frame_index`` is the first frame after it), from the stored poses of intervals n - 1 and n
     (:func:`knot_policy.interval_from_track`; too few frames keep interval n's length)."""
     spline_cfg, trajectory = state.cfg.spline, state.trajectory
-    start, (end_start, end) = trajectory.interval(max(n - 1, 0))[0], trajectory.interval(n)
-    times = state.timestamps[: frame_index + 1]
-    frames = np.nonzero((times >= start) & (times < end))[0]
-    poses = state.frame_poses[frames].detach().cpu().double().numpy()
-    length = knot_policy.interval_from_track(times[frames], poses[:, :3, :3], poses[:, :3, 3], end - end_start,
-                                             spline_cfg.dt_min, spline_cfg.dt_max, spline_cfg.rotation_tolerance,
-                                             spline_cfg.position_tolerance)
-    trajectory.plan_interval_end(n + 1, end + length, assumed_spacing=length)
+    previous_start, (start, end) = trajectory.interval(max(n - 1, 0))[0], trajectory.interval(n)
+    poses = state.frame_poses[: frame_index + 1].detach().cpu().double().numpy()
+    next_end = knot_policy.next_interval_end(state.timestamps[: frame_index + 1], poses[:, :3, :3], poses[:, :3, 3],
+                                             previous_start, start, end, spline_cfg.dt_min, spline_cfg.dt_max,
+                                             spline_cfg.rotation_tolerance, spline_cfg.position_tolerance)
+    trajectory.plan_interval_end(n + 1, next_end, assumed_spacing=next_end - end)
 
 
 def check_knot_settings(cfg: Config) -> None:

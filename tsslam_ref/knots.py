@@ -80,12 +80,12 @@ def start_weights(knot_vector) -> Tuple[float, float]:
     At a knot the cubic B-spline has three non-zero basis functions (Cox-de Boor),
     N_0 = (κ_3 − κ_2)² / ((κ_3 − κ_1)(κ_3 − κ_0)),  N_2 = (κ_2 − κ_1)² / ((κ_4 − κ_1)(κ_3 − κ_1)),
     N_1 = 1 − N_0 − N_2, so B̃_1 = N_1 + N_2 = 1 − N_0 and B̃_2 = N_2.  Equal spacing: (5/6, 1/6).
-    knot_vector: at least its first five knots κ_0..κ_4 (s).
+    Read from :func:`cumulative_weights` of segment 0 at u = 0 (the same basis as the curve).
+    knot_vector: at least its first six knots κ_0..κ_5 (s).
     """
-    k0, k1, k2, k3, k4 = (float(value) for value in np.asarray(knot_vector, dtype=np.float64)[:5])
-    n0 = (k3 - k2) ** 2 / ((k3 - k1) * (k3 - k0))
-    n2 = (k2 - k1) ** 2 / ((k4 - k1) * (k3 - k1))
-    return 1.0 - n0, n2
+    knots = torch.as_tensor(np.asarray(knot_vector, dtype=np.float64)[:6])
+    weights = cumulative_weights(knots, torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.float64)).value
+    return float(weights[0, 0]), float(weights[0, 1])
 
 
 def valid_time_range(knots: np.ndarray) -> Tuple[float, float]:

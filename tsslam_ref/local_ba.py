@@ -50,7 +50,6 @@ from .config import DynamicsConfig, LocalBAConfig
 from .geometry import so3_exp, so3_log
 from .losses import RenderLossSettings
 from .render import RayBatch
-from .spline import first_segment_offset
 from .trajectory import BSplineTrajectory
 
 
@@ -183,8 +182,7 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
 def fit_time_range(trajectory: BSplineTrajectory, n: int, local_ba: LocalBAConfig) -> Tuple[float, float]:
     """[start, end) in s of the frames :func:`curve_approximation` fits when mapping interval ``n``:
     interval n and the ``local_ba.fit_controls - 1`` before it."""
-    start_knot = n + first_segment_offset(trajectory.convention)  # interval n is [t_{n+o}, t_{n+o+1})
-    first_start = trajectory.knot_time_before(start_knot, local_ba.fit_controls - 1)
+    first_start = trajectory.knot_time_before(trajectory.interval_start_knot(n), local_ba.fit_controls - 1)
     end = trajectory.interval(n)[1]
     return max(trajectory.interval(0)[0], first_start), end
 

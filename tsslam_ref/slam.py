@@ -51,7 +51,6 @@ from .global_ba import CurrentFrame, coslam_global_ba, tsslam_global_ba
 from .losses import RenderLossSettings
 from .mapping import estimate_bound, fit_map, make_map_optimizer
 from .render import RayBatch
-from .spline import first_segment_offset
 from .timings import Timings
 from .tracking import TrackingResult, constant_velocity_init, track_frame
 from .trajectory import BSplineTrajectory
@@ -443,8 +442,8 @@ def discrete_pose_interval(state: SLAMState, frame: FrameTensors, n: int) -> Non
 
 
 def interval_end_knot(trajectory: BSplineTrajectory, n: int) -> int:
-    """Index k of the knot t_k that ends interval n: n + o + 1 (o: the convention's first-segment offset)."""
-    return n + first_segment_offset(trajectory.convention) + 1
+    """Index k of the knot t_k that ends interval n."""
+    return trajectory.interval_start_knot(n) + 1
 
 
 def drop_old_rays(state: SLAMState, n: int) -> None:

@@ -112,7 +112,7 @@ class BSplineTrajectory:
         for the start-pose gauge (:func:`spline_fit.pin_first_control_point`); None when uniform."""
         if self._knots is None:
             return None
-        return knots_module.start_weights(self.knot_vector(max(self.n_ctrl, 3)))
+        return knots_module.start_weights(self.knot_vector(max(self.n_ctrl, 4)))
 
     @classmethod
     def empty(cls, first_time: float, dt: float, like: torch.Tensor, convention: str = "paper") -> "BSplineTrajectory":
@@ -173,10 +173,14 @@ class BSplineTrajectory:
             return self.knot_time(k) - steps * self.dt
         return self.knot_time(k - steps)
 
+    def interval_start_knot(self, n: int) -> int:
+        """Index k of the knot t_k where interval n starts: n + o (o: the convention's first-segment offset)."""
+        return n + spline_module.first_segment_offset(self.convention)
+
     def interval(self, n: int) -> Tuple[float, float]:
         """[start, end) of interval n (s): [t_{n+o}, t_{n+o+1})."""
-        offset = spline_module.first_segment_offset(self.convention)
-        return self.knot_time(n + offset), self.knot_time(n + offset + 1)
+        k = self.interval_start_knot(n)
+        return self.knot_time(k), self.knot_time(k + 1)
 
     def domain(self) -> Tuple[float, float]:
         """(start, end) in s of the covered times [start, end); empty (start == end) below 4 points."""
