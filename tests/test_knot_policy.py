@@ -88,8 +88,34 @@ def test_place_knots_follows_the_motion_and_covers_every_time():
     assert lengths[0] == 0.3
     steady_lengths = lengths[(ends[1:] < steady - 0.1) & (np.arange(len(lengths)) > 0)]
     turn_lengths = lengths[ends[:-1] > steady + 0.4]
-    assert steady_lengths.size and np.allclose(steady_lengths, args["dt_max"])
-    assert turn_lengths.size and np.allclose(turn_lengths, args["dt_min"])
+    half_frame = 0.5 / rate  # knots move to a quarter frame after the nearest frame
+    assert steady_lengths.size and np.all(np.abs(steady_lengths - args["dt_max"]) <= half_frame + 1e-12)
+    assert turn_lengths.size and np.all(np.abs(turn_lengths - args["dt_min"]) <= half_frame + 1e-12)
+
+
+def test_planned_knots_sit_a_quarter_frame_after_a_frame():
+    """Every knot after the first interval lands 1/4 of the frame spacing after a frame time, also
+    with timestamp jitter (the knot follows the median spacing), so each interval's last frame is
+    near its end, where the newest control point's weight u^3/6 is largest."""
+    rng = np.random.default_rng(1)
+    rate = 30.0
+    times, rotations, positions = _track(lambda t: 0.5 * t + 3.0 * t * t, lambda t: np.array([t, 0.0, 0.0]),
+                                         n=90, rate=rate)
+    jittered = times + rng.uniform(-0.002, 0.002, times.shape)
+    for stamps, tolerance in ((times, 1e-9), (jittered, 0.24 / rate)):  # jittered: 0 < knot - frame < 1/2 frame
+        ends = knot_policy.place_knots(stamps, rotations, positions, 0.3, **dict(ARGS, dt_min=0.1))
+        for knot in ends[2:-1]:
+            before = stamps[stamps < knot].max()
+            assert abs((knot - before) - 0.25 / rate) <= tolerance, (knot, before)
+        last_u = [(stamps[(stamps >= a) & (stamps < b)].max() - a) / (b - a) for a, b in zip(ends[1:-2], ends[2:-1])]
+        assert min(last_u) > 0.85  # a knot on a frame would leave u <= 2/3 at three frames per interval
+
+
+def test_snap_after_frame_hand_computed():
+    times = np.arange(10) / 30.0  # frames at k/30 s; the last before 0.3 s is 8/30
+    assert knot_policy.snap_after_frame(times, 0.3, 0.4) == pytest.approx(8 / 30 + 4.25 / 30)
+    assert knot_policy.snap_after_frame(times, 0.3, 0.2) == pytest.approx(8 / 30 + 1.25 / 30)  # never before end
+    assert knot_policy.snap_after_frame(times[:1], 0.3, 0.37) == 0.37  # one frame: no spacing known
 
 
 def test_place_knots_names_bad_input():

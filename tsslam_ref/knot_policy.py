@@ -10,7 +10,18 @@ angular acceleration) and translation (ε_pos in metres, |a| = linear accelerati
 shorter, and clips to [dt_min, dt_max].
 
 Accelerations come from second finite differences of the most recent tracked poses (world
-positions; rotation increments through the SO(3) log).  Pure numpy, deterministic.
+positions; rotation increments through the SO(3) log).
+
+Where the knot lands between frames matters as much as the length (:func:`snap_after_frame`).
+The newest control point reaches the newest interval only through the cumulative weight
+B_3(u) = u³/6 (u = the time's fraction of the interval), so the curve approximation can place it
+only from the frames near the interval's end.  A knot right on a frame time leaves the interval's
+last frame a whole frame spacing before its end: with three frames per interval they sit at
+u = 0, 1/3, 2/3, weights 0, 0.006 and 0.049, and tracking noise reaches the newest point
+amplified about 20 times (1 / sqrt(Σ B_3²)).  A knot a quarter of a frame spacing after a frame
+puts the last frame at u ≈ 0.92 (weight 0.13): about 7 times, what a uniform 0.3 s interval with
+nine frames gives.  So each planned end is moved to a quarter frame spacing after the nearest
+predicted frame time.  Pure numpy, deterministic.
 
 Layer 1 (math): imports nothing from the package.
 """
@@ -141,11 +152,40 @@ def place_knots(times, rotations, positions, first_interval: float, dt_min: floa
 def next_interval_end(times, rotations, positions, previous_start: float, start: float, end: float,
                       dt_min: float, dt_max: float, rotation_tolerance: float, position_tolerance: float) -> float:
     """End (s) of the interval after [start, end): end + :func:`interval_from_track` of the poses in
-    [previous_start, end) (intervals n - 1 and n), falling back to end - start.  The one rule of the
-    SLAM loop (``knot_schedule``) and of :func:`place_knots`.  times (K,) s, rotations (K, 3, 3),
+    [previous_start, end) (intervals n - 1 and n), falling back to end - start, moved to a quarter
+    frame after the nearest predicted frame (:func:`snap_after_frame`).  The one rule of the SLAM
+    loop (``knot_schedule``) and of :func:`place_knots`.  times (K,) s, rotations (K, 3, 3),
     positions (K, 3): every pose known so far; other arguments as in :func:`next_interval`."""
     times = np.asarray(times, dtype=np.float64)
     inside = (times >= previous_start) & (times < end)
     length = interval_from_track(times[inside], np.asarray(rotations)[inside], np.asarray(positions)[inside],
                                  end - start, dt_min, dt_max, rotation_tolerance, position_tolerance)
-    return end + length
+    return snap_after_frame(times[inside], end, end + length)
+
+
+SNAP_FRACTION = 0.25
+"""Where a planned knot sits after the frame it follows, in frame spacings: far enough after it
+that timestamp jitter of a few milliseconds (TUM: under 1/8 of a 30 Hz spacing) keeps the frame
+inside its interval, close enough that the frame's weight on the newest control point stays near
+its largest, 1/6 (module docstring)."""
+
+
+def snap_after_frame(recent_times, end: float, target: float) -> float:
+    """The knot time (s) nearest ``target`` of the form t_last + (j + 1/4) Δ, j >= 1 (t_last: the
+    last of ``recent_times`` before ``end``; Δ: their median spacing), so that the interval
+    [end, knot) ends a quarter frame after a predicted frame.  ``target`` itself when fewer than
+    two recent times are known.  recent_times (K,) increasing float64 s; end, target float s,
+    target > end.  Returns a time > end."""
+    recent_times = np.asarray(recent_times, dtype=np.float64)
+    recent_times = recent_times[recent_times < end]
+    if recent_times.shape[0] < 2:
+        return float(target)
+    spacing = float(np.median(np.diff(recent_times)))
+    if not spacing > 0:
+        raise ValueError(f"recent_times must be strictly increasing, got median spacing {spacing!r} s")
+    last = float(recent_times[-1])
+    first_candidate = last + (1.0 + SNAP_FRACTION) * spacing
+    while first_candidate <= end:  # a gap in the recent frames: predicted frames start after end
+        first_candidate += spacing
+    steps = max(0, int(np.round((target - first_candidate) / spacing)))
+    return first_candidate + steps * spacing

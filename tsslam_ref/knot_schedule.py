@@ -20,7 +20,8 @@ from .config import Config
 def plan_next_interval(state, frame_index: int, n: int) -> None:
     """Adaptive knots: where interval n + 1 ends, decided once interval n's frames are tracked
     (``frame_index`` is the first frame after it), from the stored poses of intervals n - 1 and n
-    (:func:`knot_policy.interval_from_track`; too few frames keep interval n's length)."""
+    (:func:`knot_policy.interval_from_track`; too few frames keep interval n's length), a quarter
+    frame after a predicted frame (:func:`knot_policy.snap_after_frame`)."""
     spline_cfg, trajectory = state.cfg.spline, state.trajectory
     previous_start, (start, end) = trajectory.interval(max(n - 1, 0))[0], trajectory.interval(n)
     poses = state.frame_poses[: frame_index + 1].detach().cpu().double().numpy()
