@@ -285,3 +285,20 @@ def test_environment_switch_turns_the_kernel_off(monkeypatch):
     monkeypatch.setenv("TSSLAM_NO_COMPILED_KERNEL", "1")
     assert not hash_kernel.available()
     assert "TSSLAM_NO_COMPILED_KERNEL" in hash_kernel.load_error()
+
+
+def test_stale_kernel_build_lock_is_named(tmp_path):
+    """A build lock left by a killed build makes torch wait forever; the kernel loader names it
+    (with its path) once it is older than a plausible build, and stays quiet otherwise."""
+    import os
+    from tsslam_ref import hash_kernel
+
+    assert hash_kernel.stale_lock_message(tmp_path) is None  # no lock
+    lock = tmp_path / "lock"
+    lock.write_text("")
+    now = lock.stat().st_mtime
+    assert hash_kernel.stale_lock_message(tmp_path, now=now + 60) is None  # a build in progress
+    message = hash_kernel.stale_lock_message(tmp_path, now=now + hash_kernel.STALE_LOCK_SECONDS + 120)
+    assert message is not None and str(lock) in message and "delete" in message
+    os.utime(lock, (now - 3600, now - 3600))
+    assert "60 min" in hash_kernel.stale_lock_message(tmp_path, now=now)

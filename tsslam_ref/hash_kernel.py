@@ -20,6 +20,7 @@ Layer 1 (map): imports torch only.
 
 import os
 import threading
+import time
 import warnings
 from pathlib import Path
 from typing import Optional
@@ -29,6 +30,9 @@ import torch
 SOURCE = Path(__file__).parent / "csrc" / "hash_grid.cpp"
 _LOCK = threading.Lock()
 _STATE = {"loaded": None, "error": None}  # loaded: None = not tried, True / False after the try
+STALE_LOCK_SECONDS = 600.0
+"""A build lock older than this (a build takes about 30 s) was most likely left by a process that
+was killed while building; ``torch.utils.cpp_extension`` then waits for it forever."""
 
 
 def available() -> bool:
@@ -51,9 +55,30 @@ def load_error() -> Optional[str]:
     return _STATE["error"]
 
 
+def stale_lock_message(build_directory, now: Optional[float] = None) -> Optional[str]:
+    """A message naming the build lock in ``build_directory`` when it is older than
+    :data:`STALE_LOCK_SECONDS` (None when there is none or it is recent).  now: time.time() default."""
+    lock = Path(build_directory) / "lock"
+    try:
+        age = (time.time() if now is None else now) - lock.stat().st_mtime
+    except OSError:
+        return None
+    if age < STALE_LOCK_SECONDS:
+        return None
+    return (f"tsslam_ref: the kernel build lock {lock} is {age / 60:.0f} min old; PyTorch waits until it is "
+            "gone. If no other process is building the kernel, a killed build left it: delete the file.")
+
+
 def _build() -> bool:
     try:
         from torch.utils import cpp_extension
+
+        try:  # a stale lock makes cpp_extension.load wait forever without a word: say so first
+            message = stale_lock_message(cpp_extension._get_build_directory("tsslam_hash_grid", verbose=False))
+        except Exception:  # a private helper of torch: never let it break the build
+            message = None
+        if message:
+            warnings.warn(message, RuntimeWarning, stacklevel=3)
 
         cpp_extension.load(  # -fopenmp: at::parallel_for's threads; fp-contract off: no fused multiply-add
             name="tsslam_hash_grid",
