@@ -13,6 +13,8 @@ Layer 4 (system support): reads the loop's state (``slam.SLAMState``) and its co
 ``knot_policy``.  User doc: docs/system.md, "Adaptive knots".
 """
 
+import numpy as np
+
 from . import knot_policy
 from .config import Config
 
@@ -24,8 +26,10 @@ def plan_next_interval(state, frame_index: int, n: int) -> None:
     frame after a predicted frame (:func:`knot_policy.snap_after_frame`)."""
     spline_cfg, trajectory = state.cfg.spline, state.trajectory
     previous_start, (start, end) = trajectory.interval(max(n - 1, 0))[0], trajectory.interval(n)
-    poses = state.frame_poses[: frame_index + 1].detach().cpu().double().numpy()
-    next_end = knot_policy.next_interval_end(state.timestamps[: frame_index + 1], poses[:, :3, :3], poses[:, :3, 3],
+    times = state.timestamps[: frame_index + 1]
+    first = int(np.searchsorted(times, previous_start))  # the rule reads only [previous_start, end): copy no older pose
+    poses = state.frame_poses[first: frame_index + 1].detach().cpu().double().numpy()
+    next_end = knot_policy.next_interval_end(times[first:], poses[:, :3, :3], poses[:, :3, 3],
                                              previous_start, start, end, spline_cfg.dt_min, spline_cfg.dt_max,
                                              spline_cfg.rotation_tolerance, spline_cfg.position_tolerance)
     trajectory.plan_interval_end(n + 1, next_end, assumed_spacing=next_end - end)
