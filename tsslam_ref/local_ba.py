@@ -104,7 +104,7 @@ def constant_velocity_control_points(trajectory: BSplineTrajectory, times: np.nd
         (4, 3, 3) rotations and (4, 3) translations in the poses' dtype.
     """
     first_time = trajectory.interval(0)[0]
-    elapsed = torch.as_tensor(np.asarray(times, dtype=np.float64) - first_time)  # (K,)
+    elapsed = torch.as_tensor(np.asarray(times, dtype=np.float64) - first_time, device=poses.device)  # (K,)
     positions = poses[:, :3, 3].double()  # (K, 3)
     offset = positions[0]  # c: the line starts at the first pose
     first_rotation = poses[0, :3, :3].double()
@@ -114,7 +114,7 @@ def constant_velocity_control_points(trajectory: BSplineTrajectory, times: np.nd
         velocity = (elapsed[:, None] * (positions - offset)).sum(0) / weight
         rate = (elapsed[:, None] * rotvecs).sum(0) / weight
     else:
-        velocity = rate = torch.zeros(3, dtype=torch.float64)
+        velocity = rate = torch.zeros(3, dtype=torch.float64, device=poses.device)
     translations = offset + line_at_control_points(trajectory, velocity)  # (4, 3)
     rotations = first_rotation @ so3_exp(line_at_control_points(trajectory, rate))  # (4, 3, 3)
     return rotations.to(poses.dtype), translations.to(poses.dtype)
@@ -126,10 +126,10 @@ def line_at_control_points(trajectory: BSplineTrajectory, rate: torch.Tensor) ->
     abscissae of the trajectory's own knots minus the first interval's start
     (:func:`knots.greville_times`)."""
     if trajectory.uniform:
-        k = torch.arange(4, dtype=torch.float64)[:, None] - 1.0  # (4, 1)
+        k = torch.arange(4, dtype=torch.float64, device=rate.device)[:, None] - 1.0  # (4, 1)
         return rate * trajectory.dt * k  # this order of products, as the uniform loop always had
     greville = knots_module.greville_times(trajectory.knot_vector(4)) - trajectory.interval(0)[0]
-    return rate * torch.as_tensor(greville, dtype=torch.float64)[:, None]
+    return rate * torch.as_tensor(greville, dtype=torch.float64, device=rate.device)[:, None]
 
 
 def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses: torch.Tensor,

@@ -1,0 +1,75 @@
+"""Every tensor operation of the SLAM loop is device-agnostic, checked without a GPU.
+
+Oracle: PyTorch's own device rules for CUDA tensors, enforced by ``device_audit.VirtualDevice``
+(an accelerator stand-in that marks tensors instead of moving them).  The first tests show that
+the stand-in raises on each mistake CUDA raises on; then both methods, the adaptive knots, the
+two-thread loop and the command line run on the stand-in, on the PyTorch path of the hash grid
+that a GPU takes, and must give exactly the plain CPU run's trajectory (the stand-in moves
+nothing, so any difference would be a bug of the stand-in itself).
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from device_audit import VIRTUAL, DeviceMixError, VirtualDevice, on_virtual
+from tsslam_ref import config, data, device as device_module, run, slam, synthetic
+
+
+@pytest.fixture(scope="module")
+def small_sequence(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("synthetic") / "room"
+    synthetic.synthesize(folder, n_frames=14, width=64, height=48, fps=30.0, seed=0, clean_depth=True, mesh_voxel=0.1)
+    return folder
+
+
+def small_config(method: str, knots: str = "uniform") -> config.Config:
+    cfg = config.tiny()
+    cfg.method = method
+    cfg.spline.dt = 0.2
+    cfg.local_ba.window = 4
+    cfg.tracking.iters = 4
+    cfg.field.compiled_kernel = False  # the hash grid's PyTorch path, the one a GPU runs
+    return config.apply_overrides(cfg, [f"spline.knots={knots}"])
+
+
+def test_the_stand_in_raises_where_cuda_raises():
+    with VirtualDevice():
+        on_device = torch.ones(4, 3, device=VIRTUAL)
+        assert on_virtual(on_device) and on_device.device == VIRTUAL
+        assert on_virtual(on_device * 2 + torch.tensor(1.0))  # a 0-d CPU tensor mixes, as on CUDA
+        assert on_virtual(on_device[torch.tensor([0, 2])])  # CPU indices index a GPU tensor
+        assert not on_virtual(on_device.cpu()) and float(on_device.sum()) == 12.0
+        with pytest.raises(DeviceMixError, match="mixed with CPU"):
+            on_device - torch.zeros(3)
+        with pytest.raises(DeviceMixError, match="NumPy"):
+            np.asarray(on_device)
+        with pytest.raises(DeviceMixError, match="CPU generator"):
+            torch.rand(3, device=VIRTUAL, generator=torch.Generator().manual_seed(0))
+        parameter = torch.nn.Parameter(torch.zeros(3, device=VIRTUAL))
+        assert on_virtual(parameter) and on_virtual(torch.func.jacrev(lambda x: x * 2)(parameter))
+        module = torch.nn.Linear(3, 2).to(VIRTUAL)
+        assert all(on_virtual(p) for p in module.parameters()) and on_virtual(module(on_device))
+
+
+@pytest.mark.parametrize("method, knots", [("tsslam", "uniform"), ("coslam", "uniform"), ("tsslam", "adaptive")])
+def test_the_loop_runs_on_an_accelerator_stand_in_with_the_cpu_trajectory(small_sequence, method, knots):
+    sequence = data.load_sequence(small_sequence)
+    cfg = small_config(method, knots)
+    plain = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+    with VirtualDevice():
+        checked = slam.run_slam(sequence, cfg, device=VIRTUAL)
+    np.testing.assert_array_equal(checked.poses, plain.poses)
+
+
+@pytest.mark.parametrize("method", ["tsslam", "coslam"])
+def test_the_command_line_in_two_threads_runs_on_the_stand_in(small_sequence, tmp_path, monkeypatch, method):
+    monkeypatch.setattr(device_module, "resolve_device", lambda name: VIRTUAL)
+    out = tmp_path / "out"
+    arguments = ["--data", str(small_sequence), "--config", "tiny", "--method", method, "--out", str(out), "--quiet",
+                 "--parallel", "--set", "field.compiled_kernel=false", "--set", "tracking.iters=4"]
+    if method == "tsslam":
+        arguments += ["--export-rate", "60"]
+    with VirtualDevice():
+        assert run.main(arguments) == 0
+    assert (out / "trajectory.txt").is_file() and (out / "mesh.ply").is_file()
