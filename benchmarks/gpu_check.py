@@ -1,28 +1,36 @@
-"""GPU check: both methods on the bundled sequence on CUDA, compared with the same run on the CPU, and timed.
+"""GPU check: the same computations on CUDA and on the CPU, both methods end to end, and timings.
 
-For each method (TS-SLAM, Co-SLAM baseline) it runs the loop on the bundled TUM fr3/teddy slice
-(``tum-cpu`` preset, same seed) once on the CPU and once on ``--device`` (default ``cuda``), then prints
+Two kinds of agreement, because a SLAM run is chaotic: a difference in the last bit of one sum
+(the two devices add in different orders) grows over the frames, so one seed's trajectories part
+by centimetres although no computation is wrong (measured on an H200: 2.5 cm for TS-SLAM and 9.6
+cm for Co-SLAM over 40 frames, while a CPU run itself moves that much from one seed to the next).
+So it checks
 
-* agreement: the largest and the RMS distance between the two runs' per-frame camera positions (cm),
-  the largest rotation difference (deg), and both runs' ATE / RPE (cm).  The two devices sum in a
-  different order, so the runs are not bit-identical; the check passes when the largest position
-  difference is below ``--tolerance-cm`` (default 1 cm, a fifth of the teddy ATE) and the ATE of
-  the two runs differs by less than the same amount;
-* time: frames per second of each run and the runtime table (ms per iteration of tracking, local BA,
-  global BA, map update), and one map iteration (forward + backward + Adam) at 1024 rays x 43
-  samples on each device, as ``bench_field.py`` times it.
+* **kernels, same inputs**: the map (colour, SDF and the gradient of the hash table and MLPs at
+  4096 random points, float32) and the spline (pose, velocity, acceleration, angular rate and
+  angular acceleration at 200 times, float64) on the CPU and on ``--device``.  Passes when the
+  largest difference, relative to the largest value, is below 1e-4 (float32) and 1e-10 (float64);
+* **runs, same seeds**: both methods (TS-SLAM, Co-SLAM baseline) on the bundled TUM fr3/teddy slice
+  (``tum-cpu``) for each of ``--seeds`` on both devices.  It prints each seed's ATE / RPE and the
+  largest distance between the two runs' positions (for information), and passes when the two
+  devices' mean ATE differ by at most the CPU runs' seed range (largest minus smallest ATE) plus
+  ``--tolerance-cm`` (default 0.5 cm);
+* **time**: frames per second and the runtime table of each run (ms per iteration of tracking,
+  local BA, global BA, map update; first seed), and one map iteration (forward + backward + Adam)
+  at 1024 rays x 43 samples on each device, as ``bench_field.py`` times it.
 
 It writes every figure to ``--json`` (default ``runs/gpu_check.json``; an existing file is kept
-unless ``--overwrite``).  Exit status: 0 agreement holds, 1 it does not, 2 the device cannot be used.
-On a machine without CUDA, ``--device cpu`` runs the whole script as a dry run (CPU against CPU,
-which must agree exactly).
+unless ``--overwrite``).  Exit status: 0 every check holds, 1 one does not, 2 the device cannot be
+used.  On a machine without CUDA, ``--device cpu`` runs the whole script as a dry run (CPU against
+CPU, which must agree exactly).
 
-Usage: python benchmarks/gpu_check.py [--frames 0:40] [--seed 0] [--device cuda] [--json FILE]
+Usage: python benchmarks/gpu_check.py [--frames 0:40] [--seeds 0 1 2] [--device cuda] [--threads 2] [--json FILE]
 
-Nothing here runs in the tests; the figures go to the README's "Results" when a GPU was used.
+Nothing here runs in the tests; the figures are in the README's "Results".
 """
 
 import argparse
+import copy
 import json
 import os
 import sys
@@ -33,11 +41,11 @@ from typing import Dict
 import numpy as np
 import torch
 
-from tsslam_ref import config, data, slam
+from tsslam_ref import config, data, slam, spline
 from tsslam_ref.device import resolve_device, tune_cpu_allocator
 from tsslam_ref.field import SceneField
 from tsslam_ref.files import atomic_write_text
-from tsslam_ref.geometry import rotation_angle_deg
+from tsslam_ref.geometry import rotation_angle_deg, so3_exp
 from tsslam_ref.mapping import make_map_optimizer
 from tsslam_ref.run import parse_frames, trajectory_metrics
 
@@ -67,6 +75,42 @@ def agreement(cpu_poses: np.ndarray, device_poses: np.ndarray) -> Dict[str, floa
             "max_rotation_deg": float(rotation_angle_deg(relative).max())}
 
 
+def relative_difference(cpu: torch.Tensor, other: torch.Tensor) -> float:
+    """max |cpu - other| / max |cpu| (0 for two zero tensors)."""
+    scale = float(cpu.abs().max())
+    return float((cpu - other.cpu()).abs().max()) / scale if scale > 0 else float((other.abs().max()))
+
+
+def field_agreement(cfg: config.Config, device: torch.device, n_points: int = 4096) -> Dict[str, float]:
+    """Colour, SDF and every parameter's gradient of one map forward + backward at the same
+    (n_points, 3) points with the same weights on both devices: relative difference per output."""
+    cpu_field = SceneField(cfg.field, BOX, generator=torch.Generator().manual_seed(0))
+    other_field = copy.deepcopy(cpu_field).to(device)
+    low, high = torch.tensor(BOX).T
+    points = low + (high - low) * torch.rand(n_points, 3, generator=torch.Generator().manual_seed(1))
+    outputs = {}
+    for field, where in ((cpu_field, "cpu"), (other_field, "device")):
+        rgb, sdf = field(points.to(device if where == "device" else "cpu"))
+        (rgb.square().mean() + sdf.square().mean()).backward()
+        outputs[where] = {"rgb": rgb.detach(), "sdf": sdf.detach(),
+                          **{f"grad {name}": parameter.grad for name, parameter in field.named_parameters()}}
+    return {name: relative_difference(value, outputs["device"][name]) for name, value in outputs["cpu"].items()}
+
+
+def spline_agreement(device: torch.device, n_ctrl: int = 8, n_times: int = 200) -> Dict[str, float]:
+    """Pose and derivatives (Eq. 5-9) of one float64 spline at the same times on both devices."""
+    generator = torch.Generator().manual_seed(2)
+    rotations = so3_exp(0.5 * torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64))
+    translations = torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64)
+    dt, t0 = 0.1, 0.0
+    t_min, t_max = spline.valid_time_range(n_ctrl, dt, t0)
+    times = np.linspace(t_min, t_max, n_times)
+    samples = {where: spline.evaluate(rotations.to(where), translations.to(where), times, dt, t0, derivatives=2)
+               for where in (torch.device("cpu"), device)}
+    cpu, other = samples[torch.device("cpu")], samples[device]
+    return {name: relative_difference(getattr(cpu, name), getattr(other, name)) for name in cpu._fields}
+
+
 def time_map_iteration(cfg: config.Config, device: torch.device, n_rays: int = 1024, repeats: int = 10) -> float:
     """Median ms of one map iteration at ``n_rays`` x (n_samples + n_range_d), timed by bench_field.py."""
     field = SceneField(cfg.field, BOX, generator=torch.Generator().manual_seed(0)).to(device)
@@ -83,12 +127,70 @@ def stage_cell(runtime: Dict[str, Dict[str, float]], stage: str) -> str:
     return "-" if entry is None else f"{entry['ms_per_iteration']:.1f} x {entry['iterations_per_call']:.0f}"
 
 
+FLOAT32_TOLERANCE, FLOAT64_TOLERANCE = 1e-4, 1e-10
+
+
+def check_kernels(cfg: config.Config, device: torch.device, report: Dict[str, object]) -> bool:
+    """The map and the spline at the same inputs on both devices; prints and records the differences."""
+    field = field_agreement(cfg, device)
+    curve = spline_agreement(device)
+    ok = max(field.values()) <= FLOAT32_TOLERANCE and max(curve.values()) <= FLOAT64_TOLERANCE
+    report["kernels"] = {"field_relative_difference": field, "spline_relative_difference": curve, "passed": ok}
+    print(f"kernels: {'agree' if ok else 'DIFFER'} - map (float32) largest relative difference "
+          f"{max(field.values()):.1e} ({max(field, key=field.get)}; limit {FLOAT32_TOLERANCE:.0e}), "
+          f"spline (float64) {max(curve.values()):.1e} ({max(curve, key=curve.get)}; limit {FLOAT64_TOLERANCE:.0e})")
+    return ok
+
+
+def check_runs(sequence, base: config.Config, device: torch.device, seeds, tolerance_cm: float,
+               report: Dict[str, object]) -> bool:
+    """Both methods for every seed on both devices; passes when the mean ATEs differ by at most the
+    CPU's seed range plus ``tolerance_cm``."""
+    passed = True
+    for method in ("tsslam", "coslam"):
+        entry = {"seeds": {}}
+        for seed in seeds:
+            cfg = config.apply_overrides(base, [f"method={method}"])
+            cfg.seed = seed
+            cpu = run_method(sequence, cfg, torch.device("cpu"))
+            other = run_method(sequence, cfg, device)
+            match = agreement(cpu["poses"], other["poses"])
+            entry["seeds"][seed] = {"agreement": match, **{f"{where}_{key}": run[key] for where, run in (("cpu", cpu), ("device", other))
+                                                          for key in ("ate_cm", "rpe_cm", "frames_per_second", "runtime")}}
+            print(f"  {method}, seed {seed}: ATE {cpu['ate_cm']:.2f} / {other['ate_cm']:.2f} cm, RPE {cpu['rpe_cm']:.3f} / "
+                  f"{other['rpe_cm']:.3f} cm (CPU / {device.type}); positions part by at most {match['max_position_cm']:.2f} cm")
+        cpu_ate = np.array([value["cpu_ate_cm"] for value in entry["seeds"].values()])
+        device_ate = np.array([value["device_ate_cm"] for value in entry["seeds"].values()])
+        allowed = float(cpu_ate.max() - cpu_ate.min()) + tolerance_cm
+        difference = abs(float(device_ate.mean() - cpu_ate.mean()))
+        entry.update(cpu_mean_ate_cm=float(cpu_ate.mean()), device_mean_ate_cm=float(device_ate.mean()),
+                     allowed_difference_cm=allowed, passed=difference <= allowed)
+        passed &= entry["passed"]
+        report["methods"][method] = entry
+        print(f"  {method}: {'agrees' if entry['passed'] else 'DIFFERS'} - mean ATE {cpu_ate.mean():.2f} cm (CPU, range "
+              f"{cpu_ate.min():.2f}-{cpu_ate.max():.2f}) against {device_ate.mean():.2f} cm ({device.type}); "
+              f"difference {difference:.2f} cm, allowed {allowed:.2f} cm")
+    return passed
+
+
+def print_timings(report: Dict[str, object], device: torch.device) -> None:
+    print("\n| method | device | frames/s | tracking ms x it | LBA init | LBA others | GBA | map update |")
+    print("|---|---|---|---|---|---|---|---|")
+    for method, entry in report["methods"].items():
+        first = next(iter(entry["seeds"].values()))
+        for where in ("cpu", "device"):
+            runtime = first[f"{where}_runtime"]
+            cells = " | ".join(stage_cell(runtime, stage) for stage in ("tracking", "lba_init", "lba_others", "global_ba", "map_update"))
+            print(f"| {method} | {'cpu' if where == 'cpu' else device.type} | {first[f'{where}_frames_per_second']:.2f} | {cells} |")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", default="0:40", help="START:STOP[:STEP] of the bundled slice (default 0:40)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--device", default="cuda", help="the device checked against the CPU (default cuda)")
-    parser.add_argument("--tolerance-cm", type=float, default=1.0)
+    parser.add_argument("--tolerance-cm", type=float, default=0.5,
+                        help="allowed mean-ATE difference beyond the CPU's seed range (default 0.5)")
     parser.add_argument("--threads", type=int, default=2, help="CPU threads of the CPU runs (default 2)")
     parser.add_argument("--json", default="runs/gpu_check.json")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
@@ -105,41 +207,21 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     tune_cpu_allocator()
     base = config.load("tum-cpu")
-    base.seed = args.seed
     base.data.frame_start, base.data.frame_stop, base.data.frame_step = frames
     sequence = data.load_from_config(base.data)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    print(f"{sequence.name}: {len(sequence)} frames, tum-cpu, seed {args.seed}; CPU ({args.threads} threads) against {device} ({name})")
-
-    report: Dict[str, object] = {"device": str(device), "device_name": name, "frames": len(sequence), "seed": args.seed,
+    print(f"{sequence.name}: {len(sequence)} frames, tum-cpu, seeds {args.seeds}; CPU ({args.threads} threads) "
+          f"against {device} ({name})")
+    report: Dict[str, object] = {"device": str(device), "device_name": name, "frames": len(sequence), "seeds": args.seeds,
                                  "tolerance_cm": args.tolerance_cm, "methods": {}}
-    passed = True
-    for method in ("tsslam", "coslam"):
-        cfg = config.apply_overrides(base, [f"method={method}"])
-        cpu = run_method(sequence, cfg, torch.device("cpu"))
-        other = run_method(sequence, cfg, device)
-        match = agreement(cpu["poses"], other["poses"])
-        ok = match["max_position_cm"] <= args.tolerance_cm and abs(cpu["ate_cm"] - other["ate_cm"]) <= args.tolerance_cm
-        passed &= ok
-        report["methods"][method] = {"agreement": match, "passed": ok,
-                                     **{f"{where}_{key}": run[key] for where, run in (("cpu", cpu), ("device", other))
-                                        for key in ("ate_cm", "rpe_cm", "frames_per_second", "runtime")}}
-        print(f"  {method}: {'agrees' if ok else 'DIFFERS'} - positions differ by at most {match['max_position_cm']:.3f} cm "
-              f"(RMS {match['rms_position_cm']:.3f}), rotations by {match['max_rotation_deg']:.3f} deg; "
-              f"ATE {cpu['ate_cm']:.2f} / {other['ate_cm']:.2f} cm, RPE {cpu['rpe_cm']:.3f} / {other['rpe_cm']:.3f} cm "
-              f"(CPU / {device.type})")
-    print("\n| method | device | frames/s | tracking ms x it | LBA init | LBA others | GBA | map update |")
-    print("|---|---|---|---|---|---|---|---|")
-    for method, entry in report["methods"].items():
-        for where in ("cpu", "device"):
-            runtime = entry[f"{where}_runtime"]
-            cells = " | ".join(stage_cell(runtime, stage) for stage in ("tracking", "lba_init", "lba_others", "global_ba", "map_update"))
-            print(f"| {method} | {'cpu' if where == 'cpu' else device.type} | {entry[f'{where}_frames_per_second']:.2f} | {cells} |")
-    field_cfg = config.load("tum-cpu")
-    report["map_iteration_ms"] = {"cpu": time_map_iteration(field_cfg, torch.device("cpu")),
-                                  str(device): time_map_iteration(field_cfg, device)}
-    print(f"\nmap iteration, 1024 rays x {field_cfg.render.n_samples + field_cfg.render.n_range_d} samples: "
-          + ", ".join(f"{where} {ms:.1f} ms" for where, ms in report["map_iteration_ms"].items()))
+    passed = check_kernels(base, device, report)
+    passed &= check_runs(sequence, base, device, args.seeds, args.tolerance_cm, report)
+    print_timings(report, device)
+    report["map_iteration_ms"] = {"cpu": time_map_iteration(base, torch.device("cpu")),
+                                  "device": time_map_iteration(base, device)}
+    print(f"\nmap iteration, 1024 rays x {base.render.n_samples + base.render.n_range_d} samples: "
+          f"cpu {report['map_iteration_ms']['cpu']:.1f} ms, {device} {report['map_iteration_ms']['device']:.1f} ms")
+    report["passed"] = passed
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.json, json.dumps(report, indent=2))
     print(f"{'PASS' if passed else 'FAIL'}: written to {args.json}")
