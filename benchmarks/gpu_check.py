@@ -24,7 +24,7 @@ unless ``--overwrite``).  Exit status: 0 every check holds, 1 one does not, 2 th
 used.  On a machine without CUDA, ``--device cpu`` runs the whole script as a dry run (CPU against
 CPU, which must agree exactly).
 
-Usage: python benchmarks/gpu_check.py [--frames 0:40] [--seeds 0 1 2] [--device cuda] [--threads 2] [--json FILE]
+Usage: python benchmarks/gpu_check.py [--frames 0:20] [--seeds 0 1 2] [--device cuda] [--threads 2] [--json FILE]
 
 Nothing here runs in the tests; the figures are in the README's "Results".
 """
@@ -186,7 +186,7 @@ def print_timings(report: Dict[str, object], device: torch.device) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", default="0:40", help="START:STOP[:STEP] of the bundled slice (default 0:40)")
+    parser.add_argument("--frames", default="0:20", help="START:STOP[:STEP] of the bundled slice (default 0:20)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--device", default="cuda", help="the device checked against the CPU (default cuda)")
     parser.add_argument("--tolerance-cm", type=float, default=0.5,
