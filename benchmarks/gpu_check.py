@@ -81,13 +81,18 @@ def relative_difference(cpu: torch.Tensor, other: torch.Tensor) -> float:
     return float((cpu - other.cpu()).abs().max()) / scale if scale > 0 else float((other.abs().max()))
 
 
+def points_in_box(n_points: int, seed: int) -> torch.Tensor:
+    """(n_points, 3) uniform points in ``BOX``, drawn on the CPU from ``seed`` (the same on every device)."""
+    low, high = torch.tensor(BOX).T
+    return low + (high - low) * torch.rand(n_points, 3, generator=torch.Generator().manual_seed(seed))
+
+
 def field_agreement(cfg: config.Config, device: torch.device, n_points: int = 4096) -> Dict[str, float]:
     """Colour, SDF and every parameter's gradient of one map forward + backward at the same
     (n_points, 3) points with the same weights on both devices: relative difference per output."""
     cpu_field = SceneField(cfg.field, BOX, generator=torch.Generator().manual_seed(0))
     other_field = copy.deepcopy(cpu_field).to(device)
-    low, high = torch.tensor(BOX).T
-    points = low + (high - low) * torch.rand(n_points, 3, generator=torch.Generator().manual_seed(1))
+    points = points_in_box(n_points, seed=1)
     outputs = {}
     for field, where in ((cpu_field, "cpu"), (other_field, "device")):
         rgb, sdf = field(points.to(device if where == "device" else "cpu"))
@@ -115,9 +120,7 @@ def time_map_iteration(cfg: config.Config, device: torch.device, n_rays: int = 1
     """Median ms of one map iteration at ``n_rays`` x (n_samples + n_range_d), timed by bench_field.py."""
     field = SceneField(cfg.field, BOX, generator=torch.Generator().manual_seed(0)).to(device)
     optimizer = make_map_optimizer(field, cfg.mapping)
-    generator = torch.Generator(device="cpu").manual_seed(0)
-    low, high = torch.tensor(BOX).T
-    points = low + (high - low) * torch.rand(n_rays * (cfg.render.n_samples + cfg.render.n_range_d), 3, generator=generator)
+    points = points_in_box(n_rays * (cfg.render.n_samples + cfg.render.n_range_d), seed=0)
     median, _ = time_iterations(field, optimizer, points.to(device), repeats, device)
     return median
 
