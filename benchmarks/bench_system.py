@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from tsslam_ref import config, data, parallel, slam, spline_fit
-from tsslam_ref.device import tune_cpu_allocator
+from tsslam_ref.device import compute_environment, tune_cpu_allocator
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
 
 
@@ -173,14 +173,15 @@ def main() -> None:
     for dt in args.dts:
         variants[f"TS-SLAM dt={dt:g} s"] = ["method=tsslam", f"spline.dt={dt}"]
 
+    environment = compute_environment(torch.device(base.device if base.device != "auto" else "cpu"))
     print(f"sequence {sequence.name}: {len(sequence)} frames, {sequence.intrinsics.width}x{sequence.intrinsics.height}, "
-          f"preset {base.name}, seeds {args.seeds}, {args.threads} threads")
+          f"preset {base.name}, seeds {args.seeds}, {args.threads} threads, {environment['cpu_capability']} CPU kernels")
     main_variants = ("Co-SLAM (baseline)", "TS-SLAM", ADAPTIVE)
     ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else args.seeds[:1]
     settings = {"preset": base.name, "data": args.data or "bundled", "sequence": sequence.name,
                 "frames": len(sequence), "frame_range": args.frames, "threads": args.threads,
                 "overrides": args.overrides, "seeds": args.seeds, "ablation_seeds": ablation_seeds,
-                "variants": variants, "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
+                "variants": variants, "environment": environment, "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
     results = {}
     for name, overrides in variants.items():
         rows = []

@@ -7,6 +7,9 @@ the figures reached at the CPU presets are in the README and docs/system.md.
 """
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -207,6 +210,8 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "runtime", "accuracy_m"):
         assert key in metrics
+    assert metrics["environment"] == {"torch": torch.__version__, "device": "cpu", "threads": torch.get_num_threads(),
+                                      "cpu_capability": torch.backends.cpu.get_cpu_capability()}
     saved = config.load(str(out / "config.json"))
     assert saved.method == "tsslam" and saved.spline.dt == 0.2 and saved.data.frame_stop == 12
     for name in ("mesh.ply", "trajectory.png", "errors.png", "checkpoint.pt", "trajectory_50hz.txt"):
@@ -220,6 +225,15 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
     # resume from the checkpoint written after frame 6 reproduces the uninterrupted run
     state = run.load_checkpoint(out / "checkpoint.pt")
     assert state.done == 12
+
+
+def test_the_recorded_cpu_kernels_are_the_ones_pytorch_runs():
+    """The record follows ATEN_CPU_CAPABILITY (the documented way to reproduce another machine's
+    per-seed numbers), not a static reading of the processor's flags."""
+    code = "import torch; from tsslam_ref.device import compute_environment as e; print(e(torch.device('cpu'))['cpu_capability'])"
+    environment = dict(os.environ, ATEN_CPU_CAPABILITY="default")
+    printed = subprocess.run([sys.executable, "-c", code], env=environment, capture_output=True, text=True, check=True)
+    assert printed.stdout.strip() == "DEFAULT"
 
 
 def test_resume_from_a_checkpoint_gives_the_same_trajectory(synthetic_sequence, tmp_path):

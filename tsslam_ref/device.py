@@ -22,6 +22,22 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
+def compute_environment(device: torch.device) -> dict:
+    """What decides a run's last bits besides the seed: PyTorch, the device, the CPU kernels, the threads.
+
+    On the CPU PyTorch picks its vectorised kernels by the processor's instruction set
+    (``cpu_capability``: ``AVX2``, ``AVX512``, ...).  They add in different orders, and a SLAM loop
+    grows a last-bit difference into a different trajectory, so a seed gives the same numbers only
+    with the same capability and thread count.  Setting the environment variable
+    ``ATEN_CPU_CAPABILITY=avx2`` before Python starts makes an AVX-512 machine use the AVX2 kernels.
+    """
+    environment = {"torch": torch.__version__, "device": str(device),
+                   "cpu_capability": torch.backends.cpu.get_cpu_capability(), "threads": torch.get_num_threads()}
+    if device.type == "cuda":
+        environment["gpu"] = torch.cuda.get_device_name(device)
+    return environment
+
+
 def tune_cpu_allocator() -> bool:
     """Keep freed buffers in the process instead of returning them to the OS (glibc only).
 

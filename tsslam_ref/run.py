@@ -9,8 +9,10 @@ Outputs in ``--out`` (default ``runs/<sequence>-<method>``):
 * ``trajectory.txt`` - TUM format (timestamp tx ty tz qx qy qz qw), camera-to-world, OpenCV axes,
   one line per input frame at the frame's own timestamp;
 * ``metrics.json`` - ate_rmse_m, rpe_trans_rmse_m, rpe_rot_rmse_deg, n_matched (when ground truth is
-  known), frames, frames_per_second, the runtime table, and the reconstruction metrics when a
-  ground-truth mesh is next to the data (``gt_mesh.ply``, written by the synthetic generator);
+  known), frames, frames_per_second, the runtime table, the reconstruction metrics when a
+  ground-truth mesh is next to the data (``gt_mesh.ply``, written by the synthetic generator), and
+  ``environment`` (:func:`tsslam_ref.device.compute_environment`: what besides the seed fixes the
+  numbers);
 * ``mesh.ply`` - the final map's mesh (marching cubes at ``mesh.voxel_final``);
 * ``config.json`` - the resolved config; ``trajectory.png`` and ``errors.png`` - plots;
 * ``checkpoint.pt`` - the whole state every ``--checkpoint-every`` frames (``--resume`` continues);
@@ -409,8 +411,10 @@ def execute(plan: Plan) -> int:
     progress = _progress_bar(plan)
     reached = {"done": state.done if state else 0, "checkpoint": state.done if state else 0}
     on_frame = _frame_callback(plan, progress, reached)
+    environment = device_module.compute_environment(plan.device)
+    kernels = environment.get("gpu") or f"{environment['cpu_capability']} kernels, {environment['threads']} threads"
     print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}), preset {cfg.name}, "
-          f"device {plan.device}, output {out}")
+          f"device {plan.device} ({kernels}), output {out}")
     try:
         run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
         result = run_loop(sequence, cfg, device=plan.device, state=state, on_frame=on_frame)

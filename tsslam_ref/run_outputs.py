@@ -15,6 +15,7 @@ import numpy as np
 
 from . import data as data_module
 from . import eval as eval_module
+from .device import compute_environment
 from .files import atomic_path, atomic_write_text
 
 
@@ -110,6 +111,7 @@ def write_outputs(plan, result) -> None:
                "frames_per_second": result.frames_per_second}
     metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
     metrics["runtime"] = result.state.timings.table()
+    metrics["environment"] = compute_environment(plan.device)
     if not args.no_mesh:
         mesh = extract_mesh(result.state.field, None, cfg.mesh.voxel_final, sdf_cutoff=cfg.mesh.sdf_cutoff)
         save_mesh(mesh, out / "mesh.ply", overwrite=True)
