@@ -65,6 +65,11 @@ def spline_fit_control(sequence, result: slam.SLAMResult, dt: float) -> Dict[str
     return metrics_cm(sequence, result.timestamps, fitted.poses(result.timestamps).numpy())
 
 
+def benchmark_device(cfg: config.Config) -> torch.device:
+    """The config's device, with "auto" meaning the CPU (the benchmark's tables are CPU figures)."""
+    return torch.device(cfg.device if cfg.device != "auto" else "cpu")
+
+
 def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
     """One SLAM run -> metrics in cm plus the runtime table (or the failure message).  A baseline
     run also gives the control row's metrics (``"spline_fit"``)."""
@@ -72,7 +77,7 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
     start = time.perf_counter()
     try:
         run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
-        result = run_loop(sequence, cfg, device=torch.device(cfg.device if cfg.device != "auto" else "cpu"))
+        result = run_loop(sequence, cfg, device=benchmark_device(cfg))
     except slam.TrackingFailure as failure:
         return {"failed": str(failure)}
     wall = time.perf_counter() - start
@@ -173,7 +178,7 @@ def main() -> None:
     for dt in args.dts:
         variants[f"TS-SLAM dt={dt:g} s"] = ["method=tsslam", f"spline.dt={dt}"]
 
-    environment = compute_environment(torch.device(base.device if base.device != "auto" else "cpu"))
+    environment = compute_environment(benchmark_device(base))
     print(f"sequence {sequence.name}: {len(sequence)} frames, {sequence.intrinsics.width}x{sequence.intrinsics.height}, "
           f"preset {base.name}, seeds {args.seeds}, {args.threads} threads, {environment['cpu_capability']} CPU kernels")
     main_variants = ("Co-SLAM (baseline)", "TS-SLAM", ADAPTIVE)
