@@ -46,6 +46,7 @@ import torch
 from tsslam_ref import config, data, parallel, slam, spline_fit
 from tsslam_ref.device import compute_environment, tune_cpu_allocator
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
+from tsslam_ref.run_outputs import ground_truth_known
 
 
 CONTROL = "Co-SLAM + spline fit (offline control)"
@@ -163,6 +164,12 @@ def main() -> None:
 
         base.data.frame_start, base.data.frame_stop, base.data.frame_step = parse_frames(args.frames)
     sequence = data.load_from_config(base.data)
+    ground_truth = ground_truth_known(sequence)
+    with_ground_truth = 0 if ground_truth is None else int(ground_truth[1].sum())
+    if with_ground_truth < 3:
+        parser.error(f"sequence {sequence.name} ({args.data or 'bundled'}, frames {args.frames or 'all'}): "
+                     f"{with_ground_truth} of {len(sequence)} frames have a ground-truth pose; "
+                     "ATE and RPE need at least 3 (widen --frames or use a sequence with ground truth)")
     variants = {"Co-SLAM (baseline)": ["method=coslam"], "TS-SLAM": ["method=tsslam"]}
     if args.adaptive:
         variants[ADAPTIVE] = ["method=tsslam", "spline.knots=adaptive"]

@@ -292,6 +292,21 @@ def test_spline_kit_refuses_negative_and_nan_tolerances(tmp_path, capsys):
         refused_in_process(capsys, spline_kit.main, ["check", reference, reference] + arguments, arguments[0][:6])
 
 
+def test_benchmark_refuses_too_few_ground_truth_frames_before_running(tmp_path):
+    """ATE and RPE need 3 frames with a ground-truth pose; two frames are refused up front, naming
+    the sequence, the range and the count (not a KeyError after the runs)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_system.py"), "--frames", "0:2",
+                             "--json", str(tmp_path / "rows.json")], cwd=tmp_path, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert "Traceback" not in result.stderr, result.stderr
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    message = result.stderr.strip().splitlines()[-1]
+    for needle in ("tum_fr3_teddy_160x120", "0:2", "2 of 2 frames", "at least 3"):
+        assert needle in message, message
+    assert not (tmp_path / "rows.json").exists()
+
+
 # ------------------------------------------------------------------------------------------------
 # Real runs: --overwrite in a planted folder, Ctrl-C, resume and its refusals
 

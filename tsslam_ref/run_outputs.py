@@ -27,14 +27,19 @@ def write_partial_trajectory(state, out: Path) -> None:
     data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
 
 
-def _known_ground_truth(sequence):
+def ground_truth_known(sequence):
     """(gt (N, 4, 4) float64 camera-to-world, known (N,) bool: a finite GT pose), or None when the
-    sequence has no ground truth or fewer than 3 frames with one (too few to align)."""
+    sequence has no ground truth."""
     if sequence.gt_poses is None:
         return None
     gt = np.asarray(sequence.gt_poses, dtype=np.float64)
-    known = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
-    return (gt, known) if known.sum() >= 3 else None
+    return gt, np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
+
+
+def _known_ground_truth(sequence):
+    """:func:`ground_truth_known`, or None when fewer than 3 frames have a GT pose (too few to align)."""
+    ground_truth = ground_truth_known(sequence)
+    return ground_truth if ground_truth is not None and ground_truth[1].sum() >= 3 else None
 
 
 def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> dict:
