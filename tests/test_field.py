@@ -118,12 +118,14 @@ def _use_path(grid: HashGridEncoding, path: str) -> None:
     grid.compiled = path == "compiled"
 
 
-@pytest.mark.parametrize("path", ["compiled", "torch"])
-def test_fast_paths_agree_with_the_reference_in_values_and_gradients(path, request):
+@pytest.mark.parametrize("path, n_features", [("compiled", 2), ("torch", 2), ("compiled", 1), ("compiled", 4)])
+def test_fast_paths_agree_with_the_reference_in_values_and_gradients(path, n_features, request):
+    """Values, table and point gradients of each fast path against the reference; the kernel also
+    with F = 1 and 4 features per level (its general feature loop; F = 2 has its own unrolled one)."""
     if path == "compiled":
         request.getfixturevalue("compiled_kernel")
     torch.manual_seed(3)
-    grid = HashGridEncoding(120, log2_hashmap_size=12)
+    grid = HashGridEncoding(120, n_features=n_features, log2_hashmap_size=12)
     with torch.no_grad():
         grid.table.normal_()
     points = torch.rand(2000, 3) * 1.4 - 0.2  # includes points outside the box

@@ -21,6 +21,10 @@
 // Features and their gradients are level-major, (L, N, F), so that each level's loop reads and
 // writes contiguous memory; the loops over points run level by level inside blocks of points.
 //
+// Speed without changing a bit: each point-and-level branches once between the dense and the hashed
+// index (not once per corner), and F = 2 (Co-SLAM's features per level) has its own unrolled
+// feature loops; every sum keeps its order, so all three paths give the numbers of the general loop.
+//
 // Nothing is stored between forward and backward but the inputs: the rows and weights are
 // recomputed, which is cheaper on two cores than writing and re-reading an (8, L, N) index.
 // Compile with -fopenmp (at::parallel_for runs on OpenMP threads; without it every loop is serial)
@@ -82,6 +86,24 @@ struct Cell {
   scalar_t fraction[3];
 };
 
+// cell.row[c] for the 8 corners from index(i, j, k), the level's dense or hashed index.
+template <typename scalar_t, typename Index>
+inline void corner_rows(const uint32_t corner[3], const Level& level, const Index& index, Cell<scalar_t>& cell) {
+  int c = 0;
+  for (uint32_t dx = 0; dx < 2; ++dx) {
+    for (uint32_t dy = 0; dy < 2; ++dy) {
+      for (uint32_t dz = 0; dz < 2; ++dz, ++c) {
+        const uint64_t local = index(corner[0] + dx, corner[1] + dy, corner[2] + dz);
+        // mod size: a mask for the 2^T hashed tables, a division only for a dense index past the
+        // table (points outside the box); divisions would dominate the loop otherwise
+        const uint64_t wrapped =
+            level.power_of_two ? (local & (level.size - 1)) : (local < level.size ? local : local % level.size);
+        cell.row[c] = level.offset + static_cast<int64_t>(wrapped);
+      }
+    }
+  }
+}
+
 template <typename scalar_t>
 inline void locate(const scalar_t* point, const Level& level, Cell<scalar_t>& cell) {
   const scalar_t scale = static_cast<scalar_t>(level.scale);
@@ -98,20 +120,22 @@ inline void locate(const scalar_t* point, const Level& level, Cell<scalar_t>& ce
   const scalar_t wx[2] = {one - cell.fraction[0], cell.fraction[0]};
   const scalar_t wy[2] = {one - cell.fraction[1], cell.fraction[1]};
   const scalar_t wz[2] = {one - cell.fraction[2], cell.fraction[2]};
+  // One well-predicted branch per point and level (a level's points all take the same side);
+  // each corner loop is then straight-line code.
+  if (level.dense) {
+    corner_rows(corner, level, [resolution](uint32_t i, uint32_t j, uint32_t k) -> uint64_t {
+      return i + (j + k * resolution) * resolution;
+    }, cell);
+  } else {
+    corner_rows(corner, level, [](uint32_t i, uint32_t j, uint32_t k) -> uint64_t {
+      return i ^ (j * kPrimeY) ^ (k * kPrimeZ);
+    }, cell);
+  }
   int c = 0;
-  for (uint32_t dx = 0; dx < 2; ++dx) {
-    for (uint32_t dy = 0; dy < 2; ++dy) {
+  for (int dx = 0; dx < 2; ++dx) {
+    for (int dy = 0; dy < 2; ++dy) {
       const scalar_t wxy = wx[dx] * wy[dy];
-      for (uint32_t dz = 0; dz < 2; ++dz, ++c) {
-        const uint32_t i = corner[0] + dx, j = corner[1] + dy, k = corner[2] + dz;
-        const uint64_t local = level.dense ? i + (j + k * resolution) * resolution : i ^ (j * kPrimeY) ^ (k * kPrimeZ);
-        // mod size: a mask for the 2^T hashed tables, a division only for a dense index past the
-        // table (points outside the box); divisions would dominate the loop otherwise
-        const uint64_t wrapped =
-            level.power_of_two ? (local & (level.size - 1)) : (local < level.size ? local : local % level.size);
-        cell.row[c] = level.offset + static_cast<int64_t>(wrapped);
-        cell.weight[c] = wxy * wz[dz];
-      }
+      for (int dz = 0; dz < 2; ++dz, ++c) cell.weight[c] = wxy * wz[dz];
     }
   }
 }
@@ -178,6 +202,14 @@ at::Tensor hash_grid_forward(const at::Tensor& points_in, const at::Tensor& tabl
         for (int64_t n = begin; n < end; ++n) {
           locate(point_data + 3 * n, level, cell);
           scalar_t* target = out + (l * n_points + n) * n_features;
+          if (n_features == 2) {  // Co-SLAM's F: a loop the compiler unrolls, the same sums
+            for (int f = 0; f < 2; ++f) {
+              scalar_t sum = cell.weight[0] * table_data[cell.row[0] * 2 + f];
+              for (int c = 1; c < 8; ++c) sum = sum + cell.weight[c] * table_data[cell.row[c] * 2 + f];
+              target[f] = sum;
+            }
+            continue;
+          }
           for (int64_t f = 0; f < n_features; ++f) {
             scalar_t sum = cell.weight[0] * table_data[cell.row[0] * n_features + f];
             for (int c = 1; c < 8; ++c) sum = sum + cell.weight[c] * table_data[cell.row[c] * n_features + f];
@@ -218,6 +250,14 @@ at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at
         for (int64_t n = 0; n < n_points; ++n) {
           locate(point_data + 3 * n, level, cell);
           const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
+          if (n_features == 2) {  // Co-SLAM's F, unrolled: the same sums
+            for (int c = 0; c < 8; ++c) {
+              scalar_t* row = grad_table_data + cell.row[c] * 2;
+              row[0] += cell.weight[c] * grad[0];
+              row[1] += cell.weight[c] * grad[1];
+            }
+            continue;
+          }
           for (int c = 0; c < 8; ++c) {
             scalar_t* row = grad_table_data + cell.row[c] * n_features;
             for (int64_t f = 0; f < n_features; ++f) row[f] += cell.weight[c] * grad[f];
@@ -257,10 +297,19 @@ at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const a
           locate(point_data + 3 * n, level, cell);
           const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
           scalar_t grad_weight[8];  // d loss / d w_c = <table[row(c)], g>
-          for (int c = 0; c < 8; ++c) {
-            scalar_t dot = 0;
-            for (int64_t f = 0; f < n_features; ++f) dot += table_data[cell.row[c] * n_features + f] * grad[f];
-            grad_weight[c] = dot;
+          if (n_features == 2) {  // Co-SLAM's F, unrolled: the same sums
+            for (int c = 0; c < 8; ++c) {
+              scalar_t dot = 0;
+              dot += table_data[cell.row[c] * 2] * grad[0];
+              dot += table_data[cell.row[c] * 2 + 1] * grad[1];
+              grad_weight[c] = dot;
+            }
+          } else {
+            for (int c = 0; c < 8; ++c) {
+              scalar_t dot = 0;
+              for (int64_t f = 0; f < n_features; ++f) dot += table_data[cell.row[c] * n_features + f] * grad[f];
+              grad_weight[c] = dot;
+            }
           }
           const scalar_t wx[2] = {one - cell.fraction[0], cell.fraction[0]};
           const scalar_t wy[2] = {one - cell.fraction[1], cell.fraction[1]};
