@@ -106,7 +106,7 @@ class _HashGridLookup(torch.autograd.Function):
     Inputs: points_unit (N, 3), table (T, F), then the level geometry (scales (L,) float64,
     resolutions, sizes, offsets (L,) long) and the number of dense levels.  The table gradient is
     computed only when the map is optimised, the point gradient only when the points carry one
-    (tracking, BA)."""
+    (tracking, BA); when both are needed (BA) one kernel pass computes them together."""
 
     @staticmethod
     def forward(points_unit, table, scales, resolutions, sizes, offsets, n_dense):
@@ -124,6 +124,9 @@ class _HashGridLookup(torch.autograd.Function):
         points_unit, table = ctx.saved_tensors
         grad_points = grad_table = None
         grad_features = grad_features.contiguous()
+        if ctx.needs_input_grad[0] and ctx.needs_input_grad[1]:  # BA: one pass for both
+            grad_points, grad_table = torch.ops.tsslam_hash_grid.backward(grad_features, points_unit, table, *ctx.levels)
+            return grad_points, grad_table, None, None, None, None, None
         if ctx.needs_input_grad[0]:
             grad_points = torch.ops.tsslam_hash_grid.backward_points(grad_features, points_unit, table, *ctx.levels)
         if ctx.needs_input_grad[1]:

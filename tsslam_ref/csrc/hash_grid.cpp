@@ -17,6 +17,8 @@
 //                                                       sum runs in point order: deterministic)
 //     d x_n            += s_l * sum_c (d w_c / d f) <table[row(c)], g[l]>   (one thread per point,
 //                                                       levels in order)
+// When both are wanted (BA) one pass over the levels does both, keeping each level's point term
+// and summing the terms over levels in order afterwards (the same numbers, one locate per point).
 //
 // Features and their gradients are level-major, (L, N, F), so that each level's loop reads and
 // writes contiguous memory; the loops over points run level by level inside blocks of points.
@@ -222,9 +224,92 @@ at::Tensor hash_grid_forward(const at::Tensor& points_in, const at::Tensor& tabl
   return features;
 }
 
-// d loss / d table, (T, F), from (L, N, F) output gradients.  Levels are split among threads in an
-// interleaved order (dense, cache-friendly levels and hashed ones mixed), each level summed by one
-// thread in point order.
+// d table[row(c)] += w_c * g for the 8 corners of one point on one level.
+template <typename scalar_t>
+inline void add_table_gradient(const Cell<scalar_t>& cell, const scalar_t* grad, int64_t n_features,
+                               scalar_t* grad_table_data) {
+  if (n_features == 2) {  // Co-SLAM's F, unrolled: the same sums
+    for (int c = 0; c < 8; ++c) {
+      scalar_t* row = grad_table_data + cell.row[c] * 2;
+      row[0] += cell.weight[c] * grad[0];
+      row[1] += cell.weight[c] * grad[1];
+    }
+    return;
+  }
+  for (int c = 0; c < 8; ++c) {
+    scalar_t* row = grad_table_data + cell.row[c] * n_features;
+    for (int64_t f = 0; f < n_features; ++f) row[f] += cell.weight[c] * grad[f];
+  }
+}
+
+// One level's term of d loss / d x_n, written to term[3]: s_l sum_c (d w_c / d f) <table[row(c)], g>.
+template <typename scalar_t>
+inline void point_gradient_term(const Cell<scalar_t>& cell, const scalar_t* table_data, const scalar_t* grad,
+                                int64_t n_features, scalar_t scale, scalar_t term[3]) {
+  scalar_t grad_weight[8];  // d loss / d w_c = <table[row(c)], g>
+  if (n_features == 2) {  // Co-SLAM's F, unrolled: the same sums
+    for (int c = 0; c < 8; ++c) {
+      scalar_t dot = 0;
+      dot += table_data[cell.row[c] * 2] * grad[0];
+      dot += table_data[cell.row[c] * 2 + 1] * grad[1];
+      grad_weight[c] = dot;
+    }
+  } else {
+    for (int c = 0; c < 8; ++c) {
+      scalar_t dot = 0;
+      for (int64_t f = 0; f < n_features; ++f) dot += table_data[cell.row[c] * n_features + f] * grad[f];
+      grad_weight[c] = dot;
+    }
+  }
+  const scalar_t one = static_cast<scalar_t>(1);
+  const scalar_t wx[2] = {one - cell.fraction[0], cell.fraction[0]};
+  const scalar_t wy[2] = {one - cell.fraction[1], cell.fraction[1]};
+  const scalar_t wz[2] = {one - cell.fraction[2], cell.fraction[2]};
+  scalar_t gx = 0, gy = 0, gz = 0;
+  for (int a = 0; a < 2; ++a) {
+    for (int b = 0; b < 2; ++b) {
+      // corner index c = 4 dx + 2 dy + dz
+      gx += (grad_weight[4 + 2 * a + b] - grad_weight[2 * a + b]) * wy[a] * wz[b];
+      gy += (grad_weight[4 * a + 2 + b] - grad_weight[4 * a + b]) * wx[a] * wz[b];
+      gz += (grad_weight[4 * a + 2 * b + 1] - grad_weight[4 * a + 2 * b]) * wx[a] * wy[b];
+    }
+  }
+  term[0] = gx * scale;
+  term[1] = gy * scale;
+  term[2] = gz * scale;
+}
+
+// The table gradient, levels split among threads in an interleaved order (dense, cache-friendly
+// levels and hashed ones mixed), each level summed by one thread in point order.  With point_terms
+// (L, N, 3) it also writes each level's term of the point gradient there, from the same located
+// cell: the caller sums them over levels in order (hash_grid_backward).
+template <typename scalar_t>
+void table_gradient_by_level(const scalar_t* point_data, const scalar_t* table_data, const scalar_t* grad_data,
+                             const std::vector<Level>& levels, int64_t n_points, int64_t n_features,
+                             scalar_t* grad_table_data, scalar_t* point_terms) {
+  const int64_t n_levels = static_cast<int64_t>(levels.size());
+  std::vector<int64_t> level_order;
+  for (int64_t l = 0; l < n_levels; l += 2) level_order.push_back(l);
+  for (int64_t l = 1; l < n_levels; l += 2) level_order.push_back(l);
+  at::parallel_for(0, n_levels, 1, [&](int64_t begin, int64_t end) {
+    Cell<scalar_t> cell;
+    for (int64_t position = begin; position < end; ++position) {
+      const int64_t l = level_order[position];
+      const Level level = levels[l];
+      const scalar_t scale = static_cast<scalar_t>(level.scale);
+      for (int64_t n = 0; n < n_points; ++n) {
+        locate(point_data + 3 * n, level, cell);
+        const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
+        add_table_gradient(cell, grad, n_features, grad_table_data);
+        if (point_terms != nullptr) {
+          point_gradient_term(cell, table_data, grad, n_features, scale, point_terms + (l * n_points + n) * 3);
+        }
+      }
+    }
+  });
+}
+
+// d loss / d table, (T, F), from (L, N, F) output gradients.
 at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at::Tensor& points_in,
                                     const at::Tensor& table, const at::Tensor& scales, const at::Tensor& resolutions,
                                     const at::Tensor& sizes, const at::Tensor& offsets, int64_t n_dense) {
@@ -235,36 +320,9 @@ at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at
   const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
   check_grad(grad_features, n_levels, n_points, n_features);
   auto grad_table = at::zeros(table.sizes(), table.options());
-  std::vector<int64_t> level_order;
-  for (int64_t l = 0; l < n_levels; l += 2) level_order.push_back(l);
-  for (int64_t l = 1; l < n_levels; l += 2) level_order.push_back(l);
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_backward_table", [&] {
-    const scalar_t* point_data = points.data_ptr<scalar_t>();
-    const scalar_t* grad_data = grad_features.data_ptr<scalar_t>();
-    scalar_t* grad_table_data = grad_table.data_ptr<scalar_t>();
-    at::parallel_for(0, n_levels, 1, [&](int64_t begin, int64_t end) {
-      Cell<scalar_t> cell;
-      for (int64_t position = begin; position < end; ++position) {
-        const int64_t l = level_order[position];
-        const Level level = levels[l];
-        for (int64_t n = 0; n < n_points; ++n) {
-          locate(point_data + 3 * n, level, cell);
-          const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
-          if (n_features == 2) {  // Co-SLAM's F, unrolled: the same sums
-            for (int c = 0; c < 8; ++c) {
-              scalar_t* row = grad_table_data + cell.row[c] * 2;
-              row[0] += cell.weight[c] * grad[0];
-              row[1] += cell.weight[c] * grad[1];
-            }
-            continue;
-          }
-          for (int c = 0; c < 8; ++c) {
-            scalar_t* row = grad_table_data + cell.row[c] * n_features;
-            for (int64_t f = 0; f < n_features; ++f) row[f] += cell.weight[c] * grad[f];
-          }
-        }
-      }
-    });
+    table_gradient_by_level<scalar_t>(points.data_ptr<scalar_t>(), nullptr, grad_features.data_ptr<scalar_t>(), levels,
+                                      n_points, n_features, grad_table.data_ptr<scalar_t>(), nullptr);
   });
   return grad_table;
 }
@@ -287,46 +345,19 @@ at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const a
     const scalar_t* table_data = table.data_ptr<scalar_t>();
     const scalar_t* grad_data = grad_features.data_ptr<scalar_t>();
     scalar_t* grad_points_data = grad_points.data_ptr<scalar_t>();
-    const scalar_t one = static_cast<scalar_t>(1);
     for_point_blocks(n_points, [&](int64_t begin, int64_t end) {
       Cell<scalar_t> cell;
+      scalar_t term[3];
       for (int64_t l = 0; l < n_levels; ++l) {  // levels in order: each point's sum is fixed
         const Level level = levels[l];
         const scalar_t scale = static_cast<scalar_t>(level.scale);
         for (int64_t n = begin; n < end; ++n) {
           locate(point_data + 3 * n, level, cell);
-          const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
-          scalar_t grad_weight[8];  // d loss / d w_c = <table[row(c)], g>
-          if (n_features == 2) {  // Co-SLAM's F, unrolled: the same sums
-            for (int c = 0; c < 8; ++c) {
-              scalar_t dot = 0;
-              dot += table_data[cell.row[c] * 2] * grad[0];
-              dot += table_data[cell.row[c] * 2 + 1] * grad[1];
-              grad_weight[c] = dot;
-            }
-          } else {
-            for (int c = 0; c < 8; ++c) {
-              scalar_t dot = 0;
-              for (int64_t f = 0; f < n_features; ++f) dot += table_data[cell.row[c] * n_features + f] * grad[f];
-              grad_weight[c] = dot;
-            }
-          }
-          const scalar_t wx[2] = {one - cell.fraction[0], cell.fraction[0]};
-          const scalar_t wy[2] = {one - cell.fraction[1], cell.fraction[1]};
-          const scalar_t wz[2] = {one - cell.fraction[2], cell.fraction[2]};
-          scalar_t gx = 0, gy = 0, gz = 0;
-          for (int a = 0; a < 2; ++a) {
-            for (int b = 0; b < 2; ++b) {
-              // corner index c = 4 dx + 2 dy + dz
-              gx += (grad_weight[4 + 2 * a + b] - grad_weight[2 * a + b]) * wy[a] * wz[b];
-              gy += (grad_weight[4 * a + 2 + b] - grad_weight[4 * a + b]) * wx[a] * wz[b];
-              gz += (grad_weight[4 * a + 2 * b + 1] - grad_weight[4 * a + 2 * b]) * wx[a] * wy[b];
-            }
-          }
+          point_gradient_term(cell, table_data, grad_data + (l * n_points + n) * n_features, n_features, scale, term);
           scalar_t* total = grad_points_data + 3 * n;
-          total[0] += gx * scale;
-          total[1] += gy * scale;
-          total[2] += gz * scale;
+          total[0] += term[0];
+          total[1] += term[1];
+          total[2] += term[2];
         }
       }
     });
@@ -334,8 +365,41 @@ at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const a
   return grad_points;
 }
 
+// Both gradients, [d points (N, 3), d table (T, F)], locating each point on each level once (BA:
+// the map and the poses are optimised together).  The point terms of all levels are kept,
+// (L, N, 3), and summed over levels in order afterwards: the numbers of the two ops above.
+std::vector<at::Tensor> hash_grid_backward(const at::Tensor& grad_features_in, const at::Tensor& points_in,
+                                           const at::Tensor& table_in, const at::Tensor& scales,
+                                           const at::Tensor& resolutions, const at::Tensor& sizes,
+                                           const at::Tensor& offsets, int64_t n_dense) {
+  check_inputs(points_in, table_in);
+  const auto points = points_in.contiguous();
+  const auto table = table_in.contiguous();
+  const auto grad_features = grad_features_in.contiguous();
+  const std::vector<Level> levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
+  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
+  check_grad(grad_features, n_levels, n_points, n_features);
+  auto grad_table = at::zeros(table.sizes(), table.options());
+  auto point_terms = at::empty({n_levels, n_points, 3}, points.options());
+  auto grad_points = at::zeros({n_points, 3}, points.options());
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_backward", [&] {
+    table_gradient_by_level<scalar_t>(points.data_ptr<scalar_t>(), table.data_ptr<scalar_t>(),
+                                      grad_features.data_ptr<scalar_t>(), levels, n_points, n_features,
+                                      grad_table.data_ptr<scalar_t>(), point_terms.data_ptr<scalar_t>());
+    const scalar_t* terms = point_terms.data_ptr<scalar_t>();
+    scalar_t* grad_points_data = grad_points.data_ptr<scalar_t>();
+    at::parallel_for(0, n_points, kBlock, [&](int64_t begin, int64_t end) {
+      for (int64_t l = 0; l < n_levels; ++l) {  // levels in order, as hash_grid_backward_points
+        for (int64_t i = 3 * begin; i < 3 * end; ++i) grad_points_data[i] += terms[l * n_points * 3 + i];
+      }
+    });
+  });
+  return {grad_points, grad_table};
+}
+
 TORCH_LIBRARY(tsslam_hash_grid, m) {
   m.def("forward", &hash_grid_forward);
   m.def("backward_table", &hash_grid_backward_table);
   m.def("backward_points", &hash_grid_backward_points);
+  m.def("backward", &hash_grid_backward);
 }
