@@ -163,6 +163,29 @@ def test_compiled_kernel_gradcheck_and_skipped_gradients(compiled_kernel):
     )
 
 
+def test_compiled_kernel_one_pass_gradients_equal_the_two_single_gradients_bit_for_bit(compiled_kernel):
+    """With the table and the points both needing a gradient (BA) one kernel pass computes both;
+    it must give exactly the numbers of the point-gradient and table-gradient ops run apart (the
+    same sums in the same order), here on a dense and a hashed level with points outside the box."""
+    torch.manual_seed(7)
+    grid = HashGridEncoding(60, n_levels=4, base_resolution=4, log2_hashmap_size=9)
+    assert grid.level_dense == [True, False, False, False]
+    with torch.no_grad():
+        grid.table.normal_()
+    points = torch.rand(5000, 3) * 1.2 - 0.1
+    upstream = torch.randn(5000, grid.out_dim)
+    grid.table.grad = None
+    x = points.clone().requires_grad_(True)
+    (grid._encode_compiled(x) * upstream).sum().backward()
+    levels = (grid.scales, grid.resolutions, grid.sizes, grid.offsets, grid.n_dense_levels)
+    grad_features = (upstream.view(5000, grid.n_levels, -1).permute(1, 0, 2)).contiguous()  # (L, N, F)
+    table = grid.table.detach()
+    apart_points = torch.ops.tsslam_hash_grid.backward_points(grad_features, points, table, *levels)
+    apart_table = torch.ops.tsslam_hash_grid.backward_table(grad_features, points, table, *levels)
+    assert torch.equal(x.grad, apart_points)
+    assert torch.equal(grid.table.grad, apart_table)
+
+
 def test_compiled_kernel_is_deterministic_across_thread_counts(compiled_kernel):
     """Each level's table gradient is summed by one thread in point order, each point's gradient by
     one thread: bit-identical results with 1 and 2 threads (the seed alone fixes a run), although
