@@ -26,16 +26,27 @@ def _oneblob_direct(x: float, n_bins: int = 16):
     return torch.stack(values)
 
 
-def test_oneblob_matches_numerical_integral_of_quartic_kernel():
-    encoding = OneBlobEncoding(16)
+def _oneblob(compiled: bool, request) -> OneBlobEncoding:
+    """The PyTorch OneBlob, or the compiled one (which needs the kernel's fixture)."""
+    if compiled:
+        request.getfixturevalue("compiled_kernel")
+    return OneBlobEncoding(16, compiled=compiled)
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["torch", "compiled"])
+def test_oneblob_matches_numerical_integral_of_quartic_kernel(compiled, request):
+    encoding = _oneblob(compiled, request)
     xs = [0.0, 0.013, 0.03125, 0.06, 0.3, 0.5, 0.77, 0.95, 0.97, 0.99, 1 - 1e-9]
-    codes = encoding(torch.tensor([[x, x, x] for x in xs], dtype=torch.float64))
+    points = torch.tensor([[x, x, x] for x in xs], dtype=torch.float64)
+    assert encoding.uses_compiled_kernel(points) == compiled
+    codes = encoding(points)
     for row, x in zip(codes, xs):
         assert torch.allclose(row[:16], _oneblob_direct(x), atol=1e-6)
 
 
-def test_oneblob_partition_of_unity_and_periodicity():
-    encoding = OneBlobEncoding(16)
+@pytest.mark.parametrize("compiled", [False, True], ids=["torch", "compiled"])
+def test_oneblob_partition_of_unity_and_periodicity(compiled, request):
+    encoding = _oneblob(compiled, request)
     points = torch.rand(500, 3, dtype=torch.float64) * 3 - 1
     codes = encoding(points).view(-1, 3, 16)
     assert torch.allclose(codes.sum(-1), torch.ones(500, 3, dtype=torch.float64), atol=1e-12)
@@ -46,9 +57,33 @@ def test_oneblob_partition_of_unity_and_periodicity():
     assert encoding.out_dim == 48
 
 
-def test_oneblob_gradient_matches_finite_differences():
+@pytest.mark.parametrize("compiled", [False, True], ids=["torch", "compiled"])
+def test_oneblob_gradient_matches_finite_differences(compiled, request):
+    encoding = _oneblob(compiled, request)
     points = torch.rand(8, 3, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(OneBlobEncoding(16), (points,))
+    assert torch.autograd.gradcheck(encoding, (points,))
+    outside = (torch.rand(8, 3, dtype=torch.float64) * 3 - 1).requires_grad_(True)
+    assert torch.autograd.gradcheck(encoding, (outside,))
+
+
+def test_compiled_oneblob_agrees_with_the_pytorch_path_in_float32(compiled_kernel):
+    """The map's precision: codes equal to the PyTorch path's (same operations, same order), the
+    point gradient (the derivative written out, not autograd's chain) to rounding; points inside
+    and outside the box and exactly on bin edges."""
+    generator = torch.Generator().manual_seed(11)
+    points = torch.cat([torch.rand(20000, 3, generator=generator) * 1.4 - 0.2,
+                        torch.arange(-16, 33, dtype=torch.float32).div(16).repeat(3, 1).T])
+    upstream = torch.randn(points.shape[0], 48, generator=generator)
+    results = []
+    for compiled in (False, True):
+        x = points.clone().requires_grad_(True)
+        codes = OneBlobEncoding(16, compiled=compiled)(x)
+        (codes * upstream).sum().backward()
+        results.append((codes.detach(), x.grad))
+    (codes_torch, grad_torch), (codes_compiled, grad_compiled) = results
+    assert torch.allclose(codes_compiled, codes_torch, rtol=0, atol=1e-6)
+    scale = grad_torch.abs().max()
+    assert torch.allclose(grad_compiled, grad_torch, rtol=1e-4, atol=1e-5 * scale)
 
 
 # ---------------------------------------------------------------- hash-grid geometry

@@ -79,11 +79,12 @@ class OneBlobEncoding(nn.Module):
     G(b) = F(e) + r + 1, and the constant cancels in out_k.
     """
 
-    def __init__(self, n_bins: int = 16):
+    def __init__(self, n_bins: int = 16, compiled: bool = False):
         super().__init__()
         if n_bins < 2:
             raise ValueError(f"OneBlobEncoding needs n_bins >= 2, got {n_bins}")
         self.n_bins = n_bins
+        self.compiled = compiled  # CPU: the compiled kernel (csrc/oneblob.cpp) when it builds
 
     @property
     def out_dim(self) -> int:
@@ -98,6 +99,8 @@ class OneBlobEncoding(nn.Module):
     def forward(self, points_unit: torch.Tensor) -> torch.Tensor:
         """(N, 3) coordinates in box units -> (N, 3 * n_bins) codes."""
         _check_points(points_unit, "points_unit")
+        if self.uses_compiled_kernel(points_unit):
+            return hash_kernel.oneblob_encode(points_unit, self.n_bins)
         edges = torch.arange(self.n_bins + 1, device=points_unit.device, dtype=points_unit.dtype)
         edges = edges / self.n_bins  # (n_bins + 1,)
         wrapped = points_unit - torch.floor(points_unit).detach()  # in [0, 1): exact period 1
@@ -106,6 +109,10 @@ class OneBlobEncoding(nn.Module):
         cdf = self.kernel_cdf(offset - nearest_period) + nearest_period  # G(b) - 1
         codes = cdf[..., 1:] - cdf[..., :-1]  # (N, 3, n_bins)
         return codes.reshape(points_unit.shape[0], self.out_dim)
+
+    def uses_compiled_kernel(self, points_unit: torch.Tensor) -> bool:
+        """Whether :meth:`forward` takes the compiled kernel for these points (asked for, CPU, built)."""
+        return self.compiled and points_unit.device.type == "cpu" and hash_kernel.available()
 
 
 # --------------------------------------------------------------------------------------------
@@ -398,7 +405,7 @@ class SceneField(nn.Module):
 
     Args:
         cfg: FieldConfig (levels, features, table size, voxel_sdf, MLP widths, fast_gather,
-            compiled_kernel).
+            compiled_kernel, compiled_oneblob).
         bound: (3, 2) scene box [[xmin, xmax], [ymin, ymax], [zmin, zmax]] in metres (world).
         generator: optional torch.Generator for the table and MLP initialisation.
     """
@@ -410,7 +417,7 @@ class SceneField(nn.Module):
             raise ValueError(f"bound must be (3, 2) with min < max per axis, got {bound.tolist()}")
         self.register_buffer("bound", bound)
         self.cfg = cfg
-        self.oneblob = OneBlobEncoding(cfg.oneblob_bins)
+        self.oneblob = OneBlobEncoding(cfg.oneblob_bins, compiled=cfg.compiled_oneblob)
         self.grid = HashGridEncoding(
             finest_resolution(bound, cfg.voxel_sdf),
             n_levels=cfg.n_levels,

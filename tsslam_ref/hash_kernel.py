@@ -1,4 +1,4 @@
-"""The compiled CPU hash-grid lookup: build on first use, autograd wrapper, fallback.
+"""The compiled CPU hash-grid lookup (and OneBlob encoding): build on first use, autograd wrappers, fallback.
 
 TS-SLAM §III-A keeps Co-SLAM's multi-resolution hash grid V(x).  On two CPU cores the PyTorch fast
 path (``field._TrilinearLookup``) is memory-bound: it writes and re-reads an (8, L, N) index and an
@@ -28,6 +28,8 @@ from typing import Optional
 import torch
 
 SOURCE = Path(__file__).parent / "csrc" / "hash_grid.cpp"
+ONEBLOB_SOURCE = Path(__file__).parent / "csrc" / "oneblob.cpp"
+"""The OneBlob encoding's kernel, built into the same extension (``field.compiled_oneblob``)."""
 _LOCK = threading.Lock()
 _STATE = {"loaded": None, "error": None}  # loaded: None = not tried, True / False after the try
 STALE_LOCK_SECONDS = 600.0
@@ -82,7 +84,7 @@ def _build() -> bool:
 
         cpp_extension.load(  # -fopenmp: at::parallel_for's threads; fp-contract off: no fused multiply-add
             name="tsslam_hash_grid",
-            sources=[str(SOURCE)],
+            sources=[str(SOURCE), str(ONEBLOB_SOURCE)],
             extra_cflags=["-O3", "-ffp-contract=off", "-fopenmp"],
             extra_ldflags=["-fopenmp"],
             is_python_module=False,
@@ -138,3 +140,31 @@ def hash_grid_lookup(points_unit: torch.Tensor, table: torch.Tensor, scales: tor
                      sizes: torch.Tensor, offsets: torch.Tensor, n_dense: int) -> torch.Tensor:
     """(N, 3) box-unit points, (T, F) table, level geometry -> (L, N, F) features (CPU, compiled)."""
     return _HashGridLookup.apply(points_unit, table, scales, resolutions, sizes, offsets, int(n_dense))
+
+
+class _OneBlob(torch.autograd.Function):
+    """codes (N, 3 n_bins) = OneBlob(points_unit (N, 3)) on the compiled kernel; the backward is the
+    written-out derivative (``csrc/oneblob.cpp``), so it agrees with autograd's to rounding."""
+
+    @staticmethod
+    def forward(points_unit, n_bins):
+        return torch.ops.tsslam_hash_grid.oneblob_forward(points_unit, n_bins)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        points_unit, n_bins = inputs
+        ctx.save_for_backward(points_unit)
+        ctx.n_bins = n_bins
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_codes):
+        (points_unit,) = ctx.saved_tensors
+        if not ctx.needs_input_grad[0]:
+            return None, None
+        return torch.ops.tsslam_hash_grid.oneblob_backward(grad_codes.contiguous(), points_unit, ctx.n_bins), None
+
+
+def oneblob_encode(points_unit: torch.Tensor, n_bins: int) -> torch.Tensor:
+    """(N, 3) box-unit points -> (N, 3 n_bins) OneBlob codes, dim-major (CPU, compiled)."""
+    return _OneBlob.apply(points_unit, int(n_bins))
