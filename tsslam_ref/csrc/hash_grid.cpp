@@ -181,6 +181,25 @@ void check_grad(const at::Tensor& grad_features, int64_t n_levels, int64_t n_poi
               "hash_grid: grad_features must be (L, N, F)");
 }
 
+// A backward op's inputs, checked and made contiguous once: grad_features (L, N, F), points (N, 3),
+// table (T, F) and the level geometry.
+struct BackwardInputs {
+  at::Tensor grad_features, points, table;
+  std::vector<Level> levels;
+  int64_t n_points, n_features, n_levels;
+};
+
+BackwardInputs backward_inputs(const at::Tensor& grad_features, const at::Tensor& points, const at::Tensor& table,
+                               const at::Tensor& scales, const at::Tensor& resolutions, const at::Tensor& sizes,
+                               const at::Tensor& offsets, int64_t n_dense) {
+  check_inputs(points, table);
+  BackwardInputs inputs{grad_features.contiguous(), points.contiguous(), table.contiguous(),
+                        read_levels(scales, resolutions, sizes, offsets, n_dense), points.size(0), table.size(1), 0};
+  inputs.n_levels = static_cast<int64_t>(inputs.levels.size());
+  check_grad(inputs.grad_features, inputs.n_levels, inputs.n_points, inputs.n_features);
+  return inputs;
+}
+
 }  // namespace
 
 // (N, 3) points in box units, (T, F) table -> (L, N, F) features.
@@ -313,12 +332,11 @@ void table_gradient_by_level(const scalar_t* point_data, const scalar_t* table_d
 at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at::Tensor& points_in,
                                     const at::Tensor& table, const at::Tensor& scales, const at::Tensor& resolutions,
                                     const at::Tensor& sizes, const at::Tensor& offsets, int64_t n_dense) {
-  check_inputs(points_in, table);
-  const auto points = points_in.contiguous();
-  const auto grad_features = grad_features_in.contiguous();
-  const std::vector<Level> levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
-  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
-  check_grad(grad_features, n_levels, n_points, n_features);
+  const BackwardInputs in = backward_inputs(grad_features_in, points_in, table, scales, resolutions, sizes, offsets,
+                                            n_dense);
+  const at::Tensor &grad_features = in.grad_features, &points = in.points;
+  const std::vector<Level>& levels = in.levels;
+  const int64_t n_points = in.n_points, n_features = in.n_features;
   auto grad_table = at::zeros(table.sizes(), table.options());
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_backward_table", [&] {
     table_gradient_by_level<scalar_t>(points.data_ptr<scalar_t>(), nullptr, grad_features.data_ptr<scalar_t>(), levels,
@@ -332,13 +350,11 @@ at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const a
                                      const at::Tensor& table_in, const at::Tensor& scales,
                                      const at::Tensor& resolutions, const at::Tensor& sizes,
                                      const at::Tensor& offsets, int64_t n_dense) {
-  check_inputs(points_in, table_in);
-  const auto points = points_in.contiguous();
-  const auto table = table_in.contiguous();
-  const auto grad_features = grad_features_in.contiguous();
-  const std::vector<Level> levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
-  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
-  check_grad(grad_features, n_levels, n_points, n_features);
+  const BackwardInputs in = backward_inputs(grad_features_in, points_in, table_in, scales, resolutions, sizes,
+                                            offsets, n_dense);
+  const at::Tensor &grad_features = in.grad_features, &points = in.points, &table = in.table;
+  const std::vector<Level>& levels = in.levels;
+  const int64_t n_points = in.n_points, n_features = in.n_features, n_levels = in.n_levels;
   auto grad_points = at::zeros({n_points, 3}, points.options());
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_backward_points", [&] {
     const scalar_t* point_data = points.data_ptr<scalar_t>();
@@ -372,13 +388,11 @@ std::vector<at::Tensor> hash_grid_backward(const at::Tensor& grad_features_in, c
                                            const at::Tensor& table_in, const at::Tensor& scales,
                                            const at::Tensor& resolutions, const at::Tensor& sizes,
                                            const at::Tensor& offsets, int64_t n_dense) {
-  check_inputs(points_in, table_in);
-  const auto points = points_in.contiguous();
-  const auto table = table_in.contiguous();
-  const auto grad_features = grad_features_in.contiguous();
-  const std::vector<Level> levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
-  const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
-  check_grad(grad_features, n_levels, n_points, n_features);
+  const BackwardInputs in = backward_inputs(grad_features_in, points_in, table_in, scales, resolutions, sizes,
+                                            offsets, n_dense);
+  const at::Tensor &grad_features = in.grad_features, &points = in.points, &table = in.table;
+  const std::vector<Level>& levels = in.levels;
+  const int64_t n_points = in.n_points, n_features = in.n_features, n_levels = in.n_levels;
   auto grad_table = at::zeros(table.sizes(), table.options());
   auto point_terms = at::empty({n_levels, n_points, 3}, points.options());
   auto grad_points = at::zeros({n_points, 3}, points.options());
