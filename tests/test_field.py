@@ -1,5 +1,6 @@
 """Tests for tsslam_ref.field: OneBlob, hash-grid geometry (tiny-cuda-nn grid.h), the field."""
 
+import dataclasses
 import math
 
 import pytest
@@ -66,24 +67,27 @@ def test_oneblob_gradient_matches_finite_differences(compiled, request):
     assert torch.autograd.gradcheck(encoding, (outside,))
 
 
-def test_compiled_oneblob_agrees_with_the_pytorch_path_in_float32(compiled_kernel):
-    """The map's precision: codes equal to the PyTorch path's (same operations, same order), the
-    point gradient (the derivative written out, not autograd's chain) to rounding; points inside
-    and outside the box and exactly on bin edges."""
+@pytest.mark.parametrize("dtype, n_bins", [(torch.float32, 16), (torch.float32, 7), (torch.float64, 16),
+                                           (torch.float64, 2)])
+def test_compiled_oneblob_equals_the_pytorch_path_bit_for_bit(compiled_kernel, dtype, n_bins):
+    """The codes and the point gradient equal the PyTorch path's and its autograd gradient's bit
+    for bit (same operations, same order, the same accumulation order as autograd's engine), so the
+    switch changes no result; points inside and outside the box and exactly on bin edges."""
     generator = torch.Generator().manual_seed(11)
-    points = torch.cat([torch.rand(20000, 3, generator=generator) * 1.4 - 0.2,
-                        torch.arange(-16, 33, dtype=torch.float32).div(16).repeat(3, 1).T])
-    upstream = torch.randn(points.shape[0], 48, generator=generator)
+    edges = torch.arange(-2 * n_bins, 4 * n_bins + 1, dtype=torch.float64).div(2 * n_bins)
+    points = torch.cat([torch.rand(20000, 3, generator=generator, dtype=torch.float64) * 1.4 - 0.2,
+                        edges.repeat(3, 1).T]).to(dtype)
+    upstream = torch.randn(points.shape[0], 3 * n_bins, generator=generator, dtype=torch.float64).to(dtype)
     results = []
     for compiled in (False, True):
         x = points.clone().requires_grad_(True)
-        codes = OneBlobEncoding(16, compiled=compiled)(x)
+        codes = OneBlobEncoding(n_bins, compiled=compiled)(x)
         (codes * upstream).sum().backward()
         results.append((codes.detach(), x.grad))
     (codes_torch, grad_torch), (codes_compiled, grad_compiled) = results
-    assert torch.equal(codes_compiled, codes_torch)  # the same roundings: bit for bit, as documented
-    scale = grad_torch.abs().max()
-    assert torch.allclose(grad_compiled, grad_torch, rtol=1e-4, atol=1e-5 * scale)
+    assert torch.equal(codes_compiled, codes_torch)
+    assert torch.equal(grad_compiled, grad_torch)
+    assert grad_torch.abs().max() > 0  # the comparison is not between two zero tensors
 
 
 # ---------------------------------------------------------------- hash-grid geometry
@@ -288,6 +292,27 @@ def test_scene_field_shapes_ranges_and_normalisation():
     assert field.grid_features(corners).shape == (3, cfg.field.n_levels * cfg.field.n_features_per_level)
     mlp_params = sum(p.numel() for p in field.decoder_parameters())
     assert mlp_params == 5184  # spec 1.4: 3,072 + 2,112, bias-free
+
+
+def test_field_gradients_do_not_depend_on_the_compiled_oneblob(compiled_kernel):
+    """A whole field's outputs and every gradient (table, MLP weights, points) equal bit for bit
+    with ``compiled_oneblob`` on and off, points inside and outside the box: the switch cannot
+    change a run."""
+    cfg = config.tiny()
+    bound = [[-1.0, 2.0], [0.0, 1.0], [-0.5, 0.5]]
+    points = torch.rand(3000, 3, generator=torch.Generator().manual_seed(3)) * 4.0 - 1.5
+    results = []
+    for compiled in (False, True):
+        field_cfg = dataclasses.replace(cfg.field, compiled_oneblob=compiled)
+        field = SceneField(field_cfg, bound, generator=torch.Generator().manual_seed(0))
+        assert field.oneblob.uses_compiled_kernel(points) == compiled
+        x = points.clone().requires_grad_(True)
+        rgb, sdf = field(x)
+        (rgb.square().sum() + sdf.sin().sum()).backward()
+        results.append([rgb, sdf, x.grad] + [p.grad for p in field.parameters()])
+    for torch_path, compiled_path in zip(*results):
+        assert torch.equal(torch_path, compiled_path)
+    assert results[0][2].abs().max() > 0
 
 
 def test_integer_bound_is_stored_as_float_and_bad_bound_rejected():

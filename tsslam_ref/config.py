@@ -100,12 +100,12 @@ class FieldConfig:
     """On the CPU, let the fast path use the compiled hash-grid kernel (``hash_kernel.py``, built
     with the local C++ compiler on first use; falls back to the PyTorch fast path with a warning
     when it cannot be built).  Results agree to rounding, not bit for bit (ours)."""
-    compiled_oneblob: bool = False
+    compiled_oneblob: bool = True
     """On the CPU, compute the OneBlob encoding and its gradient in the compiled kernel
-    (``csrc/oneblob.cpp``) instead of about 30 PyTorch operations (ours).  Faster (docs/system.md,
-    "Where the time goes"), but its gradient is the derivative written out, which rounds
-    differently from autograd's, so a run's numbers change within the seed-to-seed spread; off by
-    default so that the published tables reproduce seed for seed."""
+    (``csrc/oneblob.cpp``) instead of about 30 PyTorch operations (ours; needs
+    ``compiled_kernel``'s extension to build).  Faster (docs/system.md, "Where the time goes") and
+    equal bit for bit to the PyTorch path and its autograd gradient, so it changes no result;
+    False runs the PyTorch path."""
 
 
 @dataclass

@@ -143,8 +143,8 @@ def hash_grid_lookup(points_unit: torch.Tensor, table: torch.Tensor, scales: tor
 
 
 class _OneBlob(torch.autograd.Function):
-    """codes (N, 3 n_bins) = OneBlob(points_unit (N, 3)) on the compiled kernel; the backward is the
-    written-out derivative (``csrc/oneblob.cpp``), so it agrees with autograd's to rounding."""
+    """codes (N, 3 n_bins) = OneBlob(points_unit (N, 3)) on the compiled kernel; forward and backward
+    round as the PyTorch path and its autograd gradient do (``csrc/oneblob.cpp``): equal bit for bit."""
 
     @staticmethod
     def forward(points_unit, n_bins):

@@ -15,9 +15,9 @@
 //     d G_j / d x  = -F'(e_j),   F'(e) = n (15/16) (1 - v^2)^2 for |n e| <= 1, else 0
 //     d x          = sum_k g_k (F'(e_k) - F'(e_{k+1}))
 //
-// The forward rounds as the PyTorch path does (same operations in the same order, constants in
-// the points' dtype); the gradient is the derivative written out, so it agrees with autograd's
-// to rounding, not bit for bit.  One thread per block of points; no state between the passes.
+// Both passes round as the PyTorch path and its autograd gradient do: the same operations in the
+// same order, constants in the points' dtype, so the compiled path gives the same numbers bit for
+// bit (the gradient is evaluated through the chain rule of that path, not the closed form above).  One thread per block of points; no state between the passes.
 // Built with hash_grid.cpp into one extension by tsslam_ref/hash_kernel.py; tested against the
 // PyTorch path and finite differences in tests/test_field.py.
 
@@ -93,7 +93,22 @@ at::Tensor oneblob_forward(const at::Tensor& points_in, int64_t n_bins) {
   return codes;
 }
 
-// d loss / d points (N, 3) from d loss / d codes (N, 3 n_bins).
+// d loss / d points (N, 3) from d loss / d codes (N, 3 n_bins), rounded as PyTorch's autograd rounds
+// the gradient of the PyTorch path.  Per coordinate and edge j, with g the incoming gradient of
+// one coordinate's n codes and v = clamp(w, -1, 1), w = n e_j (B = (15/16) v, C = 1 - (2/3) v^2 +
+// (1/5) v^4, so that F = B C + 1/2):
+//
+//     gA_j  = g_{j-1} + (-g_j)                  (g_{-1} = g_n = 0: the two slices of the codes)
+//     gv2   = ((gC 0.2) v2 + (gC 0.2) v2) + (-gC)(2/3),   gC = gA_j B     (v^4 = v2 v2, v^2 (2/3))
+//     gv    = ((gA_j C) 0.9375 + gv2 v) + gv2 v                           (B = 0.9375 v, v2 = v v)
+//     gu_j  = (|w| <= 1 ? gv : 0) n                                       (the clamp, v = clamp(u n))
+//     d x   = -sum_j gu_j                     (the broadcast of the wrapped coordinate, summed by
+//                                              at::sum over the n + 1 edges as autograd sums it)
+//
+// Each line is one of autograd's operations, each sum in the order its engine accumulates the
+// gradients of a tensor used twice (tests/test_field.py checks bit equality).  The per-edge terms
+// go to a (N, 3, n + 1) buffer and at::sum reduces it, because the order of that reduction is
+// PyTorch's (it depends on the CPU's vector width).
 at::Tensor oneblob_backward(const at::Tensor& grad_codes_in, const at::Tensor& points_in, int64_t n_bins) {
   check_points(points_in, n_bins);
   const auto points = points_in.contiguous();
@@ -101,13 +116,14 @@ at::Tensor oneblob_backward(const at::Tensor& grad_codes_in, const at::Tensor& p
   const int64_t n_points = points.size(0);
   TORCH_CHECK(grad_codes.dim() == 2 && grad_codes.size(0) == n_points && grad_codes.size(1) == 3 * n_bins,
               "oneblob: grad_codes must be (N, 3 n_bins)");
-  auto grad_points = at::empty({n_points, 3}, points.options());
+  auto edge_terms = at::empty({n_points, 3, n_bins + 1}, points.options());
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "oneblob_backward", [&] {
     const scalar_t* point_data = points.data_ptr<scalar_t>();
     const scalar_t* grad_data = grad_codes.data_ptr<scalar_t>();
-    scalar_t* out = grad_points.data_ptr<scalar_t>();
+    scalar_t* out = edge_terms.data_ptr<scalar_t>();
     const scalar_t bins = static_cast<scalar_t>(n_bins);
-    const scalar_t one = 1, slope = static_cast<scalar_t>(0.9375) * bins;
+    const scalar_t zero = 0, one = 1, scale = static_cast<scalar_t>(0.9375);
+    const scalar_t c2 = static_cast<scalar_t>(2.0 / 3.0), c4 = static_cast<scalar_t>(0.2);
     at::parallel_for(0, n_points, kPointGrain, [&](int64_t begin, int64_t end) {
       std::vector<scalar_t> e(n_bins + 1), r(n_bins + 1);
       const std::vector<scalar_t> edges = bin_edges<scalar_t>(n_bins);
@@ -115,22 +131,28 @@ at::Tensor oneblob_backward(const at::Tensor& grad_codes_in, const at::Tensor& p
         for (int axis = 0; axis < 3; ++axis) {
           offsets(point_data[3 * n + axis], edges.data(), n_bins, e.data(), r.data());
           const scalar_t* grad = grad_data + n * 3 * n_bins + axis * n_bins;
-          scalar_t total = 0;
+          scalar_t* target = out + (n * 3 + axis) * (n_bins + 1);
           for (int64_t j = 0; j <= n_bins; ++j) {
-            const scalar_t v = e[j] * bins;
-            if (v < -one || v > one) continue;  // F' = 0 outside the kernel's support
-            const scalar_t flat = one - v * v;
-            const scalar_t derivative = slope * flat * flat;  // F'(e_j)
-            const scalar_t below = j < n_bins ? grad[j] : scalar_t(0);  // code_j has +G_{j+1} - G_j
-            const scalar_t above = j > 0 ? grad[j - 1] : scalar_t(0);
-            total += derivative * (below - above);
+            const scalar_t w = e[j] * bins;
+            const scalar_t v = std::min(std::max(w, -one), one);
+            const scalar_t v2 = v * v;
+            const scalar_t from_code_below = j > 0 ? grad[j - 1] : zero;
+            const scalar_t from_code_above = j < n_bins ? -grad[j] : zero;
+            const scalar_t grad_a = from_code_below + from_code_above;
+            const scalar_t cubic = (one - v2 * c2) + (v2 * v2) * c4;  // C, as the forward rounds it
+            const scalar_t grad_c = grad_a * (scale * v);
+            const scalar_t quartic_term = (grad_c * c4) * v2;
+            const scalar_t grad_v2 = (quartic_term + quartic_term) + (-grad_c) * c2;
+            const scalar_t square_term = grad_v2 * v;
+            const scalar_t grad_v = ((grad_a * cubic) * scale + square_term) + square_term;
+            const scalar_t grad_w = (w >= -one && w <= one) ? grad_v : zero;
+            target[j] = grad_w * bins;
           }
-          out[3 * n + axis] = total;
         }
       }
     });
   });
-  return grad_points;
+  return -edge_terms.sum(-1);
 }
 
 TORCH_LIBRARY_FRAGMENT(tsslam_hash_grid, m) {
