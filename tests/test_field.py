@@ -184,6 +184,37 @@ def test_fast_paths_agree_with_the_reference_in_values_and_gradients(path, n_fea
     assert torch.allclose(x_fast, x_ref, atol=1e-3, rtol=1e-4)
 
 
+def test_compiled_kernel_floors_cell_positions_as_torch_floor_does(compiled_kernel):
+    """The kernel's integer floor against the reference path's torch.floor: points whose position on
+    a level lands exactly on a vertex (where a floor one too low moves the point gradient to the
+    other cell's one-sided derivative) and points far outside the box (negative positions, a dense
+    index past its table), on a dense and a hashed level."""
+    torch.manual_seed(5)
+    grid = HashGridEncoding(60, n_levels=2, base_resolution=8, log2_hashmap_size=9)
+    assert grid.level_dense == [True, False]
+    with torch.no_grad():
+        grid.table.normal_()
+    candidates = []
+    for scale in grid.level_scales:
+        vertex = torch.randint(-200, 200, (4000, 3)).float()
+        points = (vertex - 0.5) / scale
+        on_vertex = ((points * scale + 0.5) == vertex).all(dim=1)  # exact in float32
+        candidates.append(points[on_vertex][:500])
+    points = torch.cat(candidates + [torch.rand(500, 3) * 40.0 - 30.0])
+    assert points.shape[0] > 1000 and bool((points < 0).any())
+    upstream = torch.randn(points.shape[0], grid.out_dim)
+    results = []
+    for which in ("compiled", "reference"):
+        _use_path(grid, which)
+        x = points.clone().requires_grad_(True)
+        out = grid(x)
+        (out * upstream).sum().backward()
+        results.append((out.detach(), x.grad))
+    (v_kernel, x_kernel), (v_ref, x_ref) = results
+    assert torch.allclose(v_kernel, v_ref, atol=1e-5)
+    assert torch.allclose(x_kernel, x_ref, atol=1e-3, rtol=1e-4)
+
+
 def test_compiled_kernel_gradcheck_and_skipped_gradients(compiled_kernel):
     """The kernel's hand-written backward vs finite differences (float64), table and points, on a
     grid with a dense and a hashed level; each gradient alone when the other input is constant."""

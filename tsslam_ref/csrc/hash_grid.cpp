@@ -106,6 +106,17 @@ inline void corner_rows(const uint32_t corner[3], const Level& level, const Inde
   }
 }
 
+// floor(x) as an integer, for |x| < 2^63: the truncation toward zero, one less where that rounded
+// up (x < 0 with a fraction).  Equal to std::floor(x) for every such x (a float of magnitude 2^23 or
+// more is an integer already), but two conversions and a compare: without SSE4.1's round
+// instruction, which a plain x86-64 build may not use, std::floor is a library call, and it ran
+// once per point, level and axis.
+template <typename scalar_t>
+inline int64_t floor_to_integer(scalar_t x) {
+  const int64_t truncated = static_cast<int64_t>(x);
+  return static_cast<scalar_t>(truncated) > x ? truncated - 1 : truncated;
+}
+
 template <typename scalar_t>
 inline void locate(const scalar_t* point, const Level& level, Cell<scalar_t>& cell) {
   const scalar_t scale = static_cast<scalar_t>(level.scale);
@@ -113,9 +124,9 @@ inline void locate(const scalar_t* point, const Level& level, Cell<scalar_t>& ce
   uint32_t corner[3];
   for (int axis = 0; axis < 3; ++axis) {
     const scalar_t position = point[axis] * scale + half;
-    const scalar_t floored = std::floor(position);
-    cell.fraction[axis] = position - floored;
-    corner[axis] = static_cast<uint32_t>(static_cast<int64_t>(floored));  // two's complement wrap
+    const int64_t floored = floor_to_integer(position);
+    cell.fraction[axis] = position - static_cast<scalar_t>(floored);
+    corner[axis] = static_cast<uint32_t>(floored);  // two's complement wrap
   }
   const uint32_t resolution = level.resolution;
   const scalar_t one = static_cast<scalar_t>(1);
