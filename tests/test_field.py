@@ -248,7 +248,7 @@ def test_compiled_kernel_one_pass_gradients_equal_the_two_single_gradients_bit_f
     x = points.clone().requires_grad_(True)
     (grid._encode_compiled(x) * upstream).sum().backward()
     levels = (grid.scales, grid.resolutions, grid.sizes, grid.offsets, grid.n_dense_levels)
-    grad_features = (upstream.view(5000, grid.n_levels, -1).permute(1, 0, 2)).contiguous()  # (L, N, F)
+    grad_features = upstream.view(5000, grid.n_levels, -1)  # (N, L, F)
     table = grid.table.detach()
     apart_points = torch.ops.tsslam_hash_grid.backward_points(grad_features, points, table, *levels)
     apart_table = torch.ops.tsslam_hash_grid.backward_table(grad_features, points, table, *levels)

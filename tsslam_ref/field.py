@@ -301,8 +301,8 @@ class HashGridEncoding(nn.Module):
 
     def _encode_compiled(self, points_unit: torch.Tensor) -> torch.Tensor:
         features = hash_kernel.hash_grid_lookup(points_unit, self.table, self.scales, self.resolutions, self.sizes,
-                                                self.offsets, self.n_dense_levels)  # (L, N, F)
-        return features.permute(1, 0, 2).reshape(points_unit.shape[0], self.out_dim)  # (N, L * F)
+                                                self.offsets, self.n_dense_levels)  # (N, L, F)
+        return features.view(points_unit.shape[0], self.out_dim)  # (N, L * F), no copy
 
     # -- fast path ----------------------------------------------------------------------------
 

@@ -103,7 +103,7 @@ def _build() -> bool:
 
 
 class _HashGridLookup(torch.autograd.Function):
-    """features (L, N, F) = V(points_unit) on the compiled kernel; hand-written backward.
+    """features (N, L, F) = V(points_unit) on the compiled kernel; hand-written backward.
 
     Inputs: points_unit (N, 3), table (T, F), then the level geometry (scales (L,) float64,
     resolutions, sizes, offsets (L,) long) and the number of dense levels.  The table gradient is
@@ -138,7 +138,8 @@ class _HashGridLookup(torch.autograd.Function):
 
 def hash_grid_lookup(points_unit: torch.Tensor, table: torch.Tensor, scales: torch.Tensor, resolutions: torch.Tensor,
                      sizes: torch.Tensor, offsets: torch.Tensor, n_dense: int) -> torch.Tensor:
-    """(N, 3) box-unit points, (T, F) table, level geometry -> (L, N, F) features (CPU, compiled)."""
+    """(N, 3) box-unit points, (T, F) table, level geometry -> (N, L, F) features (CPU, compiled);
+    point-major, so ``.view(N, L * F)`` is the MLP's input without a copy."""
     return _HashGridLookup.apply(points_unit, table, scales, resolutions, sizes, offsets, int(n_dense))
 
 

@@ -20,8 +20,11 @@
 // When both are wanted (BA) one pass over the levels does both, keeping each level's point term
 // and summing the terms over levels in order afterwards (the same numbers, one locate per point).
 //
-// Features and their gradients are level-major, (L, N, F), so that each level's loop reads and
-// writes contiguous memory; the loops over points run level by level inside blocks of points.
+// Features and their gradients are point-major, (N, L, F), the layout of the MLP's input (N, L F),
+// so no copy stands between the kernel and the MLP either way; the loops over points run level by
+// level inside blocks of points, whose rows of features stay in cache meanwhile.  The table
+// gradient, which runs one level at a time over all points, first copies the gradient to
+// level-major (L, N, F) so that each level reads contiguous memory.
 //
 // Speed without changing a bit: each point-and-level branches once between the dense and the hashed
 // index (not once per corner), and F = 2 (Co-SLAM's features per level) has its own unrolled
@@ -187,12 +190,13 @@ void for_point_blocks(int64_t n_points, const Body& body) {
 }
 
 void check_grad(const at::Tensor& grad_features, int64_t n_levels, int64_t n_points, int64_t n_features) {
-  TORCH_CHECK(grad_features.dim() == 3 && grad_features.size(0) == n_levels && grad_features.size(1) == n_points &&
+  TORCH_CHECK(grad_features.dim() == 3 && grad_features.size(0) == n_points && grad_features.size(1) == n_levels &&
                   grad_features.size(2) == n_features,
-              "hash_grid: grad_features must be (L, N, F)");
+              "hash_grid: grad_features must be (N, L, F) = (", n_points, ", ", n_levels, ", ", n_features, "), got ",
+              grad_features.sizes());
 }
 
-// A backward op's inputs, checked and made contiguous once: grad_features (L, N, F), points (N, 3),
+// A backward op's inputs, checked and made contiguous once: grad_features (N, L, F), points (N, 3),
 // table (T, F) and the level geometry.
 struct BackwardInputs {
   at::Tensor grad_features, points, table;
@@ -213,7 +217,7 @@ BackwardInputs backward_inputs(const at::Tensor& grad_features, const at::Tensor
 
 }  // namespace
 
-// (N, 3) points in box units, (T, F) table -> (L, N, F) features.
+// (N, 3) points in box units, (T, F) table -> (N, L, F) features.
 at::Tensor hash_grid_forward(const at::Tensor& points_in, const at::Tensor& table_in, const at::Tensor& scales,
                              const at::Tensor& resolutions, const at::Tensor& sizes, const at::Tensor& offsets,
                              int64_t n_dense) {
@@ -222,7 +226,7 @@ at::Tensor hash_grid_forward(const at::Tensor& points_in, const at::Tensor& tabl
   const auto table = table_in.contiguous();
   const std::vector<Level> levels = read_levels(scales, resolutions, sizes, offsets, n_dense);
   const int64_t n_points = points.size(0), n_features = table.size(1), n_levels = static_cast<int64_t>(levels.size());
-  auto features = at::empty({n_levels, n_points, n_features}, points.options());
+  auto features = at::empty({n_points, n_levels, n_features}, points.options());
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "hash_grid_forward", [&] {
     const scalar_t* point_data = points.data_ptr<scalar_t>();
     const scalar_t* table_data = table.data_ptr<scalar_t>();
@@ -233,7 +237,7 @@ at::Tensor hash_grid_forward(const at::Tensor& points_in, const at::Tensor& tabl
         const Level level = levels[l];
         for (int64_t n = begin; n < end; ++n) {
           locate(point_data + 3 * n, level, cell);
-          scalar_t* target = out + (l * n_points + n) * n_features;
+          scalar_t* target = out + (n * n_levels + l) * n_features;
           if (n_features == 2) {  // Co-SLAM's F: a loop the compiler unrolls, the same sums
             for (int f = 0; f < 2; ++f) {
               scalar_t sum = cell.weight[0] * table_data[cell.row[0] * 2 + f];
@@ -309,8 +313,9 @@ inline void point_gradient_term(const Cell<scalar_t>& cell, const scalar_t* tabl
   term[2] = gz * scale;
 }
 
-// The table gradient, levels split among threads in an interleaved order (dense, cache-friendly
-// levels and hashed ones mixed), each level summed by one thread in point order.  With point_terms
+// The table gradient from level-major (L, N, F) gradients, levels split among threads in an
+// interleaved order (dense, cache-friendly levels and hashed ones mixed), each level summed by one
+// thread in point order.  With point_terms
 // (L, N, 3) it also writes each level's term of the point gradient there, from the same located
 // cell: the caller sums them over levels in order (hash_grid_backward).
 template <typename scalar_t>
@@ -339,13 +344,17 @@ void table_gradient_by_level(const scalar_t* point_data, const scalar_t* table_d
   });
 }
 
-// d loss / d table, (T, F), from (L, N, F) output gradients.
+// Level-major copy (L, N, F) of point-major (N, L, F) gradients, for the level-by-level table pass.
+at::Tensor level_major(const at::Tensor& grad_features) { return grad_features.transpose(0, 1).contiguous(); }
+
+// d loss / d table, (T, F), from (N, L, F) output gradients.
 at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at::Tensor& points_in,
                                     const at::Tensor& table, const at::Tensor& scales, const at::Tensor& resolutions,
                                     const at::Tensor& sizes, const at::Tensor& offsets, int64_t n_dense) {
   const BackwardInputs in = backward_inputs(grad_features_in, points_in, table, scales, resolutions, sizes, offsets,
                                             n_dense);
-  const at::Tensor &grad_features = in.grad_features, &points = in.points;
+  const at::Tensor grad_features = level_major(in.grad_features);
+  const at::Tensor& points = in.points;
   const std::vector<Level>& levels = in.levels;
   const int64_t n_points = in.n_points, n_features = in.n_features;
   auto grad_table = at::zeros(table.sizes(), table.options());
@@ -356,7 +365,7 @@ at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at
   return grad_table;
 }
 
-// d loss / d points, (N, 3), from (L, N, F) output gradients (position = x_n * s_l + 0.5).
+// d loss / d points, (N, 3), from (N, L, F) output gradients (position = x_n * s_l + 0.5).
 at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const at::Tensor& points_in,
                                      const at::Tensor& table_in, const at::Tensor& scales,
                                      const at::Tensor& resolutions, const at::Tensor& sizes,
@@ -380,7 +389,7 @@ at::Tensor hash_grid_backward_points(const at::Tensor& grad_features_in, const a
         const scalar_t scale = static_cast<scalar_t>(level.scale);
         for (int64_t n = begin; n < end; ++n) {
           locate(point_data + 3 * n, level, cell);
-          point_gradient_term(cell, table_data, grad_data + (l * n_points + n) * n_features, n_features, scale, term);
+          point_gradient_term(cell, table_data, grad_data + (n * n_levels + l) * n_features, n_features, scale, term);
           scalar_t* total = grad_points_data + 3 * n;
           total[0] += term[0];
           total[1] += term[1];
@@ -401,7 +410,8 @@ std::vector<at::Tensor> hash_grid_backward(const at::Tensor& grad_features_in, c
                                            const at::Tensor& offsets, int64_t n_dense) {
   const BackwardInputs in = backward_inputs(grad_features_in, points_in, table_in, scales, resolutions, sizes,
                                             offsets, n_dense);
-  const at::Tensor &grad_features = in.grad_features, &points = in.points, &table = in.table;
+  const at::Tensor grad_features = level_major(in.grad_features);
+  const at::Tensor &points = in.points, &table = in.table;
   const std::vector<Level>& levels = in.levels;
   const int64_t n_points = in.n_points, n_features = in.n_features, n_levels = in.n_levels;
   auto grad_table = at::zeros(table.sizes(), table.options());
