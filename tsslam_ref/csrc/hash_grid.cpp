@@ -322,9 +322,9 @@ inline void point_gradient_term(const Cell<scalar_t>& cell, const scalar_t* tabl
 
 // The table gradient from level-major (L, N, F) gradients, levels split among threads in an
 // interleaved order (dense, cache-friendly levels and hashed ones mixed), each level summed by one
-// thread in point order.  With point_terms
-// (L, N, 3) it also writes each level's term of the point gradient there, from the same located
-// cell: the caller sums them over levels in order (hash_grid_backward).
+// thread in point order.  With point_terms (L, N, 3) it also writes each level's term of the point
+// gradient there, from the same located cell: the caller sums them over levels in order
+// (hash_grid_backward).
 template <typename scalar_t>
 void table_gradient_by_level(const scalar_t* point_data, const scalar_t* table_data, const scalar_t* grad_data,
                              const std::vector<Level>& levels, int64_t n_points, int64_t n_features,

@@ -17,7 +17,8 @@
 //
 // Both passes round as the PyTorch path and its autograd gradient do: the same operations in the
 // same order, constants in the points' dtype, so the compiled path gives the same numbers bit for
-// bit (the gradient is evaluated through the chain rule of that path, not the closed form above).  One thread per block of points; no state between the passes.
+// bit (the gradient is evaluated through the chain rule of that path, not the closed form above).
+// One thread per block of points; no state between the passes.
 // Built with hash_grid.cpp into one extension by tsslam_ref/hash_kernel.py; tested against the
 // PyTorch path and finite differences in tests/test_field.py.
 
@@ -38,9 +39,6 @@ void check_points(const at::Tensor& points, int64_t n_bins) {
   TORCH_CHECK(n_bins >= 2, "oneblob: n_bins must be >= 2, got ", n_bins);
 }
 
-// e_j and r_j of one coordinate for j = 0..n_bins (the PyTorch path's roundings); edges[j] = j / n.
-// d_j lies in (-1, 1], where round half to even (torch.round) is 1 above 1/2, -1 below -1/2 and 0
-// in between, ±1/2 included: written as two comparisons instead of a call to nearbyint.
 // x - floor(x) for |x| < 2^63, floor as in hash_grid.cpp's floor_to_integer (no library call on a
 // plain x86-64 build).  Equal to the PyTorch path's wrap for every such x except x = -0, which gives
 // -0 instead of +0; the offsets d_j below, and so everything after, are the same either way.
@@ -51,6 +49,9 @@ inline scalar_t wrap_to_unit(scalar_t x) {
   return x - static_cast<scalar_t>(floored);
 }
 
+// e_j and r_j of one coordinate for j = 0..n_bins (the PyTorch path's roundings); edges[j] = j / n.
+// d_j lies in (-1, 1], where round half to even (torch.round) is 1 above 1/2, -1 below -1/2 and 0
+// in between, ±1/2 included: written as two comparisons instead of a call to nearbyint.
 template <typename scalar_t>
 inline void offsets(scalar_t x, const scalar_t* edges, int64_t n_bins, scalar_t* e, scalar_t* r) {
   const scalar_t wrapped = wrap_to_unit(x);
