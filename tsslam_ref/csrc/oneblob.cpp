@@ -39,22 +39,12 @@ void check_points(const at::Tensor& points, int64_t n_bins) {
   TORCH_CHECK(n_bins >= 2, "oneblob: n_bins must be >= 2, got ", n_bins);
 }
 
-// x - floor(x) for |x| < 2^63, floor as in hash_grid.cpp's floor_to_integer (no library call on a
-// plain x86-64 build).  Equal to the PyTorch path's wrap for every such x except x = -0, which gives
-// -0 instead of +0; the offsets d_j below, and so everything after, are the same either way.
-template <typename scalar_t>
-inline scalar_t wrap_to_unit(scalar_t x) {
-  const int64_t truncated = static_cast<int64_t>(x);
-  const int64_t floored = static_cast<scalar_t>(truncated) > x ? truncated - 1 : truncated;
-  return x - static_cast<scalar_t>(floored);
-}
-
 // e_j and r_j of one coordinate for j = 0..n_bins (the PyTorch path's roundings); edges[j] = j / n.
 // d_j lies in (-1, 1], where round half to even (torch.round) is 1 above 1/2, -1 below -1/2 and 0
 // in between, ±1/2 included: written as two comparisons instead of a call to nearbyint.
 template <typename scalar_t>
 inline void offsets(scalar_t x, const scalar_t* edges, int64_t n_bins, scalar_t* e, scalar_t* r) {
-  const scalar_t wrapped = wrap_to_unit(x);
+  const scalar_t wrapped = x - std::floor(x);
   const scalar_t half = static_cast<scalar_t>(0.5);
   for (int64_t j = 0; j <= n_bins; ++j) {
     const scalar_t d = edges[j] - wrapped;
