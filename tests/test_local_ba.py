@@ -193,3 +193,63 @@ def test_curve_approximation_on_uneven_knots_keeps_them_and_stays_at_the_noise_l
     covered = trajectory.covers(TIMES)
     error = (trajectory.poses(TIMES[covered])[:, :3, 3] - truth[covered, :3, 3]).norm(dim=-1)
     assert float(error.max()) < 0.01, float(error.max())
+
+
+def test_window_is_held_in_time_with_uneven_knots():
+    """With non-uniform knots the window takes the fewest newest points (at least M) whose range
+    spans M dt seconds; oracle: the span of every candidate range computed from the knot times."""
+    generator = torch.Generator().manual_seed(1)
+    n_ctrl, dt, window = 16, 0.3, 4
+    uneven = np.cumsum(np.r_[0.0, 0.3, 0.3, 0.1, 0.12, 0.1, 0.4, 0.11, 0.1, 0.1, 0.3, 0.1, 0.1, 0.1, 0.1, 0.1,
+                             0.1, 0.1, 0.1])
+    rotations = so3_exp(0.2 * torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64))
+    translations = torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64)
+    uniform = BSplineTrajectory(rotations, translations, dt, 0.0)
+    assert local_ba.window_size(uniform, window) == window  # the paper's M control points, as before
+    for n in range(6, n_ctrl + 1):
+        trajectory = BSplineTrajectory(rotations[:n], translations[:n], dt, 0.0, knots=uneven)
+        times = trajectory.knot_times()
+        spans = {m: times[n - 1] - trajectory.knot_time(n - m - 1) for m in range(window, n)}
+        long_enough = [m for m in spans if spans[m] >= window * dt - 1e-9]
+        expected = min(long_enough) if long_enough else n - local_ba.N_ANCHOR_CONTROLS
+        assert local_ba.window_size(trajectory, window) == expected, n
+        controls = local_ba.window_controls(trajectory, window)
+        assert controls == list(range(n - expected, n))
+        start, end = local_ba.window_time_range(trajectory, window)
+        assert np.isclose(start, max(trajectory.domain()[0], trajectory.knot_time(n - expected - 1)))
+        if long_enough:
+            assert end - start >= window * dt - 1e-9 or start == trajectory.domain()[0]
+    assert local_ba.window_size(trajectory, window) > window  # the short intervals at the end add points
+
+
+def test_curve_approximation_fits_a_stretch_held_in_time_with_uneven_knots():
+    """fit_size: the fewest newest intervals (at least fit_controls) spanning fit_controls dt
+    seconds, oracle: sums of the interval lengths; fit_time_range starts at the first of them;
+    curve_approximation frees exactly that many newest points."""
+    dt, fit_controls = 0.3, 3
+    lengths = [0.3, 0.3, 0.1, 0.12, 0.1, 0.4, 0.11, 0.1, 0.1, 0.3, 0.1, 0.1, 0.1, 0.1]
+    boundaries = np.cumsum(np.r_[0.0, lengths])
+    truth = torch.as_tensor(builtin_trajectory(np.array([0.0])))[0]
+    cfg = config.tiny()
+    cfg.local_ba.fit_controls = fit_controls
+    for n in range(2, len(lengths) - 3):
+        n_ctrl = n + 3  # points before interval n's is added (paper convention)
+        trajectory = BSplineTrajectory(truth[:3, :3].expand(n_ctrl, 3, 3).clone(), truth[:3, 3].expand(n_ctrl, 3).clone(),
+                                       dt, 0.0, knots=boundaries)
+        end = 3 + n  # interval n = [t_{n+2}, t_{n+3}) (paper convention)
+        assert np.isclose(trajectory.interval(n)[1], boundaries[end])
+        spans = {m: boundaries[end] - boundaries[end - m] for m in range(fit_controls, end + 1)}
+        long_enough = [m for m in spans if spans[m] >= fit_controls * dt - 1e-9]
+        size = local_ba.fit_size(trajectory, n, fit_controls)
+        if long_enough:
+            assert size == min(long_enough), n
+            assert np.isclose(local_ba.fit_time_range(trajectory, n, cfg.local_ba)[0],
+                              max(boundaries[end - size], trajectory.interval(0)[0]))
+        assert fit_controls <= size <= n_ctrl
+        assert local_ba.fit_size(BSplineTrajectory(trajectory.control_rotations, trajectory.control_translations, dt, 0.0),
+                                 n, fit_controls) == fit_controls  # uniform knots: as before
+    times = np.linspace(boundaries[end - size], boundaries[end] - 1e-3, 25)
+    poses = torch.as_tensor(builtin_trajectory(times))
+    fitted = local_ba.curve_approximation(trajectory, times, poses, cfg.local_ba, free_controls=size)
+    moved = (fitted.control_translations[:n_ctrl] - trajectory.control_translations).norm(dim=-1) > 0
+    assert moved.nonzero().reshape(-1).tolist() == list(range(n_ctrl + 1 - size, n_ctrl)), size

@@ -30,8 +30,10 @@ Ablations of paper Table V: ``local_ba.use_spline=False`` ("w/o B-S.",
 ``local_ba.use_dynamics=False`` ("w/o DR") drops L_DR.
 
 Variable intervals: every time range here comes from the trajectory's own knot times
-(:meth:`trajectory.BSplineTrajectory.knot_time`), so the window of ``M`` control points spans ``M``
-intervals of whatever lengths the knots give (uniform or chosen by the knot policy).
+(:meth:`trajectory.BSplineTrajectory.knot_time`).  With non-uniform knots the window is held in
+time, not in points (:func:`window_size`): it takes the fewest newest control points, at least
+``M``, whose range spans ``M dt`` seconds, so short intervals add points to the window instead of
+shrinking the stretch of frames it refines (docs/system.md, "Adaptive knots").
 
 Layer 3 (optimiser): uses trajectory, knots, spline_fit, losses (its settings type), bundle; never
 tracking or global_ba.
@@ -60,15 +62,31 @@ at frame 0's pose (:attr:`trajectory.BSplineTrajectory.start_pose`,
 "Choices the paper leaves open")."""
 
 
+def window_size(trajectory: BSplineTrajectory, window: int) -> int:
+    """M, the number of control points in the window: ``window`` with uniform knots; with
+    non-uniform knots the fewest newest points, at least ``window``, whose range [t_{N-M-1}, t_{N-1})
+    spans ``window`` x dt seconds (dt: ``trajectory.dt``, the configured spacing), so that the
+    window refines as long a stretch of frames as a uniform one does (all points when they span less)."""
+    if trajectory.uniform:
+        return window
+    n_ctrl, span = trajectory.n_ctrl, window * trajectory.dt
+    end = trajectory.knot_time(n_ctrl - 1)
+    size = window
+    while size < n_ctrl - N_ANCHOR_CONTROLS and end - trajectory.knot_time(n_ctrl - size - 1) < span - 1e-9:
+        size += 1
+    return size
+
+
 def window_controls(trajectory: BSplineTrajectory, window: int) -> List[int]:
-    """Indices of the ``window`` newest control points, never the ``N_ANCHOR_CONTROLS`` oldest."""
-    return list(range(max(N_ANCHOR_CONTROLS, trajectory.n_ctrl - window), trajectory.n_ctrl))
+    """Indices of the :func:`window_size` newest control points, never the ``N_ANCHOR_CONTROLS`` oldest."""
+    return list(range(max(N_ANCHOR_CONTROLS, trajectory.n_ctrl - window_size(trajectory, window)), trajectory.n_ctrl))
 
 
 def window_time_range(trajectory: BSplineTrajectory, window: int) -> Tuple[float, float]:
-    """Times (s) shaped by the window's control points, clipped to the domain: [t_{N-M-1}, t_{N-1})."""
+    """Times (s) shaped by the window's control points, clipped to the domain: [t_{N-M-1}, t_{N-1})
+    (M = :func:`window_size`)."""
     start, end = trajectory.domain()
-    first = max(N_ANCHOR_CONTROLS, trajectory.n_ctrl - window)
+    first = max(N_ANCHOR_CONTROLS, trajectory.n_ctrl - window_size(trajectory, window))
     return max(start, trajectory.knot_time(first - 1)), end
 
 
@@ -140,7 +158,8 @@ def line_at_control_points(trajectory: BSplineTrajectory, rate: torch.Tensor) ->
 
 
 def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses: torch.Tensor,
-                        local_ba: LocalBAConfig, fit: bool = True) -> BSplineTrajectory:
+                        local_ba: LocalBAConfig, fit: bool = True,
+                        free_controls: Optional[int] = None) -> BSplineTrajectory:
     """Add the control point of the next interval, Eq. (11).
 
     First interval: the four points of :func:`constant_velocity_control_points`, and frame 0's
@@ -156,6 +175,8 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
         poses: (K, 4, 4) their camera-to-world poses (tracked, or spline-refined for older frames).
         local_ba: uses ``fit_iters`` and ``fit_controls``.
         fit: False only extrapolates (the "w/o LBA" ablation).
+        free_controls: how many newest points to fit (default ``local_ba.fit_controls``; the loop
+            passes :func:`fit_size`).
 
     Returns:
         A new trajectory with 4 control points (first interval) or one more, detached.
@@ -173,7 +194,7 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
         translations = torch.cat([trajectory.control_translations, new_translation.unsqueeze(0)], dim=0)
         if fit and len(times) > 0:
             fixed = torch.ones(rotations.shape[0], dtype=torch.bool)
-            fixed[-local_ba.fit_controls:] = False
+            fixed[-(local_ba.fit_controls if free_controls is None else free_controls):] = False
             fixed[:N_ANCHOR_CONTROLS] = True
             rotations, translations = spline_fit.fit_control_points(
                 np.asarray(times, dtype=np.float64), poses, trajectory.dt, trajectory.t0, rotations.shape[0],
@@ -186,10 +207,28 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
                              trajectory.dt, trajectory.t0, trajectory.convention, start_pose, **trajectory.timing())
 
 
+def fit_size(trajectory: BSplineTrajectory, n: int, fit_controls: int) -> int:
+    """How many newest intervals (ending with interval n) the curve approximation fits, and how many
+    newest control points it frees: ``fit_controls`` with uniform knots; with non-uniform knots the
+    fewest, at least ``fit_controls``, that span ``fit_controls`` x dt seconds (dt: ``trajectory.dt``),
+    at most every point but the anchor.  ``trajectory``: before interval n's point is added.  Held
+    in time for the reason :func:`window_size` is: short intervals free more points instead of
+    fitting fewer frames."""
+    if trajectory.uniform:
+        return fit_controls
+    start_knot, end = trajectory.interval_start_knot(n), trajectory.interval(n)[1]
+    size, span = fit_controls, fit_controls * trajectory.dt
+    while (size < trajectory.n_ctrl + 1 - N_ANCHOR_CONTROLS
+           and end - trajectory.knot_time_before(start_knot, size - 1) < span - 1e-9):
+        size += 1
+    return size
+
+
 def fit_time_range(trajectory: BSplineTrajectory, n: int, local_ba: LocalBAConfig) -> Tuple[float, float]:
     """[start, end) in s of the frames :func:`curve_approximation` fits when mapping interval ``n``:
-    interval n and the ``local_ba.fit_controls - 1`` before it."""
-    first_start = trajectory.knot_time_before(trajectory.interval_start_knot(n), local_ba.fit_controls - 1)
+    interval n and the :func:`fit_size` - 1 before it (``local_ba.fit_controls`` - 1 with uniform knots)."""
+    size = fit_size(trajectory, n, local_ba.fit_controls)
+    first_start = trajectory.knot_time_before(trajectory.interval_start_knot(n), size - 1)
     end = trajectory.interval(n)[1]
     return max(trajectory.interval(0)[0], first_start), end
 

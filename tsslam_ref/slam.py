@@ -369,7 +369,8 @@ def add_control_point(state: SLAMState, frame: FrameTensors, n: int) -> BSplineT
         fit_start, fit_end = local_ba.fit_time_range(state.trajectory, n, cfg.local_ba)
         fit_frames = np.nonzero((times >= fit_start) & (times < fit_end))[0]
         trajectory = local_ba.curve_approximation(state.trajectory, times[fit_frames], state.frame_poses[fit_frames],
-                                                  cfg.local_ba, fit=cfg.local_ba.enabled)
+                                                  cfg.local_ba, fit=cfg.local_ba.enabled,
+                                                  free_controls=local_ba.fit_size(state.trajectory, n, cfg.local_ba.fit_controls))
     check_finite(trajectory, "the curve approximation", frame)
     return trajectory
 
@@ -448,9 +449,9 @@ def interval_end_knot(trajectory: BSplineTrajectory, n: int) -> int:
 
 def drop_old_rays(state: SLAMState, n: int) -> None:
     """Forget the tracking rays of frames older than any window after interval ``n`` can reach
-    (``local_ba.window`` + 2 intervals before its end)."""
-    oldest_needed = state.trajectory.knot_time_before(interval_end_knot(state.trajectory, n),
-                                                      state.cfg.local_ba.window + 2)
+    (:func:`local_ba.window_size` + 2 intervals before its end)."""
+    window = local_ba.window_size(state.trajectory, state.cfg.local_ba.window)
+    oldest_needed = state.trajectory.knot_time_before(interval_end_knot(state.trajectory, n), window + 2)
     for j in [j for j in state.window_rays if state.timestamps[j] < oldest_needed]:
         del state.window_rays[j]
 
