@@ -319,6 +319,9 @@ CHEAP = ["--config", "tiny", "--method", "coslam", "--frames", "0:10", "--quiet"
 INTERRUPT_AFTER_FRAME_4 = """
 import os, runpy, signal, sys
 from tsslam_ref import slam
+# a shell without job control starts background commands with SIGINT ignored, and Python then
+# installs no KeyboardInterrupt handler; a user's terminal has one, so give it back
+signal.signal(signal.SIGINT, signal.default_int_handler)
 run_slam = slam.run_slam
 def interrupted_run_slam(*args, on_frame, **kwargs):
     def on_frame_then_ctrl_c(state):
