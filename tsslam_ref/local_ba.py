@@ -69,10 +69,15 @@ def window_size(trajectory: BSplineTrajectory, window: int) -> int:
     window refines as long a stretch of frames as a uniform one does (all points when they span less)."""
     if trajectory.uniform:
         return window
-    n_ctrl, span = trajectory.n_ctrl, window * trajectory.dt
-    end = trajectory.knot_time(n_ctrl - 1)
-    size = window
-    while size < n_ctrl - N_ANCHOR_CONTROLS and end - trajectory.knot_time(n_ctrl - size - 1) < span - 1e-9:
+    return intervals_spanning(trajectory, trajectory.n_ctrl - 1, window, trajectory.n_ctrl - N_ANCHOR_CONTROLS)
+
+
+def intervals_spanning(trajectory: BSplineTrajectory, end_knot: int, count: int, most: int) -> int:
+    """The fewest m >= ``count`` (at most ``most``) with t_end - t_{end-m} >= ``count`` x dt
+    (dt: ``trajectory.dt``): how many intervals ending at knot ``end_knot`` span as many seconds as
+    ``count`` uniform ones.  :func:`window_size` and :func:`fit_size` hold their stretch in time with it."""
+    end, span, size = trajectory.knot_time(end_knot), count * trajectory.dt, count
+    while size < most and end - trajectory.knot_time(end_knot - size) < span - 1e-9:
         size += 1
     return size
 
@@ -216,12 +221,8 @@ def fit_size(trajectory: BSplineTrajectory, n: int, fit_controls: int) -> int:
     fitting fewer frames."""
     if trajectory.uniform:
         return fit_controls
-    start_knot, end = trajectory.interval_start_knot(n), trajectory.interval(n)[1]
-    size, span = fit_controls, fit_controls * trajectory.dt
-    while (size < trajectory.n_ctrl + 1 - N_ANCHOR_CONTROLS
-           and end - trajectory.knot_time_before(start_knot, size - 1) < span - 1e-9):
-        size += 1
-    return size
+    return intervals_spanning(trajectory, trajectory.interval_start_knot(n) + 1, fit_controls,
+                              trajectory.n_ctrl + 1 - N_ANCHOR_CONTROLS)
 
 
 def fit_time_range(trajectory: BSplineTrajectory, n: int, local_ba: LocalBAConfig) -> Tuple[float, float]:
