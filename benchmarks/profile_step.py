@@ -13,10 +13,16 @@ For each it prints the median wall time of ``--repeats`` plain runs (no profiler
 operators by self CPU time of one profiled run (their share of the profiled total).  Absolute times
 depend on the machine's load; compare shares, or rows of the same run.
 
+``--tracking-rays 32 64 ... 1024`` instead times the tracking iteration at each ray count and fits
+time = fixed + per-ray x rays by least squares: what a smaller ray budget can save, and how much
+of an iteration does not shrink with the rays.
+
 Usage: python benchmarks/profile_step.py [--preset tum-cpu] [--repeats 20] [--top 15] [--threads 2]
+                                         [--tracking-rays N [N ...]]
 """
 
 import argparse
+import dataclasses
 import statistics
 import time
 
@@ -110,6 +116,19 @@ def profile_table(step, top: int) -> str:
     return "\n".join(lines)
 
 
+def tracking_ray_scaling(cfg, field, frames, poses, settings, generator, ray_counts, repeats: int) -> str:
+    """Median tracking-iteration time at each ray count, and the least-squares line through them."""
+    rows, times = [f"  {'rays':>6} {'ms':>8}"], []
+    for n_rays in ray_counts:
+        scaled = dataclasses.replace(cfg, tracking=dataclasses.replace(cfg.tracking, n_rays=n_rays))
+        times.append(median_ms(tracking_step(scaled, field, frames, poses, settings, generator), repeats))
+        rows.append(f"  {n_rays:>6} {times[-1]:>8.2f}")
+    if len(set(ray_counts)) >= 2:
+        per_ray, fixed = statistics.linear_regression(ray_counts, times)
+        rows.append(f"  fit: {fixed:.2f} ms fixed + {per_ray:.4f} ms per ray")
+    return "\n".join(rows)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="tum-cpu")
@@ -117,12 +136,21 @@ def main(argv=None):
     parser.add_argument("--top", type=int, default=15)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--fit-iters", type=int, default=50)
+    parser.add_argument("--tracking-rays", type=int, nargs="+", default=None,
+                        help="time the tracking iteration at these ray counts (and fit a line) instead of profiling")
     args = parser.parse_args(argv)
+    if args.tracking_rays is not None and min(args.tracking_rays) < 1:
+        parser.error(f"--tracking-rays must be positive, got {args.tracking_rays}")
     torch.set_num_threads(args.threads)
     tune_cpu_allocator()
     cfg = config.load(args.preset)
     field, optimizer, frames, poses, settings, generator = build(cfg, args.fit_iters)
     samples = cfg.render.n_samples + cfg.render.n_range_d
+    if args.tracking_rays is not None:
+        print(f"torch {torch.__version__}, {args.threads} threads, preset {args.preset}, "
+              f"tracking iteration x {samples} samples, median of {args.repeats}")
+        print(tracking_ray_scaling(cfg, field, frames, poses, settings, generator, args.tracking_rays, args.repeats))
+        return
     steps = {
         f"tracking iteration ({cfg.tracking.n_rays} rays x {samples} samples)":
             tracking_step(cfg, field, frames, poses, settings, generator),
