@@ -23,8 +23,17 @@ Prints, in the form of the paper's tables:
     python benchmarks/bench_system.py --ablations --dts 0.15 0.25 0.35
     python benchmarks/bench_system.py --adaptive --dts 0.15 --ablation-seeds 0 1 2 --seeds 0 1 2
 
-The JSON file (``--json``) holds ``settings`` (preset, data, frames, seeds, each row's overrides)
-and ``results`` (per row: every seed's metrics and runtime, and their mean).
+The JSON file (``--json``) holds ``settings`` (preset, data, frames, seeds, each row's overrides),
+``results`` (per row: every seed's metrics and runtime, and their mean) and the process's peak RSS.
+
+``--against FILE`` compares this run with a stored JSON file of the same preset, sequence, frames and
+seeds (for example the shipped ``tsslam_ref/assets/results/teddy_tum-cpu_3seeds.json``): for each
+row in both it prints the mean ATE and RPE against the stored seeds' range ("identical" when every
+seed's numbers are equal bit for bit, else "inside", "below" or "above" the range), frames/s and
+ms per iteration now / stored, and the peak RSS of both.  What a speed change needs to show:
+
+    python benchmarks/bench_system.py --seeds 0 1 2 --skip baseline \
+        --against tsslam_ref/assets/results/teddy_tum-cpu_3seeds.json
 
 The README's "Results" section lists the commands behind each of its tables; the synthetic sequences
 are rendered along the trajectory stretches that ship with the package (``--trajectory NAME``).
@@ -133,6 +142,84 @@ def print_ratios(results: Dict[str, Dict]) -> None:
                   f"RPE x{mean['rpe_cm'] / baseline['rpe_cm']:.2f}{note}")
 
 
+SAME_RUN_KEYS = ("preset", "sequence", "frames", "frame_range", "seeds", "ablation_seeds")
+"""Settings that must agree for a stored file's rows to be runs on the same frames with the same
+seeds; ``--set`` may differ (a candidate setting against the stored presets)."""
+
+
+def load_stored(path: str, settings: Dict) -> Dict:
+    """The stored ``--json`` file at ``path``, checked against this benchmark's ``settings``.
+
+    Raises:
+        ValueError: naming the file and the first setting that differs, or what is missing.
+    """
+    try:
+        stored = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise ValueError(f"--against {path}: cannot read a benchmark JSON file ({error})") from None
+    if not isinstance(stored, dict) or not isinstance(stored.get("settings"), dict) or not isinstance(stored.get("results"), dict):
+        raise ValueError(f"--against {path}: expected a file written by --json, with 'settings' and 'results'")
+    for key in SAME_RUN_KEYS:
+        if stored["settings"].get(key) != settings[key]:
+            raise ValueError(f"--against {path}: its {key} is {stored['settings'].get(key)!r}, this run's is "
+                             f"{settings[key]!r}; compare runs of the same preset, sequence, frames and seeds")
+    return stored
+
+
+def spread_verdict(rows_now: List[Dict], rows_stored: List[Dict], key: str) -> str:
+    """Where the mean of ``key`` over this run's seeds falls against the stored seeds' values."""
+    now = [row[key] for row in rows_now]
+    stored = [row[key] for row in rows_stored]
+    if now == stored:
+        return "identical"
+    mean = float(np.mean(now))
+    if mean < min(stored):
+        return "below"
+    return "inside" if mean <= max(stored) else "above"
+
+
+def stage_ratio(rows_now: List[Dict], rows_stored: List[Dict], stage: str) -> str:
+    """Mean ms per iteration of a loop stage, now / stored, or "-" where a side lacks it."""
+    def mean_ms(rows):
+        values = [row["runtime"][stage]["ms_per_iteration"] for row in rows if stage in row.get("runtime", {})]
+        return float(np.mean(values)) if values else None
+
+    now, stored = mean_ms(rows_now), mean_ms(rows_stored)
+    return "-" if now is None or stored is None else f"{now:.0f} / {stored:.0f}"
+
+
+def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mib: float) -> List[str]:
+    """The ``--against`` table: every row measured now and stored, seed by seed the same runs."""
+    lines = ["| row | ATE mean (cm): now / stored seeds | RPE mean (cm): now / stored seeds | ATE, RPE vs stored "
+             "| frames/s now / stored | tracking ms/it now / stored | GBA ms/it | map update ms/it |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, result in results.items():
+        if name not in stored["results"]:
+            continue
+        rows_now = result["rows"]
+        rows_stored = stored["results"][name]["rows"]
+        if any("failed" in row for row in rows_now + rows_stored) or len(rows_now) != len(rows_stored):
+            lines.append(f"| {name} | failed or incomplete on one side | | | | | | |")
+            continue
+        def seeds(key):
+            return " / ".join(f"{row[key]:.3f}" for row in rows_stored)
+
+        verdicts = ", ".join(spread_verdict(rows_now, rows_stored, key) for key in ("ate_cm", "rpe_cm"))
+        fps = (f"{np.mean([row['wall_fps'] for row in rows_now]):.2f} / "
+               f"{np.mean([row['wall_fps'] for row in rows_stored]):.2f}" if "wall_fps" in rows_stored[0] else "-")
+        lines.append(f"| {name} | {np.mean([row['ate_cm'] for row in rows_now]):.3f} / {seeds('ate_cm')} "
+                     f"| {np.mean([row['rpe_cm'] for row in rows_now]):.3f} / {seeds('rpe_cm')} | {verdicts} | {fps} "
+                     f"| {stage_ratio(rows_now, rows_stored, 'tracking')} | {stage_ratio(rows_now, rows_stored, 'global_ba')} "
+                     f"| {stage_ratio(rows_now, rows_stored, 'map_update')} |")
+    stored_rss = stored.get("peak_rss_mib")
+    lines.append(f"peak RSS: {peak_rss_mib:.0f} MiB now, "
+                 + (f"{stored_rss:.0f} MiB stored" if stored_rss is not None else "not in the stored file"))
+    if stored["settings"].get("environment") != environment:
+        lines.append(f"environment differs (stored {stored['settings'].get('environment')}): the same seed gives "
+                     "the same numbers only with the same kernels and threads")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM slice)")
@@ -151,6 +238,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--json", default=None, help="write every row to this JSON file")
     parser.add_argument("--overwrite", action="store_true", help="allow replacing an existing --json file")
+    parser.add_argument("--against", default=None, metavar="FILE",
+                        help="compare with a stored --json file of the same preset, sequence, frames and seeds")
     args = parser.parse_args()
     if args.json and os.path.exists(args.json) and not args.overwrite:
         parser.error(f"--json {args.json} exists; pass --overwrite to replace it")
@@ -194,6 +283,12 @@ def main() -> None:
                 "frames": len(sequence), "frame_range": args.frames, "threads": args.threads,
                 "overrides": args.overrides, "seeds": args.seeds, "ablation_seeds": ablation_seeds,
                 "variants": variants, "environment": environment, "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
+    stored = None
+    if args.against:
+        try:
+            stored = load_stored(args.against, settings)
+        except ValueError as error:
+            parser.error(str(error))
     results = {}
     for name, overrides in variants.items():
         rows = []
@@ -230,7 +325,14 @@ def main() -> None:
         if good:
             line = runtime_line(name, good[0]["runtime"])
             print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")
-    print(f"\npeak RSS of this process (all runs above): {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    peak_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"\npeak RSS of this process (all runs above): {peak_rss_mib:.0f} MiB")
+    if args.json:
+        atomic_write_text(Path(args.json), json.dumps({"settings": settings, "results": results,
+                                                       "peak_rss_mib": peak_rss_mib}, indent=2))
+    if stored is not None:
+        print(f"\nagainst {args.against} (its --set {stored['settings'].get('overrides')}, this run's {args.overrides}):")
+        print("\n".join(comparison_lines(results, stored, environment, peak_rss_mib)))
 
 
 if __name__ == "__main__":

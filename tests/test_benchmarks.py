@@ -1,0 +1,89 @@
+"""benchmarks/bench_system.py --against: a run compared with a stored table of the same runs.
+
+The oracles are hand-made rows whose verdicts are known (equal numbers, a mean inside, below or
+above the stored seeds' range), and a real command line that must be refused before any run.
+"""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+STORED_TEDDY = ROOT / "tsslam_ref" / "assets" / "results" / "teddy_tum-cpu_3seeds.json"
+
+
+def _bench_system():
+    spec = importlib.util.spec_from_file_location("bench_system", ROOT / "benchmarks" / "bench_system.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(ate, rpe, fps=1.0, tracking_ms=25.0):
+    return {"ate_cm": ate, "rpe_cm": rpe, "rpe_deg": 0.5, "wall_fps": fps,
+            "runtime": {"tracking": {"ms_per_iteration": tracking_ms, "iterations_per_call": 20}}}
+
+
+def test_spread_verdicts_against_the_stored_seeds():
+    bench = _bench_system()
+    stored = [_row(5.0, 0.40), _row(6.6, 0.46), _row(5.6, 0.86)]
+    assert bench.spread_verdict([_row(5.0, 0.40), _row(6.6, 0.46), _row(5.6, 0.86)], stored, "ate_cm") == "identical"
+    # the same mean from other per-seed numbers is not "identical"
+    assert bench.spread_verdict([_row(5.6, 0.4), _row(6.0, 0.4), _row(5.6, 0.4)], stored, "ate_cm") == "inside"
+    assert bench.spread_verdict([_row(4.0, 0.4)] * 3, stored, "ate_cm") == "below"
+    assert bench.spread_verdict([_row(7.0, 0.4)] * 3, stored, "ate_cm") == "above"
+    assert bench.spread_verdict([_row(5.0, 0.87)] * 3, stored, "rpe_cm") == "above"
+    assert bench.spread_verdict([_row(5.0, 0.40)] * 3, stored, "rpe_cm") == "inside"  # the range's ends count
+
+
+def test_comparison_table_rows_rss_and_environment():
+    bench = _bench_system()
+    environment = {"torch": "2.13.0+cpu", "device": "cpu", "cpu_capability": "AVX2", "threads": 2}
+    stored = {"settings": {"environment": environment},
+              "results": {"TS-SLAM": {"rows": [_row(5.0, 0.4, 0.70, 26.0), _row(6.0, 0.5, 0.72, 24.0)]},
+                          "Co-SLAM (baseline)": {"rows": [_row(4.7, 1.0)]}},
+              "peak_rss_mib": 900.0}
+    results = {"TS-SLAM": {"rows": [_row(5.0, 0.4, 0.90, 20.0), _row(6.0, 0.5, 0.94, 22.0)]},
+               "TS-SLAM dt=0.15 s": {"rows": [_row(5.0, 0.4)]}}  # not stored: no line
+    lines = bench.comparison_lines(results, stored, environment, 812.4)
+    table = [line for line in lines if line.startswith("| TS-SLAM")]
+    assert len(table) == 1, lines
+    cells = [cell.strip() for cell in table[0].strip("|").split("|")]
+    assert cells[1] == "5.500 / 5.000 / 6.000" and cells[2] == "0.450 / 0.400 / 0.500", cells
+    assert cells[3] == "identical, identical"
+    assert cells[4] == "0.92 / 0.71"  # mean frames/s now / stored
+    assert cells[5] == "21 / 25"  # tracking ms per iteration, means
+    assert cells[6] == "-" and cells[7] == "-"  # stages neither side ran
+    assert "812 MiB now, 900 MiB stored" in lines[-1]
+    other = dict(environment, cpu_capability="AVX512")
+    assert any(line.startswith("environment differs") for line in bench.comparison_lines(results, stored, other, 1.0))
+
+
+def test_against_a_file_of_other_frames_is_refused_before_any_run(tmp_path):
+    """The shipped teddy table has 100 frames; a 10-frame run is not the same runs: refused up
+    front, naming the file, the setting and both values, and no --json file is written."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    command = [sys.executable, str(ROOT / "benchmarks" / "bench_system.py"), "--frames", "0:10",
+               "--json", str(tmp_path / "rows.json")]
+    for against, needles in ((STORED_TEDDY, ("--against", str(STORED_TEDDY), "frames is 100", "is 10")),
+                             (tmp_path / "missing.json", ("--against", "missing.json", "cannot read"))):
+        result = subprocess.run(command + ["--against", str(against)], cwd=tmp_path, env=env,
+                                capture_output=True, text=True, timeout=300)
+        assert "Traceback" not in result.stderr, result.stderr
+        assert result.returncode == 2, (result.returncode, result.stderr)
+        message = result.stderr.strip().splitlines()[-1]
+        for needle in needles:
+            assert needle in message, message
+        assert not (tmp_path / "rows.json").exists()
+
+
+def test_the_shipped_table_has_what_the_comparison_reads():
+    stored = json.loads(STORED_TEDDY.read_text())
+    bench = _bench_system()
+    settings = dict(stored["settings"])
+    assert bench.load_stored(str(STORED_TEDDY), settings) == stored
+    for row in stored["results"]["TS-SLAM"]["rows"]:
+        assert {"ate_cm", "rpe_cm", "wall_fps", "runtime"} <= set(row)
