@@ -178,6 +178,11 @@ def spread_verdict(rows_now: List[Dict], rows_stored: List[Dict], key: str) -> s
     return "inside" if mean <= max(stored) else "above"
 
 
+def per_seed(rows: List[Dict], key: str) -> str:
+    """The seeds' values of ``key``, "a / b / c"."""
+    return " / ".join(f"{row[key]:.3f}" for row in rows)
+
+
 def stage_ratio(rows_now: List[Dict], rows_stored: List[Dict], stage: str) -> str:
     """Mean ms per iteration of a loop stage, now / stored, or "-" where a side lacks it."""
     def mean_ms(rows):
@@ -201,14 +206,11 @@ def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mi
         if any("failed" in row for row in rows_now + rows_stored) or len(rows_now) != len(rows_stored):
             lines.append(f"| {name} | failed or incomplete on one side | | | | | | |")
             continue
-        def seeds(key):
-            return " / ".join(f"{row[key]:.3f}" for row in rows_stored)
-
         verdicts = ", ".join(spread_verdict(rows_now, rows_stored, key) for key in ("ate_cm", "rpe_cm"))
         fps = (f"{np.mean([row['wall_fps'] for row in rows_now]):.2f} / "
                f"{np.mean([row['wall_fps'] for row in rows_stored]):.2f}" if "wall_fps" in rows_stored[0] else "-")
-        lines.append(f"| {name} | {np.mean([row['ate_cm'] for row in rows_now]):.3f} / {seeds('ate_cm')} "
-                     f"| {np.mean([row['rpe_cm'] for row in rows_now]):.3f} / {seeds('rpe_cm')} | {verdicts} | {fps} "
+        lines.append(f"| {name} | {np.mean([row['ate_cm'] for row in rows_now]):.3f} / {per_seed(rows_stored, 'ate_cm')} "
+                     f"| {np.mean([row['rpe_cm'] for row in rows_now]):.3f} / {per_seed(rows_stored, 'rpe_cm')} | {verdicts} | {fps} "
                      f"| {stage_ratio(rows_now, rows_stored, 'tracking')} | {stage_ratio(rows_now, rows_stored, 'global_ba')} "
                      f"| {stage_ratio(rows_now, rows_stored, 'map_update')} |")
     stored_rss = stored.get("peak_rss_mib")
