@@ -198,8 +198,9 @@ def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mi
     lines = ["| row | ATE mean (cm): now / stored seeds | RPE mean (cm): now / stored seeds | ATE, RPE vs stored "
              "| frames/s now / stored | tracking ms/it now / stored | GBA ms/it | map update ms/it |",
              "|---|---|---|---|---|---|---|---|"]
+    missing = [name for name in results if name not in stored["results"]]
     for name, result in results.items():
-        if name not in stored["results"]:
+        if name in missing:
             continue
         rows_now = result["rows"]
         rows_stored = stored["results"][name]["rows"]
@@ -213,6 +214,8 @@ def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mi
                      f"| {np.mean([row['rpe_cm'] for row in rows_now]):.3f} / {per_seed(rows_stored, 'rpe_cm')} | {verdicts} | {fps} "
                      f"| {stage_ratio(rows_now, rows_stored, 'tracking')} | {stage_ratio(rows_now, rows_stored, 'global_ba')} "
                      f"| {stage_ratio(rows_now, rows_stored, 'map_update')} |")
+    if missing:
+        lines.append(f"not in the stored file: {', '.join(missing)}")
     stored_rss = stored.get("peak_rss_mib")
     lines.append(f"peak RSS: {peak_rss_mib:.0f} MiB now, "
                  + (f"{stored_rss:.0f} MiB stored" if stored_rss is not None else "not in the stored file"))

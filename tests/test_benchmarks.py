@@ -48,7 +48,7 @@ def test_comparison_table_rows_rss_and_environment():
                           "Co-SLAM (baseline)": {"rows": [_row(4.7, 1.0)]}},
               "peak_rss_mib": 900.0}
     results = {"TS-SLAM": {"rows": [_row(5.0, 0.4, 0.90, 20.0), _row(6.0, 0.5, 0.94, 22.0)]},
-               "TS-SLAM dt=0.15 s": {"rows": [_row(5.0, 0.4)]}}  # not stored: no line
+               "TS-SLAM dt=0.15 s": {"rows": [_row(5.0, 0.4)]}}  # not stored: named, no row
     lines = bench.comparison_lines(results, stored, environment, 812.4)
     table = [line for line in lines if line.startswith("| TS-SLAM")]
     assert len(table) == 1, lines
@@ -58,6 +58,7 @@ def test_comparison_table_rows_rss_and_environment():
     assert cells[4] == "0.92 / 0.71"  # mean frames/s now / stored
     assert cells[5] == "21 / 25"  # tracking ms per iteration, means
     assert cells[6] == "-" and cells[7] == "-"  # stages neither side ran
+    assert "not in the stored file: TS-SLAM dt=0.15 s" in lines
     assert "812 MiB now, 900 MiB stored" in lines[-1]
     other = dict(environment, cpu_capability="AVX512")
     assert any(line.startswith("environment differs") for line in bench.comparison_lines(results, stored, other, 1.0))
