@@ -377,7 +377,9 @@ def test_overwrite_replaces_only_our_files_never_through_a_link(runs):
     assert not (planted / ".trajectory.txt.abcd1234.tmp").exists()
     for name in ("trajectory.png", "metrics.json"):
         assert not (planted / name).is_symlink() and (planted / name).is_file()
-    assert json.loads((planted / "metrics.json").read_text())["frames"] == 10
+    metrics = json.loads((planted / "metrics.json").read_text())
+    assert metrics["frames"] == 10
+    assert 50 < metrics["peak_rss_mib"] < 64 * 1024  # importing torch alone takes more than 50 MiB
     assert run.load_checkpoint(planted / "checkpoint.pt").done == 10  # a new checkpoint, not the planted bytes
     mode = files.normal_mode()
     for name in ("trajectory.txt", "config.json", "metrics.json", "trajectory.png", "errors.png", "checkpoint.pt"):

@@ -3,7 +3,12 @@
 Oracle: counts written out by hand, and the table's definition (ms per iteration = 1000 s / iterations).
 """
 
+import json
+import os
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -28,3 +33,40 @@ def test_stage_counts_calls_iterations_and_time_and_skips_a_failed_body():
     assert row["calls"] == 2 and row["iterations_per_call"] == 20
     assert row["ms_per_iteration"] == pytest.approx(1000.0 * timings.seconds["global_ba"] / 40)
     assert timings.table()["tracking"]["total_s"] == timings.seconds["tracking"]
+
+
+PEAK_PROBE = """
+import json, sys
+from pathlib import Path
+import numpy as np
+import torch
+from tsslam_ref.device import peak_memory
+
+def high_water_mib():
+    line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith("VmHWM:"))
+    return int(line.split()[1]) / 1024  # kB
+
+before = (peak_memory(torch.device("cpu"))["peak_rss_mib"], high_water_mib())
+block = np.ones(256 * 2**17)  # 256 MiB of float64, every page touched
+after = (peak_memory(torch.device("cpu"))["peak_rss_mib"], high_water_mib())
+print(json.dumps({"before": before, "after": after, "keys": sorted(peak_memory(torch.device("cpu")))}))
+"""
+
+
+def test_peak_memory_matches_the_kernels_high_water_mark_and_sees_a_new_peak():
+    """device.peak_memory (getrusage) against an independent reader, Linux's /proc/self/status
+    VmHWM, in a fresh process before and after it touches 256 MiB more."""
+    if not Path("/proc/self/status").exists():
+        pytest.skip("needs Linux's /proc/self/status as the oracle")
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run([sys.executable, "-c", PEAK_PROBE], env=dict(os.environ, PYTHONPATH=str(root)),
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    probe = json.loads(result.stdout.strip().splitlines()[-1])
+    (before, before_oracle), (after, after_oracle) = probe["before"], probe["after"]
+    # getrusage also counts the process image before exec, here a fork of this test process, so
+    # before the block it may read more than VmHWM; once the new peak is the process's own, they agree
+    assert before >= 0.98 * before_oracle
+    assert after_oracle >= before_oracle + 250
+    assert after == pytest.approx(after_oracle, rel=0.02)
+    assert probe["keys"] == ["peak_rss_mib"]  # no GPU figure for a CPU device

@@ -4,6 +4,7 @@ Layer 4 (system support): imports ``render`` only; used by ``slam``, ``parallel`
 """
 
 import ctypes
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,28 @@ def compute_environment(device: torch.device) -> dict:
     if device.type == "cuda":
         environment["gpu"] = torch.cuda.get_device_name(device)
     return environment
+
+
+def peak_memory(device: torch.device) -> dict:
+    """The process's peak memory so far, in MiB, for ``metrics.json``.
+
+    ``peak_rss_mib``: the peak resident set size as the OS reports it (``getrusage``; absent
+    where the ``resource`` module is, as on Windows; on Linux it also covers the process image
+    before ``exec``, which matters only for a process forked from a large one); with ``--resume``
+    it covers the resumed process only.  ``peak_gpu_allocated_mib`` on CUDA: the peak of PyTorch's allocator on
+    ``device`` (tensors only, not the CUDA context).
+    """
+    peaks = {}
+    try:
+        import resource
+    except ImportError:
+        resource = None
+    if resource is not None:
+        max_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        peaks["peak_rss_mib"] = max_rss / 2**20 if sys.platform == "darwin" else max_rss / 1024  # bytes / KiB
+    if device.type == "cuda":
+        peaks["peak_gpu_allocated_mib"] = torch.cuda.max_memory_allocated(device) / 2**20
+    return peaks
 
 
 def tune_cpu_allocator() -> bool:

@@ -10,9 +10,9 @@ Outputs in ``--out`` (default ``runs/<sequence>-<method>``):
   one line per input frame at the frame's own timestamp;
 * ``metrics.json`` - ate_rmse_m, rpe_trans_rmse_m, rpe_rot_rmse_deg, n_matched (when ground truth is
   known), frames, frames_per_second, the runtime table, the reconstruction metrics when a
-  ground-truth mesh is next to the data (``gt_mesh.ply``, written by the synthetic generator), and
+  ground-truth mesh is next to the data (``gt_mesh.ply``, written by the synthetic generator),
   ``environment`` (:func:`tsslam_ref.device.compute_environment`: what besides the seed fixes the
-  numbers);
+  numbers) and the peak memory (``peak_rss_mib``; ``peak_gpu_allocated_mib`` on CUDA);
 * ``mesh.ply`` - the final map's mesh (marching cubes at ``mesh.voxel_final``);
 * ``config.json`` - the resolved config; ``trajectory.png`` and ``errors.png`` - plots;
 * ``checkpoint.pt`` - the whole state every ``--checkpoint-every`` frames (``--resume`` continues);

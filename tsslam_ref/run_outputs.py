@@ -1,8 +1,8 @@
 """What a finished (or running) command-line run writes: trajectory, metrics, mesh, plots.
 
 Layer 4 (system support).  :func:`write_outputs` writes ``trajectory.txt``, ``metrics.json``
-(ATE / RPE against the ground truth, the runtime table, and the reconstruction metrics after
-Co-SLAM-style culling when a ground-truth mesh is known), ``mesh.ply``, the continuous export and
+(ATE / RPE against the ground truth, the runtime table, the peak memory, and the
+reconstruction metrics after Co-SLAM-style culling when a ground-truth mesh is known), ``mesh.ply``, the continuous export and
 the plots of a finished run; :func:`write_partial_trajectory` writes the trajectory so far while
 the run goes.  Every file is written atomically (``files.py``).  ``run.py`` prepares the run and
 calls these.
@@ -15,7 +15,7 @@ import numpy as np
 
 from . import data as data_module
 from . import eval as eval_module
-from .device import compute_environment
+from .device import compute_environment, peak_memory
 from .files import atomic_path, atomic_write_text
 
 
@@ -124,13 +124,15 @@ def write_outputs(plan, result) -> None:
             metrics.update(reconstruction_metrics(mesh, plan.gt_mesh, sequence, cfg.seed))
     if args.export_rate is not None:
         export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
+    metrics.update(peak_memory(plan.device))  # after the mesh: the run's and the mesh's peak
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
     checkpoint_path = out / "checkpoint.pt"
     if checkpoint_path.exists() and not args.checkpoint_every:
         checkpoint_path.unlink()
     summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
-    print(f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s; {summary}; outputs in {out}")
+    memory = f"; peak RSS {metrics['peak_rss_mib']:.0f} MiB" if "peak_rss_mib" in metrics else ""
+    print(f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s; {summary}{memory}; outputs in {out}")
 
 
 def _jsonable(value):
