@@ -43,10 +43,10 @@ def peak_memory(device: torch.device) -> dict:
     """The process's peak memory so far, in MiB, for ``metrics.json``.
 
     ``peak_rss_mib``: the peak resident set size as the OS reports it (``getrusage``; absent
-    where the ``resource`` module is, as on Windows; on Linux it also covers the process image
-    before ``exec``, which matters only for a process forked from a large one); with ``--resume``
-    it covers the resumed process only.  ``peak_gpu_allocated_mib`` on CUDA: the peak of PyTorch's allocator on
-    ``device`` (tensors only, not the CUDA context).
+    where there is no ``resource`` module, as on Windows; on Linux it also covers the process
+    image before ``exec``, which matters only for a process forked from a large one); with
+    ``--resume`` it covers the resumed process only.  ``peak_gpu_allocated_mib`` on CUDA: the
+    peak of PyTorch's allocator on ``device`` (tensors only, not the CUDA context).
     """
     peaks = {}
     try:
