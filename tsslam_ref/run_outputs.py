@@ -1,11 +1,11 @@
 """What a finished (or running) command-line run writes: trajectory, metrics, mesh, plots.
 
-Layer 4 (system support).  :func:`write_outputs` writes ``trajectory.txt``, ``metrics.json``
-(ATE / RPE against the ground truth, the runtime table, the peak memory, and the reconstruction
-metrics after Co-SLAM-style culling when a ground-truth mesh is known), ``mesh.ply``, the
-continuous export and the plots of a finished run; :func:`write_partial_trajectory` writes the trajectory so far while
-the run goes.  Every file is written atomically (``files.py``).  ``run.py`` prepares the run and
-calls these.
+Layer 4 (system support).  :func:`write_outputs` writes ``trajectory.txt``, ``metrics.json`` (ATE /
+RPE against the ground truth, the runtime table, the peak memory, and the reconstruction metrics
+after Co-SLAM-style culling when a ground-truth mesh is known), ``mesh.ply``, the continuous export
+and the plots of a finished run; :func:`write_partial_trajectory` writes the trajectory so far
+while the run goes.  Every file is written atomically (``files.py``).  ``run.py`` prepares the run
+and calls these.
 """
 
 import json
