@@ -14,7 +14,6 @@ Usage: python benchmarks/bench_field.py [--repeats 10] [--rays 256 1024 4096] [-
 """
 
 import argparse
-import resource
 import statistics
 import time
 
@@ -23,7 +22,7 @@ import torch
 from tsslam_ref import config, hash_kernel
 from tsslam_ref.field import SceneField
 from tsslam_ref.mapping import make_map_optimizer
-from tsslam_ref.device import tune_cpu_allocator
+from tsslam_ref.device import peak_memory, tune_cpu_allocator
 
 BOX = [[-3.5, 3.0], [-3.0, 3.0], [-3.0, 3.0]]  # TUM fr1_desk (Co-SLAM), 6.5 m
 
@@ -53,12 +52,12 @@ def time_iterations(field, optimizer, points, repeats, device):
 
 def peak_memory_mb(field, optimizer, points, device):
     """Peak MiB: CUDA allocator peak of one iteration, or on CPU the process max RSS so far
-    (resource.getrusage; tracemalloc does not see torch's CPU allocations)."""
+    (``device.peak_memory``; tracemalloc does not see torch's CPU allocations)."""
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
         time_iterations(field, optimizer, points, 1, device)
         return torch.cuda.max_memory_allocated(device) / 2**20
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB -> MiB (Linux)
+    return peak_memory(device)["peak_rss_mib"]
 
 
 def main(argv=None):

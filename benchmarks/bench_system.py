@@ -44,7 +44,6 @@ Every number comes from runs made by this script; nothing is hard-coded.
 import argparse
 import json
 import os
-import resource
 import time
 from pathlib import Path
 from typing import Dict, List
@@ -53,7 +52,7 @@ import numpy as np
 import torch
 
 from tsslam_ref import config, data, parallel, slam, spline_fit
-from tsslam_ref.device import compute_environment, tune_cpu_allocator
+from tsslam_ref.device import compute_environment, peak_memory, tune_cpu_allocator
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
 from tsslam_ref.run_outputs import ground_truth_known
 
@@ -140,6 +139,11 @@ def print_ratios(results: Dict[str, Dict]) -> None:
             note = " (paper: RPE -78.5 % on TUM, -40.5 % on ScanNet)" if name == "TS-SLAM" else ""
             print(f"{name} / baseline: ATE x{mean['ate_cm'] / baseline['ate_cm']:.2f}, "
                   f"RPE x{mean['rpe_cm'] / baseline['rpe_cm']:.2f}{note}")
+
+
+def write_rows(path: str, settings: Dict, results: Dict, **extra) -> None:
+    """The ``--json`` file: ``settings``, ``results`` and ``extra`` (the peak RSS at the end), atomically."""
+    atomic_write_text(Path(path), json.dumps({"settings": settings, "results": results, **extra}, indent=2))
 
 
 SAME_RUN_KEYS = ("preset", "sequence", "frames", "frame_range", "seeds", "ablation_seeds")
@@ -310,7 +314,7 @@ def main() -> None:
                 control = [row.get("spline_fit", row) for row in rows]
                 results[CONTROL] = {"rows": control, "mean": mean_rows(control)}
             if args.json:  # after every run, so that an interrupted benchmark keeps what it measured
-                atomic_write_text(Path(args.json), json.dumps({"settings": settings, "results": results}, indent=2))
+                write_rows(args.json, settings, results)
 
     print("\n| method | ATE RMSE (cm) | RPE RMSE (cm) | RPE (deg) | runs |")
     print("|---|---|---|---|---|")
@@ -330,11 +334,10 @@ def main() -> None:
         if good:
             line = runtime_line(name, good[0]["runtime"])
             print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")
-    peak_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak_rss_mib = peak_memory(torch.device("cpu"))["peak_rss_mib"]
     print(f"\npeak RSS of this process (all runs above): {peak_rss_mib:.0f} MiB")
     if args.json:
-        atomic_write_text(Path(args.json), json.dumps({"settings": settings, "results": results,
-                                                       "peak_rss_mib": peak_rss_mib}, indent=2))
+        write_rows(args.json, settings, results, peak_rss_mib=peak_rss_mib)
     if stored is not None:
         print(f"\nagainst {args.against} (its --set {stored['settings'].get('overrides')}, this run's {args.overrides}):")
         print("\n".join(comparison_lines(results, stored, environment, peak_rss_mib)))
