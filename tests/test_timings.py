@@ -37,18 +37,14 @@ def test_stage_counts_calls_iterations_and_time_and_skips_a_failed_body():
 
 PEAK_PROBE = """
 import json, sys
-from pathlib import Path
 import numpy as np
 import torch
 from tsslam_ref.device import peak_memory
+from test_timings import _high_water_mib
 
-def high_water_mib():
-    line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith("VmHWM:"))
-    return int(line.split()[1]) / 1024  # kB
-
-before = (peak_memory(torch.device("cpu"))["peak_rss_mib"], high_water_mib())
+before = (peak_memory(torch.device("cpu"))["peak_rss_mib"], _high_water_mib())
 block = np.ones(256 * 2**17)  # 256 MiB of float64, every page touched
-after = (peak_memory(torch.device("cpu"))["peak_rss_mib"], high_water_mib())
+after = (peak_memory(torch.device("cpu"))["peak_rss_mib"], _high_water_mib())
 print(json.dumps({"before": before, "after": after, "keys": sorted(peak_memory(torch.device("cpu")))}))
 """
 
@@ -69,7 +65,8 @@ def test_peak_memory_matches_the_kernels_high_water_mark_and_sees_a_new_peak():
     if not Path("/proc/self/status").exists():
         pytest.skip("needs Linux's /proc/self/status as the oracle")
     root = Path(__file__).resolve().parents[1]
-    result = subprocess.run([sys.executable, "-c", PEAK_PROBE], env=dict(os.environ, PYTHONPATH=str(root)),
+    search_path = os.pathsep.join([str(root), str(root / "tests")])  # the package and this file's reader
+    result = subprocess.run([sys.executable, "-c", PEAK_PROBE], env=dict(os.environ, PYTHONPATH=search_path),
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     parent = _high_water_mib()
