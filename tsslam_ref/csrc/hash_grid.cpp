@@ -23,8 +23,9 @@
 // Features and their gradients are point-major, (N, L, F), the layout of the MLP's input (N, L F),
 // so no copy stands between the kernel and the MLP either way; the loops over points run level by
 // level inside blocks of points, whose rows of features stay in cache meanwhile.  The table
-// gradient, which runs one level at a time over all points, first copies the gradient to
-// level-major (L, N, F) so that each level reads contiguous memory.
+// gradient, which runs one level at a time over all points, reads its level's F values of each
+// point's row in place (a constant stride the prefetcher follows; copying the gradient to
+// level-major (L, N, F) first cost more than the strided reads: 8.1 -> 6.8 ms at 44032 points).
 //
 // Speed without changing a bit: each point-and-level branches once between the dense and the hashed
 // index (not once per corner), and F = 2 (Co-SLAM's features per level) has its own unrolled
@@ -320,7 +321,7 @@ inline void point_gradient_term(const Cell<scalar_t>& cell, const scalar_t* tabl
   term[2] = gz * scale;
 }
 
-// The table gradient from level-major (L, N, F) gradients, levels split among threads in an
+// The table gradient from point-major (N, L, F) gradients, levels split among threads in an
 // interleaved order (dense, cache-friendly levels and hashed ones mixed), each level summed by one
 // thread in point order.  With point_terms (L, N, 3) it also writes each level's term of the point
 // gradient there, from the same located cell: the caller sums them over levels in order
@@ -341,7 +342,7 @@ void table_gradient_by_level(const scalar_t* point_data, const scalar_t* table_d
       const scalar_t scale = static_cast<scalar_t>(level.scale);
       for (int64_t n = 0; n < n_points; ++n) {
         locate(point_data + 3 * n, level, cell);
-        const scalar_t* grad = grad_data + (l * n_points + n) * n_features;
+        const scalar_t* grad = grad_data + (n * n_levels + l) * n_features;
         add_table_gradient(cell, grad, n_features, grad_table_data);
         if (point_terms != nullptr) {
           point_gradient_term(cell, table_data, grad, n_features, scale, point_terms + (l * n_points + n) * 3);
@@ -351,16 +352,13 @@ void table_gradient_by_level(const scalar_t* point_data, const scalar_t* table_d
   });
 }
 
-// Level-major copy (L, N, F) of point-major (N, L, F) gradients, for the level-by-level table pass.
-at::Tensor level_major(const at::Tensor& grad_features) { return grad_features.transpose(0, 1).contiguous(); }
-
 // d loss / d table, (T, F), from (N, L, F) output gradients.
 at::Tensor hash_grid_backward_table(const at::Tensor& grad_features_in, const at::Tensor& points_in,
                                     const at::Tensor& table, const at::Tensor& scales, const at::Tensor& resolutions,
                                     const at::Tensor& sizes, const at::Tensor& offsets, int64_t n_dense) {
   const BackwardInputs in = backward_inputs(grad_features_in, points_in, table, scales, resolutions, sizes, offsets,
                                             n_dense);
-  const at::Tensor grad_features = level_major(in.grad_features);
+  const at::Tensor& grad_features = in.grad_features;
   const at::Tensor& points = in.points;
   const std::vector<Level>& levels = in.levels;
   const int64_t n_points = in.n_points, n_features = in.n_features;
@@ -417,7 +415,7 @@ std::vector<at::Tensor> hash_grid_backward(const at::Tensor& grad_features_in, c
                                            const at::Tensor& offsets, int64_t n_dense) {
   const BackwardInputs in = backward_inputs(grad_features_in, points_in, table_in, scales, resolutions, sizes,
                                             offsets, n_dense);
-  const at::Tensor grad_features = level_major(in.grad_features);
+  const at::Tensor& grad_features = in.grad_features;
   const at::Tensor &points = in.points, &table = in.table;
   const std::vector<Level>& levels = in.levels;
   const int64_t n_points = in.n_points, n_features = in.n_features, n_levels = in.n_levels;
