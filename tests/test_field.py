@@ -346,6 +346,44 @@ def test_field_gradients_do_not_depend_on_the_compiled_oneblob(compiled_kernel):
     assert results[0][2].abs().max() > 0
 
 
+def _plain_field_forward(field, points):
+    """The field as ``nn.Linear`` on the joined inputs, autograd's own gradients (the oracle)."""
+    points_unit = field.normalize(points)
+    oneblob, grid_features = field.oneblob(points_unit), field.grid(points_unit)
+    geometry = field.geometry_mlp(torch.cat([grid_features, oneblob], dim=-1))
+    rgb = torch.sigmoid(field.color_mlp(torch.cat([oneblob, geometry[:, 1:]], dim=-1)))
+    return rgb, geometry[:, 0]
+
+
+@pytest.mark.parametrize("n_points", [22016, 37])
+@pytest.mark.parametrize("optimised", ["map", "points", "both"])
+def test_first_layers_skip_only_unneeded_gradients(n_points, optimised):
+    """The MLPs' first layers compute the input gradient only for the parts that need one; outputs
+    and every gradient (table, weights, points) equal autograd's on ``nn.Linear`` of the joined
+    inputs, for the map alone (mapping), the points alone (tracking) and both (BA).  Bit for bit
+    under MKL (each output column of a product is its own sum there); to rounding otherwise."""
+    cfg = config.load("tum-cpu")
+    bound = [[-3.5, 3.0], [-3.0, 3.0], [-3.0, 3.0]]
+    results = []
+    for forward in (_plain_field_forward, lambda field, x: field(x)):
+        field = SceneField(cfg.field, bound, generator=torch.Generator().manual_seed(0))
+        if optimised == "points":
+            field.requires_grad_(False)
+        points = torch.rand(n_points, 3, generator=torch.Generator().manual_seed(1)) * 6.0 - 3.0
+        points.requires_grad_(optimised != "map")
+        rgb, sdf = forward(field, points)
+        (rgb.square().mean() + (0.3 * sdf).sin().mean()).backward()
+        gradients = [points.grad] + [parameter.grad for parameter in field.parameters()]
+        assert [g is None for g in gradients] == [optimised == "map"] + [optimised == "points"] * 5  # table, 4 weights
+        results.append([rgb, sdf] + [g for g in gradients if g is not None])
+    for oracle, ours in zip(*results):
+        assert oracle.abs().max() > 0
+        if torch.backends.mkl.is_available():
+            assert torch.equal(oracle, ours)
+        else:
+            assert torch.allclose(oracle, ours, rtol=1e-5, atol=1e-12)
+
+
 def test_integer_bound_is_stored_as_float_and_bad_bound_rejected():
     cfg = config.tiny()
     field = SceneField(cfg.field, [[0, 2], [0, 2], [0, 2]])

@@ -390,6 +390,44 @@ def finest_resolution(bound: torch.Tensor, voxel_sdf: float) -> int:
 # The field
 
 
+class _LinearOnParts(torch.autograd.Function):
+    """y (N, H) = cat(parts, dim=1) (N, D) @ W.T for W (H, D): an MLP's first layer on its joined
+    inputs, with the input gradient computed only for the parts that need one.
+
+    The forward and both gradients are the products autograd computes for ``nn.Linear`` on the
+    joined input (``mm``; weight gradient ``grad.t() @ inputs``, input gradient ``grad @ W``), so
+    they are equal bit for bit as long as the BLAS computes each output column on its own (MKL
+    does: tests/test_field.py).  What it saves is the product for the parts nobody differentiates:
+    when the map alone is optimised the OneBlob codes need no gradient, which is 48 of the
+    geometry MLP's 80 inputs and 48 of the colour MLP's 63, and the gradients it returns are
+    contiguous, so the kernels' backward passes need no copy of a strided slice."""
+
+    @staticmethod
+    def forward(ctx, weight, *parts):
+        inputs = torch.cat(parts, dim=-1)
+        ctx.save_for_backward(weight, inputs)
+        ctx.widths = [part.shape[-1] for part in parts]
+        return inputs.mm(weight.t())
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_output):
+        weight, inputs = ctx.saved_tensors
+        grad_weight = grad_output.t().mm(inputs) if ctx.needs_input_grad[0] else None
+        grad_parts, start = [], 0
+        for needed, width in zip(ctx.needs_input_grad[1:], ctx.widths):
+            grad_parts.append(grad_output.mm(weight[:, start:start + width]) if needed else None)
+            start += width
+        return (grad_weight, *grad_parts)
+
+
+def _mlp_on_parts(mlp: nn.Sequential, parts) -> torch.Tensor:
+    """``mlp(torch.cat(parts, dim=1))`` for the bias-free Linear -> ReLU -> Linear below, the
+    first layer as :class:`_LinearOnParts`.  parts: tensors (N, D_i) -> (N, out_dim)."""
+    hidden = _LinearOnParts.apply(mlp[0].weight, *parts)
+    return mlp[2](mlp[1](hidden))
+
+
 def _bias_free_mlp(in_dim: int, hidden_dim: int, out_dim: int, generator) -> nn.Sequential:
     """Linear -> ReLU -> Linear without biases, PyTorch's default init drawn from ``generator``."""
     mlp = nn.Sequential(
@@ -452,13 +490,14 @@ class SceneField(nn.Module):
         points_unit = self.normalize(points)
         oneblob = self.oneblob(points_unit)  # (N, 48)
         grid_features = self.grid(points_unit)  # (N, 32)
-        geometry = self.geometry_mlp(torch.cat([grid_features, oneblob], dim=-1))  # (N, 16)
-        return geometry[:, 0], geometry[:, 1:], oneblob
+        geometry = _mlp_on_parts(self.geometry_mlp, [grid_features, oneblob])  # (N, 16)
+        sdf, geo_feat = geometry.split([1, geometry.shape[1] - 1], dim=1)  # backward: one cat, no zeros
+        return sdf.squeeze(1), geo_feat, oneblob
 
     def forward(self, points: torch.Tensor):
         """World points (N, 3) -> (rgb (N, 3) in [0, 1], normalised sdf (N,))."""
         sdf, geo_feat, oneblob = self._geometry(points)
-        rgb = torch.sigmoid(self.color_mlp(torch.cat([oneblob, geo_feat], dim=-1)))  # (N, 3)
+        rgb = torch.sigmoid(_mlp_on_parts(self.color_mlp, [oneblob, geo_feat]))  # (N, 3)
         return rgb, sdf
 
     def sdf(self, points: torch.Tensor) -> torch.Tensor:
