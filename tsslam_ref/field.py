@@ -400,7 +400,8 @@ class _LinearOnParts(torch.autograd.Function):
     does: tests/test_field.py).  What it saves is the product for the parts nobody differentiates:
     when the map alone is optimised the OneBlob codes need no gradient, which is 48 of the
     geometry MLP's 80 inputs and 48 of the colour MLP's 63, and the gradients it returns are
-    contiguous, so the kernels' backward passes need no copy of a strided slice."""
+    contiguous, so the kernels' backward passes need no copy of a strided slice.  Differentiable
+    once, like the compiled kernels: a second derivative through the field raises an error."""
 
     @staticmethod
     def forward(ctx, weight, *parts):
