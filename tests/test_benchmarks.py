@@ -94,3 +94,45 @@ def test_the_shipped_tables_have_what_the_comparison_reads():
         for name in ("TS-SLAM", "Co-SLAM (baseline)"):
             rows = stored["results"][name]["rows"]
             assert len(rows) == 3 and all({"ate_cm", "rpe_cm", "wall_fps", "runtime"} <= set(row) for row in rows)
+
+
+def _curve_floor():
+    spec = importlib.util.spec_from_file_location("curve_floor", ROOT / "benchmarks" / "curve_floor.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_curve_floor_scores_an_exactly_representable_motion_as_exact():
+    """benchmarks/curve_floor.py on a screw motion (constant angular and linear velocity, written
+    with scipy's rotations): every cumulative spline of uniform steps holds it exactly, so each
+    layout's RPE is ~0, and the frame-to-frame rotation is the rate over the frame rate."""
+    import numpy as np
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from tsslam_ref.config import SplineConfig
+
+    curve_floor = _curve_floor()
+    fps, rate_deg, speed = 30.0, 45.0, 0.4
+    times = np.arange(60) / fps
+    truth = np.tile(np.eye(4), (60, 1, 1))
+    truth[:, :3, :3] = Rotation.from_rotvec(np.outer(np.radians(rate_deg) * times, [0.3, -0.5, 0.8])
+                                            / np.linalg.norm([0.3, -0.5, 0.8])).as_matrix()
+    truth[:, :3, 3] = np.outer(speed * times, [1.0, 0.5, -0.2])
+    assert abs(curve_floor.median_frame_rotation_deg(truth) - rate_deg / fps) < 1e-9
+    truth = torch.as_tensor(truth)
+    rows = curve_floor.curve_rows(times, truth, truth.clone(), [0.30, 0.10], SplineConfig())
+    assert [name for name, _, _ in rows] == ["uniform 0.30 s", "uniform 0.10 s", "adaptive"]
+    for _, _, rpe in rows:
+        assert rpe["rpe_rot_rmse_deg"] < 1e-4 and rpe["rpe_trans_rmse_m"] < 1e-6
+    # A 7 Hz tremor of amplitude A (deg) about one axis on top of it: far above what 0.30 s knots
+    # can follow, so the fit keeps the smooth motion and its rotational RPE is the tremor's own
+    # frame-to-frame change, RMS = A * 2 sin(pi f / fps) / sqrt(2) (0.95 A at 7 Hz, 30 Hz).
+    amplitude, frequency = 0.2, 7.0
+    tremor = Rotation.from_rotvec(np.outer(np.radians(amplitude) * np.sin(2 * np.pi * frequency * times), [1, 0, 0]))
+    trembling = truth.clone()
+    trembling[:, :3, :3] = torch.as_tensor((Rotation.from_matrix(truth[:, :3, :3].numpy()) * tremor).as_matrix())
+    expected = amplitude * 2 * np.sin(np.pi * frequency / fps) / np.sqrt(2)
+    (_, _, rpe), = curve_floor.curve_rows(times, trembling, trembling.clone(), [0.30], SplineConfig())[:1]
+    assert abs(rpe["rpe_rot_rmse_deg"] - expected) < 0.1 * expected, (rpe["rpe_rot_rmse_deg"], expected)
