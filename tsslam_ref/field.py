@@ -406,7 +406,7 @@ class _LinearOnParts(torch.autograd.Function):
     @staticmethod
     def forward(ctx, weight, *parts):
         inputs = torch.cat(parts, dim=-1)
-        ctx.save_for_backward(weight, inputs)
+        ctx.save_for_backward(weight, inputs if ctx.needs_input_grad[0] else None)  # kept for dW only
         ctx.widths = [part.shape[-1] for part in parts]
         return inputs.mm(weight.t())
 
