@@ -20,6 +20,7 @@ import torch
 
 from tsslam_ref import data, knot_policy, spline_fit, trajectory_metrics
 from tsslam_ref.config import SplineConfig
+from tsslam_ref.geometry import rotation_angle_deg
 from tsslam_ref.synthetic import resample_trajectory
 
 STRETCHES = ["tum_rgbd_fr2_desk:0", "tum_vi_room1:16", "tum_vi_room1:20", "tum_vi_room2:16"]
@@ -36,9 +37,8 @@ def parse_stretch(text: str):
 
 def median_frame_rotation_deg(poses: np.ndarray) -> float:
     """Median rotation angle (deg) between consecutive camera-to-world poses (K, 4, 4)."""
-    relative = np.linalg.inv(poses[:-1])[:, :3, :3] @ poses[1:, :3, :3]
-    cosine = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.median(np.arccos(cosine))))
+    relative = np.swapaxes(poses[:-1, :3, :3], -1, -2) @ poses[1:, :3, :3]  # R_i^T R_i+1
+    return float(np.median(rotation_angle_deg(relative)))
 
 
 def curve_rows(times: np.ndarray, truth: torch.Tensor, noisy: torch.Tensor, dts, knots: SplineConfig):
