@@ -9,7 +9,8 @@ formulas, same corner order; the values agree with the PyTorch paths to rounding
 (tests/test_field.py).
 
 Built with ``torch.utils.cpp_extension`` (a C++ compiler with OpenMP and ninja are needed, all on
-the project's machines; no ``-march=native``, so a cached build runs on any x86-64) into
+the project's machines; no ``-march=native``, so a cached build runs on any x86-64: the OneBlob
+loops carry an AVX2 copy that is chosen at run time, with the same numbers) into
 ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) the first time a process asks
 for it: about 30 s once, then a cached load.  Where the build fails
 the field falls back to the PyTorch fast path with one warning (:func:`available`).  CPU only: a
@@ -148,24 +149,34 @@ class _OneBlob(torch.autograd.Function):
     round as the PyTorch path and its autograd gradient do (``csrc/oneblob.cpp``): equal bit for bit."""
 
     @staticmethod
-    def forward(points_unit, n_bins):
-        return torch.ops.tsslam_hash_grid.oneblob_forward(points_unit, n_bins)
+    def forward(points_unit, n_bins, allow_avx2):
+        return torch.ops.tsslam_hash_grid.oneblob_forward(points_unit, n_bins, allow_avx2)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        points_unit, n_bins = inputs
+        points_unit, n_bins, allow_avx2 = inputs
         ctx.save_for_backward(points_unit)
-        ctx.n_bins = n_bins
+        ctx.n_bins, ctx.allow_avx2 = n_bins, allow_avx2
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_codes):
         (points_unit,) = ctx.saved_tensors
         if not ctx.needs_input_grad[0]:
-            return None, None
-        return torch.ops.tsslam_hash_grid.oneblob_backward(grad_codes.contiguous(), points_unit, ctx.n_bins), None
+            return None, None, None
+        grad_points = torch.ops.tsslam_hash_grid.oneblob_backward(grad_codes.contiguous(), points_unit, ctx.n_bins,
+                                                                  ctx.allow_avx2)
+        return grad_points, None, None
 
 
-def oneblob_encode(points_unit: torch.Tensor, n_bins: int) -> torch.Tensor:
-    """(N, 3) box-unit points -> (N, 3 n_bins) OneBlob codes, dim-major (CPU, compiled)."""
-    return _OneBlob.apply(points_unit, int(n_bins))
+def oneblob_encode(points_unit: torch.Tensor, n_bins: int, allow_avx2: bool = True) -> torch.Tensor:
+    """(N, 3) box-unit points -> (N, 3 n_bins) OneBlob codes, dim-major (CPU, compiled).
+
+    ``allow_avx2=False`` runs the portable loops even where the AVX2 copy would (the same numbers;
+    :func:`oneblob_uses_avx2` says which copy the default runs)."""
+    return _OneBlob.apply(points_unit, int(n_bins), bool(allow_avx2))
+
+
+def oneblob_uses_avx2() -> bool:
+    """Whether the compiled OneBlob runs its AVX2 copy (16 bins, an x86-64 processor with AVX2)."""
+    return bool(torch.ops.tsslam_hash_grid.oneblob_uses_avx2())
