@@ -169,9 +169,8 @@ TSSLAM_ALWAYS_INLINE void coordinate_edge_terms(scalar_t x, const scalar_t* grad
 
 // Points [begin, end): codes (N, 3 n) or edge terms (N, 3, n + 1).
 template <typename scalar_t, int kBins>
-TSSLAM_ALWAYS_INLINE void encode_points(const scalar_t* points, int64_t begin, int64_t end,
-                                                         int64_t n_bins, const Constants<scalar_t>& k,
-                                                         scalar_t* codes) {
+TSSLAM_ALWAYS_INLINE void encode_points(const scalar_t* points, int64_t begin, int64_t end, int64_t n_bins,
+                                        const Constants<scalar_t>& k, scalar_t* codes) {
   Scratch<scalar_t, kBins> scratch(n_bins);
   for (int64_t p = begin; p < end; ++p) {
     for (int axis = 0; axis < 3; ++axis) {
@@ -181,9 +180,9 @@ TSSLAM_ALWAYS_INLINE void encode_points(const scalar_t* points, int64_t begin, i
 }
 
 template <typename scalar_t, int kBins>
-TSSLAM_ALWAYS_INLINE void edge_terms_of_points(const scalar_t* points, const scalar_t* grad_codes,
-                                                                int64_t begin, int64_t end, int64_t n_bins,
-                                                                const Constants<scalar_t>& k, scalar_t* terms) {
+TSSLAM_ALWAYS_INLINE void edge_terms_of_points(const scalar_t* points, const scalar_t* grad_codes, int64_t begin,
+                                               int64_t end, int64_t n_bins, const Constants<scalar_t>& k,
+                                               scalar_t* terms) {
   Scratch<scalar_t, kBins> scratch(n_bins);
   for (int64_t p = begin; p < end; ++p) {
     for (int axis = 0; axis < 3; ++axis) {
