@@ -73,7 +73,10 @@ def main(argv=None):
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
     print(f"torch {torch.__version__}, {args.threads} threads, float32, box 6.5 m, medians of {args.repeats}, "
           f"glibc allocator tuned: {allocator}")
-    print(f"compiled CPU kernel: {'yes' if hash_kernel.available() else 'no (' + str(hash_kernel.load_error()) + ')'}")
+    if hash_kernel.available():
+        print(f"compiled CPU kernel: yes (OneBlob's AVX2 copy: {'yes' if hash_kernel.oneblob_uses_avx2() else 'no'})")
+    else:
+        print(f"compiled CPU kernel: no ({hash_kernel.load_error()})")
     print(f"{'device':6} {'preset':14} {'log2T':>5} {'samples':>7} {'rays':>5} {'default ms':>10} {'(min)':>7} "
           f"{'torch ms':>9} {'torch/def':>9} {'ref ms':>9} {'ref/def':>8} {'peak MiB':>9}")
     paths = {"default": (True, True), "torch": (True, False), "reference": (False, False)}  # fast_gather, compiled
