@@ -70,7 +70,9 @@ void check_points(const at::Tensor& points, int64_t n_bins) {
 }
 
 // floor(x), equal to std::floor for every x: for |x| < 2^62 by truncation (one less where that
-// rounded up), which needs no library call on processors without a round instruction.
+// rounded up), which needs no library call on processors without a round instruction.  The same
+// truncation as hash_grid.cpp's floor_to_integer, which returns the integer corner and needs no
+// guard (far points wrap there by design); here the floor stays a float and x is unbounded.
 template <typename scalar_t>
 TSSLAM_ALWAYS_INLINE scalar_t floor_value(scalar_t x) {
   const scalar_t limit = static_cast<scalar_t>(4611686018427387904.0);  // 2^62
