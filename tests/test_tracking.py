@@ -18,7 +18,7 @@ from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
 from tsslam_ref.render import frame_rays, sample_pixels
 from tsslam_ref.trajectory import BSplineTrajectory
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
-from tsslam_ref.losses import RenderLossSettings
+from tsslam_ref.losses import RenderLossSettings, render_loss
 from tsslam_ref.tracking import constant_velocity_init, track_frame
 
 
@@ -97,6 +97,34 @@ def test_tracking_keeps_the_pose_before_the_step_of_the_best_iteration(scene_set
     result = track_frame(field, _rays(rgb, depth, intrinsics, 128, seed=3), start, cfg.tracking,
                          RenderLossSettings.from_config(cfg))
     assert torch.allclose(result.pose, start, atol=1e-6)
+
+
+def test_tracking_equals_the_plain_loop_that_also_steps_after_the_last_iteration(scene_setup):
+    """track_frame leaves out the last backward pass and step; the oracle, a plain Co-SLAM loop that
+    runs them, keeps the same pose and losses bit for bit (the step it adds is never evaluated)."""
+    scene, intrinsics, pose, rgb, depth, cfg = scene_setup
+    field = AnalyticField(scene, cfg.render.truncation)
+    start = _perturb(torch.as_tensor(pose, dtype=torch.float32), [0.01, -0.02, 0.01], [0.02, -0.01, 0.03])
+    rays = _rays(rgb, depth, intrinsics, 256, seed=7)
+    settings = RenderLossSettings.from_config(cfg)
+    for best in (True, False):
+        cfg.tracking.iters, cfg.tracking.best = 6, best
+        result = track_frame(field, rays, start, cfg.tracking, settings, generator=torch.Generator().manual_seed(8))
+        increment = PoseIncrement(start)
+        optimizer = increment.optimizer(cfg.tracking.lr_rot, cfg.tracking.lr_trans)
+        generator, losses, kept, kept_loss = torch.Generator().manual_seed(8), [], None, float("inf")
+        for _ in range(cfg.tracking.iters):
+            current = increment()
+            loss, _ = render_loss(field, rays, current, settings, generator=generator)
+            losses.append(float(loss.detach()))
+            if not best or losses[-1] < kept_loss:
+                kept, kept_loss = current.detach().clone(), losses[-1]
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+        assert result.losses == losses
+        assert torch.equal(result.pose, kept)
+        assert not torch.equal(increment().detach(), kept)  # the oracle's extra step did move the pose
 
 
 def test_joint_optimization_moves_free_poses_only_and_accumulates(scene_setup):

@@ -9,6 +9,8 @@ follows Co-SLAM's ``tracking_render`` (its ``coslam.py``, commit 3bb904e):
 * a fresh Adam per frame with separate rotation / translation learning rates;
 * the pose of the lowest-loss iteration is kept (``best``); as in Co-SLAM the loss of iteration k
   is evaluated at the pose *before* step k, so the candidates are the poses of iterations 0..N-1.
+  The last iteration's backward pass and step would only make a pose that is never evaluated, so
+  they are left out (Co-SLAM runs them): the kept pose and every loss are the same, bit for bit.
 
 Differs from Co-SLAM: the rotation is optimised as a tangent-space increment ``delta`` with
 R = Exp(delta) R_init (no singularity at the identity, no NaN from a Rodrigues formula that divides
@@ -99,6 +101,8 @@ def track_frame(
                 break
             if not tracking.best or value < best_loss:
                 best_loss, best_pose, best_iteration = value, pose.detach().clone(), iteration
+            if iteration == tracking.iters - 1:
+                break  # a step now would make a pose that no iteration evaluates
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
