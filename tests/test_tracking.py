@@ -102,7 +102,8 @@ def test_tracking_keeps_the_pose_before_the_step_of_the_best_iteration(scene_set
 def test_tracking_equals_the_plain_loop_that_also_steps_after_the_last_iteration(scene_setup):
     """track_frame leaves out the last backward pass and step; the oracle, a plain Co-SLAM loop that
     runs them, keeps the same pose and losses bit for bit (the step it adds is never evaluated)."""
-    scene, intrinsics, pose, rgb, depth, cfg = scene_setup
+    scene, intrinsics, pose, rgb, depth, base_cfg = scene_setup
+    cfg = copy.deepcopy(base_cfg)
     field = AnalyticField(scene, cfg.render.truncation)
     start = _perturb(torch.as_tensor(pose, dtype=torch.float32), [0.01, -0.02, 0.01], [0.02, -0.01, 0.03])
     rays = _rays(rgb, depth, intrinsics, 256, seed=7)
