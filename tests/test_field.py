@@ -467,3 +467,24 @@ def test_stale_kernel_build_lock_is_named(tmp_path):
     assert message is not None and str(lock) in message and "delete" in message
     os.utime(lock, (now - 3600, now - 3600))
     assert "60 min" in hash_kernel.stale_lock_message(tmp_path, now=now)
+
+
+def test_kernel_build_name_separates_checkouts_and_source_versions(tmp_path, monkeypatch):
+    """Each checkout and each version of the kernel sources gets its own cached build folder, and
+    the same sources at the same place always the same one (no rebuild when nothing changed)."""
+    import shutil
+    from tsslam_ref import hash_kernel
+
+    name = hash_kernel.build_name()
+    assert name == hash_kernel.build_name() and name.startswith("tsslam_hash_grid_")
+    copy = tmp_path / "csrc"
+    copy.mkdir()
+    for source in (hash_kernel.SOURCE, hash_kernel.ONEBLOB_SOURCE):
+        shutil.copy(source, copy / source.name)
+    monkeypatch.setattr(hash_kernel, "SOURCE", copy / hash_kernel.SOURCE.name)
+    monkeypatch.setattr(hash_kernel, "ONEBLOB_SOURCE", copy / hash_kernel.ONEBLOB_SOURCE.name)
+    other_checkout = hash_kernel.build_name()
+    assert other_checkout != name  # same bytes, another checkout: its own folder
+    with open(copy / hash_kernel.ONEBLOB_SOURCE.name, "a") as source:
+        source.write("\n")
+    assert hash_kernel.build_name() not in (name, other_checkout)  # edited source: a new build

@@ -12,13 +12,17 @@ Built with ``torch.utils.cpp_extension`` (a C++ compiler with OpenMP and ninja a
 the project's machines; no ``-march=native``, so a cached build runs on any x86-64: the OneBlob
 loops carry an AVX2 copy that is chosen at run time, with the same numbers) into
 ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) the first time a process asks
-for it: about 30 s once, then a cached load.  Where the build fails
+for it: about 30 s once, then a cached load.  Each build has its own folder there,
+``tsslam_hash_grid_<digest>`` (:func:`build_name`: the sources, the flags, the checkout and the
+PyTorch install), so two checkouts or two virtual environments never rebuild over each other's
+kernel, and switching between them loads the build each already has.  Where the build fails
 the field falls back to the PyTorch fast path with one warning (:func:`available`).  CPU only: a
 CUDA field always uses the PyTorch path.
 
 Layer 1 (map): imports torch only.
 """
 
+import hashlib
 import os
 import threading
 import time
@@ -31,6 +35,8 @@ import torch
 SOURCE = Path(__file__).parent / "csrc" / "hash_grid.cpp"
 ONEBLOB_SOURCE = Path(__file__).parent / "csrc" / "oneblob.cpp"
 """The OneBlob encoding's kernel, built into the same extension (``field.compiled_oneblob``)."""
+CFLAGS = ["-O3", "-ffp-contract=off", "-fopenmp"]  # -fopenmp: at::parallel_for's threads; fp-contract off: no fused multiply-add
+LDFLAGS = ["-fopenmp"]
 _LOCK = threading.Lock()
 _STATE = {"loaded": None, "error": None}  # loaded: None = not tried, True / False after the try
 STALE_LOCK_SECONDS = 600.0
@@ -58,6 +64,24 @@ def load_error() -> Optional[str]:
     return _STATE["error"]
 
 
+def build_name() -> str:
+    """The extension's name and cache folder: ``tsslam_hash_grid_`` and 12 hex digits of a SHA-256
+    over the two sources' bytes, the compiler flags, the checkout's ``csrc`` path and PyTorch's
+    version and install path.
+
+    ``cpp_extension`` rebuilds a folder whenever its generated build file changes, and that file
+    names the sources' paths and PyTorch's include paths: under one fixed name, two checkouts (or
+    two virtual environments) sharing ``~/.cache/torch_extensions`` rebuilt the kernel each time
+    a process of the other one had built it, and could hold each other's build lock.  The C++
+    operators keep their namespace (``torch.ops.tsslam_hash_grid``)."""
+    digest = hashlib.sha256()
+    for source in (SOURCE, ONEBLOB_SOURCE):
+        digest.update(source.read_bytes())
+    for part in (CFLAGS, LDFLAGS, str(SOURCE.parent.resolve()), torch.__version__, str(Path(torch.__file__).parent)):
+        digest.update(repr(part).encode())
+    return "tsslam_hash_grid_" + digest.hexdigest()[:12]
+
+
 def stale_lock_message(build_directory, now: Optional[float] = None) -> Optional[str]:
     """A message naming the build lock in ``build_directory`` when it is older than
     :data:`STALE_LOCK_SECONDS` (None when there is none or it is recent).  now: time.time() default."""
@@ -76,18 +100,19 @@ def _build() -> bool:
     try:
         from torch.utils import cpp_extension
 
+        name = build_name()
         try:  # a stale lock makes cpp_extension.load wait forever without a word: say so first
-            message = stale_lock_message(cpp_extension._get_build_directory("tsslam_hash_grid", verbose=False))
+            message = stale_lock_message(cpp_extension._get_build_directory(name, verbose=False))
         except Exception:  # a private helper of torch: never let it break the build
             message = None
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
 
-        cpp_extension.load(  # -fopenmp: at::parallel_for's threads; fp-contract off: no fused multiply-add
-            name="tsslam_hash_grid",
+        cpp_extension.load(
+            name=name,
             sources=[str(SOURCE), str(ONEBLOB_SOURCE)],
-            extra_cflags=["-O3", "-ffp-contract=off", "-fopenmp"],
-            extra_ldflags=["-fopenmp"],
+            extra_cflags=CFLAGS,
+            extra_ldflags=LDFLAGS,
             is_python_module=False,
             verbose=False,
         )
