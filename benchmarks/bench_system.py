@@ -11,8 +11,9 @@ Prints, in the form of the paper's tables:
   the paper's schedule without our map update between intervals (``mapping.tsslam_map_every=0``)
   and a dt sweep (paper Table V);
 * with ``--adaptive``: TS-SLAM with knots placed by the motion (``spline.knots=adaptive``, ours,
-  beyond the paper) on the same seeds as the main rows; ``--skip baseline tsslam`` leaves out rows
-  already measured;
+  beyond the paper) on the same seeds as the main rows, and its wall-clock frames per second
+  against uniform TS-SLAM's of the same run; ``--skip baseline tsslam`` leaves out rows already
+  measured;
 * a control row that is not a SLAM method: the spline of the preset's dt fitted offline to the
   baseline's final trajectory (:func:`tsslam_ref.spline_fit.fit_trajectory`).  It asks whether the
   spline helps because TS-SLAM learns it with the map, or only because it smooths.
@@ -139,6 +140,17 @@ def print_ratios(results: Dict[str, Dict]) -> None:
             note = " (paper: RPE -78.5 % on TUM, -40.5 % on ScanNet)" if name == "TS-SLAM" else ""
             print(f"{name} / baseline: ATE x{mean['ate_cm'] / baseline['ate_cm']:.2f}, "
                   f"RPE x{mean['rpe_cm'] / baseline['rpe_cm']:.2f}{note}")
+
+
+def adaptive_speed_line(results: Dict[str, Dict]) -> str:
+    """The adaptive-knots row's frames per second against uniform TS-SLAM's of the same run
+    (wall clock, means over seeds), or "" when either row is missing or failed."""
+    rows = [results.get(name, {}).get("mean", {}) for name in (ADAPTIVE, "TS-SLAM")]
+    if any("wall_fps" not in row for row in rows):
+        return ""
+    adaptive, uniform = rows
+    return (f"{ADAPTIVE} / TS-SLAM: frames/s x{adaptive['wall_fps'] / uniform['wall_fps']:.2f} "
+            f"({adaptive['wall_fps']:.2f} against {uniform['wall_fps']:.2f}; runs of one process, one after another)")
 
 
 def write_rows(path: str, settings: Dict, results: Dict, **extra) -> None:
@@ -334,6 +346,8 @@ def main() -> None:
         if good:
             line = runtime_line(name, good[0]["runtime"])
             print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")
+    if adaptive_speed_line(results):
+        print(adaptive_speed_line(results))
     peak_rss_mib = peak_memory(torch.device("cpu"))["peak_rss_mib"]
     print(f"\npeak RSS of this process (all runs above): {peak_rss_mib:.0f} MiB")
     if args.json:

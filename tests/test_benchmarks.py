@@ -40,6 +40,15 @@ def test_spread_verdicts_against_the_stored_seeds():
     assert bench.spread_verdict([_row(5.0, 0.40)] * 3, stored, "rpe_cm") == "inside"  # the range's ends count
 
 
+def test_adaptive_speed_line_divides_the_two_rows_of_one_run():
+    bench = _bench_system()
+    results = {"TS-SLAM": {"mean": {"wall_fps": 0.80}}, bench.ADAPTIVE: {"mean": {"wall_fps": 0.60}}}
+    line = bench.adaptive_speed_line(results)
+    assert line.startswith(f"{bench.ADAPTIVE} / TS-SLAM: frames/s x0.75 ") and "0.60 against 0.80" in line
+    assert bench.adaptive_speed_line({"TS-SLAM": results["TS-SLAM"]}) == ""  # no adaptive row
+    assert bench.adaptive_speed_line(dict(results, **{"TS-SLAM": {"mean": {"failed": "x"}}})) == ""
+
+
 def test_comparison_table_rows_rss_and_environment():
     bench = _bench_system()
     environment = {"torch": "2.13.0+cpu", "device": "cpu", "cpu_capability": "AVX2", "threads": 2}
