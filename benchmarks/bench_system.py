@@ -346,8 +346,9 @@ def main() -> None:
         if good:
             line = runtime_line(name, good[0]["runtime"])
             print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")
-    if adaptive_speed_line(results):
-        print(adaptive_speed_line(results))
+    speed_line = adaptive_speed_line(results)
+    if speed_line:
+        print(speed_line)
     peak_rss_mib = peak_memory(torch.device("cpu"))["peak_rss_mib"]
     print(f"\npeak RSS of this process (all runs above): {peak_rss_mib:.0f} MiB")
     if args.json:
