@@ -66,7 +66,7 @@ def main(argv=None):
     parser.add_argument("--rays", type=int, nargs="+", default=[256, 1024, 4096])
     parser.add_argument("--presets", nargs="+", default=["tum-cpu", "synthetic-cpu", "tum", "synthetic"])
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--no-reference", action="store_true", help="skip the reference path")
+    parser.add_argument("--no-reference", action="store_true", help="time only the default path (skip the PyTorch fast path and the reference path)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     allocator = tune_cpu_allocator()

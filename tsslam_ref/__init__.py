@@ -12,7 +12,7 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
   writes), ``cli_args`` (command-line value parsing shared by the command lines)
 * 1 math and map: ``spline`` (the curve, Eq. 5-9), ``knots`` (its non-uniform form), ``spline_fit`` (curve approximation, Eq. 11),
   ``spline_jacobians``, ``se3_spline`` (joint SE(3) variant), ``trajectory`` (the spline
-  trajectory type), ``dynamics`` (L_DR), ``hash_kernel`` (compiled hash-grid kernel), ``field``
+  trajectory type), ``knot_policy`` (adaptive interval lengths), ``dynamics`` (L_DR), ``hash_kernel`` (compiled hash-grid kernel), ``field``
   (Eq. 1), ``render`` (Eq. 2-3)
 * 1.5 side, beside the stack (they import layers 0-1 and each other; the command line imports
   them): ``data`` and ``datasets.*`` (loaders), ``synthetic`` (procedural scenes),

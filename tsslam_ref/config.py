@@ -70,8 +70,8 @@ class FieldConfig:
     """Co-SLAM joint encoding: OneBlob + multi-resolution hash grid + two tiny MLPs (Sec. III-A)."""
 
     bound: Optional[List[List[float]]] = None
-    """Scene box [[xmin,xmax],[ymin,ymax],[zmin,zmax]] in metres; None = estimated from the first
-    frames' depth (ours; Co-SLAM needs it in every scene YAML)."""
+    """Scene box [[xmin,xmax],[ymin,ymax],[zmin,zmax]] in metres; None = estimated from frame 0's
+    depth (ours; Co-SLAM needs it in every scene YAML)."""
     bound_margin: float = ranged(1.0, ">=", 0)
     """Margin (m) added on every side when the bound is estimated from frame 0's depth (ours: later
     frames see beyond frame 0, so the margin is generous)."""

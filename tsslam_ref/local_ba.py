@@ -118,7 +118,8 @@ def constant_velocity_control_points(trajectory: BSplineTrajectory, times: np.nd
     """Four control points whose spline is the least-squares constant-velocity fit of the poses.
 
     With P_k = c + v dt (k - 1) and R_k = R_first Exp((k - 1) w dt) the paper-convention spline
-    is exactly p(t) = c + v (t - t_first), R(t) = R_first Exp(w (t - t_first)) (spline.md 3.2), so
+    is exactly p(t) = c + v (t - t_first), R(t) = R_first Exp(w (t - t_first)) (a cubic B-spline
+    reproduces a linear function of time, and equal rotation steps give a constant rate), so
     fitting the velocity v and the body rate w to the first interval's poses is a linear,
     well-conditioned problem, whereas four free points fitted to one segment's noisy poses swing
     far off (a cubic extrapolated from a fraction of a second of data).  The line starts at the

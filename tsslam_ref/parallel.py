@@ -12,7 +12,8 @@ How the two threads share the state (``slam.SLAMState``):
 * The main thread tracks frame ``i`` (``slam.track``) against a *snapshot* of the map, a copy the
   mapping thread publishes after each job that optimised the map; the map being optimised is
   never read while it changes.  Tracking may run at most ``lag`` frames ahead of mapping (Co-SLAM: ``map_every``;
-  TS-SLAM: the frames of one ``dt`` interval), then it waits.
+  TS-SLAM: the frames of one spline interval, or ``mapping.tsslam_map_every`` frames if fewer),
+  then it waits.
 * The mapping thread runs, frame after frame, what the sequential loop does after tracking
   (``slam.after_tracking``) on a *view* of the state: its own copy of the pose table and of the
   recent-frame rays.  It commits the poses of the frames it has seen, the spline, its interval
