@@ -367,6 +367,39 @@ def test_parallel_tracking_lead_is_one_interval_of_the_trajectory_being_tracked(
     assert parallel.tracking_lag(state) == 2
 
 
+def test_parallel_tracking_rereads_its_lead_while_mapping_runs(synthetic_sequence, monkeypatch):
+    """The lead is read again at every wait, not once at the start (with adaptive knots it follows
+    the interval the mapping thread has planned).  Oracle: a lead of the whole sequence until frame 5
+    is tracked, then none; from frame 6 on, each frame must wait until mapping has committed the
+    frame before it (``state.done >= i`` when it is tracked).  Mapping is slowed by a sleep so
+    that a lead read once, at the start, would run ahead of it."""
+    import time
+
+    cfg = small_config("tsslam")
+    cfg.parallel = True
+    sequence = data.load_sequence(synthetic_sequence)
+    tracked, done_when_tracked = [], {}
+    monkeypatch.setattr(parallel, "tracking_lag", lambda state: 0 if tracked and tracked[-1] >= 5 else len(sequence))
+    track, after_tracking = slam.track, slam.after_tracking
+
+    def recording_track(state, frame, **kwargs):
+        done_when_tracked[frame.index] = state.done
+        result = track(state, frame, **kwargs)
+        tracked.append(frame.index)
+        return result
+
+    def slow_after_tracking(state, frame):
+        time.sleep(0.05)
+        return after_tracking(state, frame)
+
+    monkeypatch.setattr(slam, "track", recording_track)
+    monkeypatch.setattr(slam, "after_tracking", slow_after_tracking)
+    result = parallel.run_slam_in_two_threads(sequence, cfg, device=torch.device("cpu"))
+    assert result.state.done == len(sequence) and sorted(done_when_tracked) == list(range(1, len(sequence)))
+    late = {i: done for i, done in done_when_tracked.items() if i >= 6}
+    assert all(done >= i for i, done in late.items()), late
+
+
 def test_a_non_finite_mapping_loss_ends_the_run_as_a_tracking_failure(monkeypatch):
     """bundle.joint_optimization raises FloatingPointError on a NaN loss; the loop must turn it into
     TrackingFailure (the benchmark and the command line handle that) naming the frame."""

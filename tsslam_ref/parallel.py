@@ -122,7 +122,6 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
     jobs: "queue.Queue" = queue.Queue()
     snapshot = {"field": copy.deepcopy(state.field)}
     failures = []
-    lag = tracking_lag(state)
 
     def mapping_worker() -> None:
         while True:
@@ -154,7 +153,9 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
     try:
         for i in range(state.done, len(sequence)):
             with lock:
-                progress.wait_for(lambda: failures or state.done >= i - lag)
+                # The lead is re-read at every wake-up: with adaptive knots it follows the
+                # interval being tracked, which the mapping thread plans as it goes.
+                progress.wait_for(lambda: failures or state.done >= i - tracking_lag(state))
                 if failures:
                     break
                 field_model = snapshot["field"]
