@@ -14,6 +14,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 STORED_TEDDY = ROOT / "tsslam_ref" / "assets" / "results" / "teddy_tum-cpu_3seeds.json"
 STORED_FR2 = ROOT / "tsslam_ref" / "assets" / "results" / "fr2_desk_synthetic-cpu_3seeds.json"
+STORED_FR2_ABLATIONS = ROOT / "tsslam_ref" / "assets" / "results" / "fr2_desk_synthetic-cpu_ablations_3seeds.json"
 
 
 def _bench_system():
@@ -92,17 +93,25 @@ def test_against_a_file_of_other_frames_is_refused_before_any_run(tmp_path):
 
 
 def test_the_shipped_tables_have_what_the_comparison_reads():
-    """Both shipped tables load as --against files for their own settings, with three seeds of
-    both methods, and carry no path of the machine that wrote them."""
+    """The shipped tables load as --against files for their own settings, with three seeds of
+    every row (the ablation table: the README's ten rows), and carry no path of the machine that
+    wrote them."""
     bench = _bench_system()
-    for path, preset in ((STORED_TEDDY, "tum-cpu"), (STORED_FR2, "synthetic-cpu")):
+    ablation_rows = ("w/o B-S.", "w/o DR", "w/o LBA", "+ LBA joint stage", "paper schedule",
+                     "TS-SLAM dt=0.15 s", "TS-SLAM dt=0.45 s")
+    for path, preset, extra in ((STORED_TEDDY, "tum-cpu", ()), (STORED_FR2, "synthetic-cpu", ()),
+                                (STORED_FR2_ABLATIONS, "synthetic-cpu", ablation_rows)):
         stored = json.loads(path.read_text())
         assert stored["settings"]["preset"] == preset and stored["settings"]["seeds"] == [0, 1, 2]
         assert bench.load_stored(str(path), dict(stored["settings"])) == stored
         assert not Path(stored["settings"]["data"]).is_absolute()
-        for name in ("TS-SLAM", "Co-SLAM (baseline)"):
+        assert "/work/" not in path.read_text() and "/tmp/" not in path.read_text()
+        for name in ("TS-SLAM", "Co-SLAM (baseline)") + extra:
             rows = stored["results"][name]["rows"]
             assert len(rows) == 3 and all({"ate_cm", "rpe_cm", "wall_fps", "runtime"} <= set(row) for row in rows)
+        if extra:  # the offline control is no SLAM run: accuracy only
+            rows = stored["results"]["Co-SLAM + spline fit (offline control)"]["rows"]
+            assert len(rows) == 3 and all({"ate_cm", "rpe_cm", "rpe_deg"} <= set(row) for row in rows)
 
 
 def _curve_floor():
