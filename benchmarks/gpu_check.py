@@ -26,8 +26,8 @@ CPU, which must agree exactly).
 
 Usage: python benchmarks/gpu_check.py [--frames 0:20] [--seeds 0 1 2] [--device cuda] [--threads 2] [--json FILE]
 
-tests/test_gpu_check.py checks its pieces on the CPU (the kernel comparison, the pass rule, the refusals); the
-figures are in the README's "Results".
+tests/test_gpu_check.py checks its pieces on the CPU (the kernel comparison, the pass rule, the
+refusals); the figures are in the README's "Results".
 """
 
 import argparse
