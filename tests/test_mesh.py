@@ -5,7 +5,7 @@ import pytest
 import torch
 import trimesh
 
-from tsslam_ref.mesh import extract_mesh, save_mesh
+from tsslam_ref.mesh import extract_mesh, query_grid, save_mesh
 
 CENTRE = torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64)
 RADIUS = 0.45
@@ -71,6 +71,22 @@ def test_save_mesh_is_atomic_and_refuses_to_overwrite(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["m.ply"]
     with pytest.raises(ValueError, match=".ply"):
         save_mesh(mesh, tmp_path / "m.obj")
+
+
+def test_grid_query_in_chunks_equals_the_whole_meshgrid_at_once():
+    """The grid built chunk by chunk from flat indices holds the meshgrid's points, in its order."""
+    axes = [np.linspace(-0.5, 0.9, 8), np.linspace(-0.8, 0.6, 5), np.linspace(-0.4, 1.0, 11)]
+    weights = torch.tensor([1.0, 10.0, 100.0], dtype=torch.float64)
+
+    def position_code(points):  # distinct for every grid point, and not linear in the coordinates
+        return (points * weights).sum(dim=-1) + torch.sin(7 * points[:, 0])
+
+    whole = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    expected = position_code(torch.from_numpy(whole)).float().numpy().reshape(8, 5, 11)
+    for chunk in (1, 7, 64, 440, 10_000):  # 440 points: chunks that do and do not divide it
+        values = query_grid(position_code, axes, chunk, torch.device("cpu"), torch.float64)
+        assert values.dtype == np.float32 and values.shape == (8, 5, 11)
+        np.testing.assert_array_equal(values, expected)
 
 
 def test_no_surface_raises():

@@ -53,6 +53,32 @@ def query_in_chunks(fn, points: np.ndarray, chunk: int, device, dtype) -> np.nda
     return np.concatenate(parts)
 
 
+@torch.no_grad()
+def query_grid(fn, axes, chunk: int, device, dtype) -> np.ndarray:
+    """Apply ``fn`` to every point of the grid spanned by ``axes``, ``chunk`` points at a time.
+
+    The points are those of ``np.meshgrid(*axes, indexing="ij")`` in C order, built one chunk at a
+    time from their flat indices, so the (N, 3) float64 grid is never held in memory (at the
+    0.03 m of a final TUM mesh, about 5 million points: 120 MiB, and as much again for meshgrid's
+    temporaries).
+
+    Args:
+        fn: callable (M, 3) tensor -> (M,) tensor.
+        axes: three 1-D numpy arrays, the sample coordinates per axis (lengths Nx, Ny, Nz).
+
+    Returns:
+        (Nx, Ny, Nz) float32 values.
+    """
+    shape = tuple(len(axis) for axis in axes)
+    values = np.empty(int(np.prod(shape)), dtype=np.float32)
+    for start in range(0, values.size, chunk):
+        flat = np.arange(start, min(start + chunk, values.size))
+        points = np.stack([axis[index] for axis, index in zip(axes, np.unravel_index(flat, shape))], axis=-1)
+        batch = torch.from_numpy(points).to(device=device, dtype=dtype)
+        values[start : start + len(flat)] = fn(batch).float().cpu().numpy()
+    return values.reshape(shape)
+
+
 def extract_mesh(
     field,
     bound=None,
@@ -83,8 +109,7 @@ def extract_mesh(
         raise ValueError(f"bound must be (3, 2), got {bound.shape}")
     device, dtype = _field_device_dtype(field)
     axes = _grid_axes(bound, voxel_size)
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)  # (Nx+1, Ny+1, Nz+1, 3)
-    sdf = query_in_chunks(field.sdf, grid.reshape(-1, 3), chunk, device, dtype).reshape(grid.shape[:3])
+    sdf = query_grid(field.sdf, axes, chunk, device, dtype)  # (Nx+1, Ny+1, Nz+1)
 
     near = np.abs(sdf) < sdf_cutoff  # (Nx+1, Ny+1, Nz+1) per vertex
     cell_keep = np.ones(tuple(n - 1 for n in near.shape), dtype=bool)  # (Nx, Ny, Nz) per cell
