@@ -1,7 +1,9 @@
-"""benchmarks/bench_system.py --against: a run compared with a stored table of the same runs.
+"""benchmarks/bench_system.py --against: a run compared with a stored table of the same runs; and
+benchmarks/bench_mesh.py's check that the chunked grid query gives the whole grid's mesh.
 
 The oracles are hand-made rows whose verdicts are known (equal numbers, a mean inside, below or
-above the stored seeds' range), and a real command line that must be refused before any run.
+above the stored seeds' range), a real command line that must be refused before any run, and the
+mesh of the grid held whole (the PLY bytes of both ways must be equal).
 """
 
 import importlib.util
@@ -153,3 +155,15 @@ def test_curve_floor_scores_an_exactly_representable_motion_as_exact():
     expected = amplitude * 2 * np.sin(np.pi * frequency / fps) / np.sqrt(2)
     (_, _, rpe), = curve_floor.curve_rows(times, trembling, trembling.clone(), [0.30], SplineConfig())[:1]
     assert abs(rpe["rpe_rot_rmse_deg"] - expected) < 0.1 * expected, (rpe["rpe_rot_rmse_deg"], expected)
+
+
+def test_bench_mesh_finds_the_chunked_grid_and_the_whole_grid_give_the_same_mesh():
+    """Both ways of querying the grid, each in its own process, must write the same PLY bytes
+    (the script exits 1 and says DIFFER otherwise)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_mesh.py"), "--voxel", "0.2",
+                             "--fit-iters", "2", "--repeats", "1"], env=env, capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "PLY bytes: identical in every run" in result.stdout
+    assert "chunked / whole (medians)" in result.stdout

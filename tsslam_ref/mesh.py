@@ -58,9 +58,9 @@ def query_grid(fn, axes, chunk: int, device, dtype) -> np.ndarray:
     """Apply ``fn`` to every point of the grid spanned by ``axes``, ``chunk`` points at a time.
 
     The points are those of ``np.meshgrid(*axes, indexing="ij")`` in C order, built one chunk at a
-    time from their flat indices, so the (N, 3) float64 grid is never held in memory (at the
-    0.03 m of a final TUM mesh, about 5 million points: 120 MiB, and as much again for meshgrid's
-    temporaries).
+    time from their flat indices, so the (N, 3) float64 grid is never held in memory (the bundled
+    teddy box at ``tum-cpu``'s 0.04 m has 2.2 million points: 50 MiB, and as much again for
+    meshgrid's temporaries; an 8 x 8 x 3 m room at 0.03 m has 7.3 million).
 
     Args:
         fn: callable (M, 3) tensor -> (M,) tensor.
