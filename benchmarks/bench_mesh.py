@@ -1,17 +1,17 @@
 """What the final mesh costs: memory and time of marching cubes' grid query, chunked against whole.
 
 A finished run extracts its mesh at ``mesh.voxel_final`` (0.04 m in ``tum-cpu``), which queries
-the SDF at millions of grid points.  ``mesh.extract_mesh`` builds those points one chunk at a time from their
-flat indices (``mesh.query_grid``); the baseline, measured in the same run, first builds the whole
-(N, 3) float64 grid with ``np.meshgrid`` and queries it in the same chunks (what the package did
-before).  Each variant runs ``--repeats`` times, alternating, in a child process of its own (a
+the SDF at millions of grid points.  ``mesh.extract_mesh`` builds those points one chunk at a time
+from their flat indices (``mesh.query_grid``); the baseline, measured in the same run, first builds
+the whole (N, 3) float64 grid with ``np.meshgrid`` and queries it in the same chunks (what the
+package did before).  Each variant runs ``--repeats`` times, alternating, in a child process of its own (a
 process's peak only grows), on the same field: the map fitted to frame 0 of the bundled teddy slice
 (``--fit-iters`` iterations, seed 0) with the bound estimated as the loop does.  For each it prints
 the memory the extraction adds to the process (peak RSS during it minus RSS before, sampled every
 2 ms from ``/proc/self/statm``, so Linux only) and its seconds, the ratio of the medians, and
 whether the two meshes' PLY bytes are identical; exit status 1 if they are not.
 
-Usage: python benchmarks/bench_mesh.py [--preset tum-cpu] [--voxel 0.03] [--fit-iters 20] [--repeats 2]
+Usage: python benchmarks/bench_mesh.py [--preset tum-cpu] [--voxel M] [--fit-iters 20] [--repeats 2]
 """
 
 import argparse

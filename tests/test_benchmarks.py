@@ -157,7 +157,7 @@ def test_curve_floor_scores_an_exactly_representable_motion_as_exact():
     assert abs(rpe["rpe_rot_rmse_deg"] - expected) < 0.1 * expected, (rpe["rpe_rot_rmse_deg"], expected)
 
 
-def test_bench_mesh_finds_the_chunked_grid_and_the_whole_grid_give_the_same_mesh():
+def test_bench_mesh_chunked_and_whole_grid_give_the_same_mesh():
     """Both ways of querying the grid, each in its own process, must write the same PLY bytes
     (the script exits 1 and says DIFFER otherwise)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
