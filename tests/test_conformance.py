@@ -295,3 +295,110 @@ def test_cli_bad_knot_input_exits_2_naming_the_key(tmp_path, capsys, change, wor
     assert spline_kit.main(["evaluate", str(source), "-o", str(tmp_path / "o.json")]) == 2
     err = capsys.readouterr().err
     assert all(word in err for word in words), err
+
+
+# ------------------------------------------------------------------------------------------
+# What an outside implementation meets in `check` and `evaluate`
+
+
+def _evaluated(path, tmp_path, *flags):
+    """The kit's own output for the input of a shipped vector (dict), evaluated with ``flags``."""
+    source = _input_only(path, tmp_path)
+    output = tmp_path / f"evaluated_{path.stem}.json"
+    assert spline_kit.main(["evaluate", str(source), "-o", str(output), "--force", *flags]) == 0
+    return json.loads(output.read_text())
+
+
+def _check_data(reference_path, candidate, tmp_path, capsys):
+    """(exit code, stdout + stderr) of `check` against a candidate dict."""
+    target = tmp_path / "candidate.json"
+    target.write_text(json.dumps(candidate))
+    code = spline_kit.main(["check", str(reference_path), str(target)])
+    captured = capsys.readouterr()
+    return code, captured.out + captured.err
+
+
+def test_check_of_a_candidate_with_jacobians_against_a_vector_without_them_passes_with_a_note(tmp_path, capsys):
+    path = VECTOR_DIR / "paper_dt0.25_large_rot.json"
+    code, text = _check_data(path, _evaluated(path, tmp_path, "--jacobians"), tmp_path, capsys)
+    assert code == 0 and "PASS" in text, text
+    assert "holds no Jacobians; the candidate's were not checked" in text
+    jacobian_vector = VECTOR_DIR / "jacobians_paper_dt0.25.json"  # and the reverse: a candidate without them
+    candidate = {key: value for key, value in json.loads(jacobian_vector.read_text()).items()
+                 if not key.startswith("J_")}
+    code, text = _check_data(jacobian_vector, candidate, tmp_path, capsys)
+    assert code == 0 and "holds no Jacobians (J_first" in text, text
+
+
+def test_check_fails_another_active_window_as_a_check_failure_not_bad_input(tmp_path, capsys):
+    path = VECTOR_DIR / "jacobians_paper_dt0.25.json"
+    candidate = json.loads(path.read_text())
+    candidate["J_first"][7] += 1  # an index convention one off at one time
+    code, text = _check_data(path, candidate, tmp_path, capsys)
+    assert code == 1, text
+    expected = f"J_first        FAIL: 1 time(s) with another active window; first at index 7, t = {candidate['times'][7]!r}"
+    assert expected in text, text
+
+
+def test_check_names_both_row_counts_when_a_key_is_short(tmp_path, capsys):
+    path = VECTOR_PATHS[0]
+    candidate = json.loads(path.read_text())
+    n_times = len(candidate["times"])
+    candidate["a"] = candidate["a"][:-1]
+    code, text = _check_data(path, candidate, tmp_path, capsys)
+    assert code == 2
+    assert f"key 'a' has {n_times - 1} rows but 'times' has {n_times}" in text, text
+
+
+def test_evaluate_names_the_file_key_and_index_of_a_time_outside_the_domain(tmp_path, capsys):
+    data = {"convention": "paper", "dt": 0.5, "t0": 0.0, "rotvecs": [[0, 0, 0]] * 5,
+            "translations": [[0, 0, 0]] * 5, "times": [1.0, 1.2, 5.0]}
+    source = tmp_path / "mine.json"
+    source.write_text(json.dumps(data))
+    assert spline_kit.main(["evaluate", str(source), "-o", str(tmp_path / "o.json")]) == 2
+    err = capsys.readouterr().err
+    assert f"{source}: key 'times' index 2: time 5.0 s is outside" in err, err
+
+
+def test_failure_on_non_uniform_knots_is_placed_between_its_two_knots(tmp_path, capsys):
+    path = VECTOR_DIR / "knots_uneven_tum_stamps.json"
+    candidate = json.loads(path.read_text())
+    knot_vector = candidate["knots"]
+    m = candidate["times"].index(knot_vector[9])  # a time on a knot: its segment starts there
+    candidate["p"][m][0] += 1e-3
+    code, text = _check_data(path, candidate, tmp_path, capsys)
+    assert code == 1
+    assert f"segment 7 = [knots[9], knots[10]) = [{knot_vector[9]!r}, {knot_vector[10]!r}) s, u = 0.0" in text, text
+    assert "t0 + k dt" not in text
+
+
+def test_a_candidate_time_a_few_ulps_past_the_end_is_checked_at_the_matched_reference_time(tmp_path, capsys):
+    data = {"convention": "basalt", "dt": 0.02, "t0": 0.0,
+            "rotvecs": [[0, 0, 0], [0.1, 0, 0], [0.2, 0.1, 0], [0.3, 0, 0.1], [0.2, 0.2, 0.2]],
+            "translations": [[0, 0, 0], [1, 0, 0], [1, 1, 0], [2, 1, 0], [2, 2, 1]],
+            "times": [0.0, 0.01, 0.02, 0.03, 0.04]}  # 0.04 = t_max
+    reference = conformance.evaluate_input(data, "reference")
+    candidate = dict(reference, times=[0.0, 0.01, 0.02, 0.03, 0.04 + 3.0 * np.finfo(float).eps * 0.04 * 4])
+    reference_path = tmp_path / "reference.json"
+    reference_path.write_text(json.dumps(reference))
+    code, text = _check_data(reference_path, candidate, tmp_path, capsys)
+    assert code == 0 and "PASS" in text, text
+
+
+def test_hints_do_not_blame_the_representation_for_a_time_scaling_or_a_single_bad_sample(tmp_path, capsys):
+    path = VECTOR_DIR / "paper_dt0.25_large_rot.json"
+    dt = json.loads(path.read_text())["dt"]
+    scaled = json.loads(path.read_text())
+    scaled["v"] = (np.asarray(scaled["v"]) * dt).tolist()  # v x dt: the chain rule's 1/dt missing
+    code, text = _check_data(path, scaled, tmp_path, capsys)
+    assert code == 1 and "dt^1" in text and "JOINT" not in text, text
+    one_bad = json.loads(path.read_text())
+    one_bad["p"][3][2] += 1e-3
+    code, text = _check_data(path, one_bad, tmp_path, capsys)
+    assert code == 1 and "JOINT" not in text, text
+    joint = VECTOR_DIR / "se3_paper_dt0.05_large_rot.json"  # a joint SE(3) candidate for a split vector still is named
+    split_twin = {key: value for key, value in json.loads(joint.read_text()).items() if key != "representation"}
+    split_path = tmp_path / "split_twin.json"
+    split_path.write_text(json.dumps(conformance.evaluate_input(split_twin, "split twin")))
+    code, text = _check_data(split_path, json.loads(joint.read_text()), tmp_path, capsys)
+    assert code == 1 and "JOINT SE(3) spline of the same control points" in text, text

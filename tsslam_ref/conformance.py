@@ -169,7 +169,7 @@ def _parse_control_points(data: dict, source: str, parsed: dict) -> dict:
     if steps.max() >= ROTATION_STEP_LIMIT:
         k = int(np.argmax(steps))
         raise ConformanceError(
-            f"{source}: key 'rotvecs': control points {k} and {k + 1} are {steps[k]!r} rad apart; the kit needs "
+            f"{source}: key 'rotvecs': control points {k} and {k + 1} are {float(steps[k])!r} rad apart; the kit needs "
             f"every step < pi - 1e-6 rad (at pi Log is ambiguous and two correct splines differ); insert a "
             f"control point between them")
     return parsed
@@ -198,6 +198,17 @@ def evaluate_parsed(parsed: dict, times: Optional[np.ndarray] = None) -> Dict[st
     return {key: value.detach().cpu().numpy() for key, value in zip(OUTPUT_KEYS, values)}
 
 
+def _first_outside(parsed: dict) -> str:
+    """' index m' of the first time outside the closed domain of a parsed input ('' if none is)."""
+    if parsed["knots"] is not None:
+        t_min, t_max = knots.valid_time_range(parsed["knots"])
+    else:
+        t_min, t_max = spline.valid_time_range(parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
+                                               parsed["convention"])
+    outside = np.flatnonzero(~((parsed["times"] >= t_min) & (parsed["times"] <= t_max)))
+    return f" index {int(outside[0])}" if outside.size else ""
+
+
 JACOBIAN_KEYS = ("J_R", "J_p", "J_v", "J_a", "J_omega_body", "J_omegadot_body")
 JACOBIAN_SHAPE = (4, 3, 3)
 
@@ -210,7 +221,10 @@ def evaluate_input(data: dict, source: str = "input", jacobians: bool = False) -
     domain).
     """
     parsed = parse_input(data, source)
-    outputs = evaluate_parsed(parsed)
+    try:
+        outputs = evaluate_parsed(parsed)
+    except ValueError as error:  # a time outside the domain
+        raise ConformanceError(f"{source}: key 'times'{_first_outside(parsed)}: {error}") from None
     if jacobians:
         if parsed["representation"] != "split" or parsed["knots"] is not None:
             raise ConformanceError(f"{source}: Jacobians are available for \"representation\": \"split\" with "
@@ -256,8 +270,9 @@ def match_times(ref_times: np.ndarray, cand_times: np.ndarray, candidate_name: s
     unmatched = np.flatnonzero(gap > TIME_MATCH * np.maximum(1.0, np.abs(cand_times)))
     if unmatched.size:
         m = int(unmatched[0])
-        raise ConformanceError(f"{candidate_name}: time {cand_times[m]!r} (index {m}) is not among the reference "
-                               f"times (nearest {sorted_times[nearest[m]]!r}); evaluate at the reference's times")
+        raise ConformanceError(f"{candidate_name}: time {float(cand_times[m])!r} (index {m}) is not among the "
+                               f"reference times (nearest {float(sorted_times[nearest[m]])!r}); evaluate at the "
+                               f"reference's times")
     return order[nearest]
 
 
@@ -281,8 +296,12 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
 
     Returns a report dict: ``rows`` (per quantity: quantity, error, scale, scaled, bound, ok and, at
     the worst time: index, time, segment, u, ref, cand), ``matched`` (candidate index -> reference
-    index), ``missing`` (reference times the candidate left out), ``hints`` (list of str, from
-    :func:`diagnose`), ``ok``.  Raises ConformanceError on malformed files or bad tolerances.
+    index), ``missing`` (reference times the candidate left out), ``window`` (None, or the first
+    time whose ``J_first`` differs: index, time, ref, cand), ``notes`` (list of str: Jacobians
+    not checked and why), ``knots`` (the reference's knot vector, None when uniform or unknown),
+    ``hints`` (list of str, from :func:`diagnose`), ``ok``.  Times are the reference's at the
+    matched indices (equal to the candidate's up to :data:`TIME_MATCH`).  Raises ConformanceError
+    on malformed files or bad tolerances.
     """
     check_tolerances(atol, rtol)
     ref_times = _array(reference, "times", (), reference_name)
@@ -291,29 +310,29 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
         raise ConformanceError(f"{candidate_name}: key 'times' is empty")
     index = match_times(ref_times, cand_times, candidate_name)
     missing = np.setdiff1d(np.unique(ref_times), ref_times[index])  # reference times the candidate left out
+    times = ref_times[index]  # in the reference's domain even where a candidate time is a few eps outside
     try:
         parsed = parse_input(reference, reference_name)
     except ConformanceError:
         parsed = None  # a bare output file: no segment / u, fewer hints
-    segment, u = _segment_and_u(parsed, cand_times)
+    segment, u = _segment_and_u(parsed, times)
     refs, cands, rows = {}, {}, []
     shapes = dict(OUTPUT_SHAPES)
-    if any(key in candidate for key in JACOBIAN_KEYS):  # a candidate with Jacobians is checked on them too
+    window, notes = None, []
+    cand_has, ref_has = (all(key in data for key in JACOBIAN_KEYS + ("J_first",)) for data in (candidate, reference))
+    if cand_has and ref_has:  # Jacobians are checked when both files hold them
         shapes.update({key: JACOBIAN_SHAPE for key in JACOBIAN_KEYS})
-        first_ref = _array(reference, "J_first", (), reference_name)[index]
-        first_cand = _array(candidate, "J_first", (), candidate_name)
-        if first_ref.shape == first_cand.shape and not np.array_equal(first_ref, first_cand):
-            m = int(np.flatnonzero(first_ref != first_cand)[0])
-            raise ConformanceError(f"{candidate_name}: 'J_first' at index {m} (t = {cand_times[m]!r}) is "
-                                   f"{first_cand[m]:.0f}, reference {first_ref[m]:.0f}: another active window "
-                                   f"(index convention or knot rule)")
+        window = _window_mismatch(_rows_of(reference, "J_first", (), reference_name, len(ref_times))[index],
+                                  _rows_of(candidate, "J_first", (), candidate_name, len(cand_times)), times)
+    elif cand_has:
+        notes.append(f"{reference_name} holds no Jacobians; the candidate's were not checked (the shipped "
+                     f"vector with Jacobians is jacobians_paper_dt0.25)")
+    elif ref_has:
+        notes.append(f"{candidate_name} holds no Jacobians ({', '.join(('J_first',) + JACOBIAN_KEYS)}); only the "
+                     f"pose and its derivatives were checked")
     for key, shape_tail in shapes.items():
-        ref = _array(reference, key, shape_tail, reference_name)
-        cand = _array(candidate, key, shape_tail, candidate_name)
-        if ref.shape[0] != ref_times.shape[0] or cand.shape[0] != cand_times.shape[0]:
-            name = reference_name if ref.shape[0] != ref_times.shape[0] else candidate_name
-            raise ConformanceError(f"{name}: key {key!r} has {max(ref.shape[0], cand.shape[0])} rows but 'times' "
-                                   f"has a different count")
+        ref = _rows_of(reference, key, shape_tail, reference_name, len(ref_times))
+        cand = _rows_of(candidate, key, shape_tail, candidate_name, len(cand_times))
         ref = ref[index]
         refs[key], cands[key] = ref, cand
         per_time = np.abs(cand - ref).reshape(len(cand), -1).max(axis=1)  # (M,)
@@ -322,14 +341,34 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
         bound = atol + rtol * scale
         rows.append({"quantity": key, "error": error, "scale": scale,
                      "scaled": error / scale if scale > 0 else error, "bound": bound, "ok": error <= bound,
-                     "index": worst, "time": float(cand_times[worst]),
+                     "index": worst, "time": float(times[worst]),
                      "segment": None if segment is None else int(segment[worst]),
                      "u": None if u is None else float(u[worst]),
                      "ref": ref[worst].tolist(), "cand": cand[worst].tolist(), "per_time": per_time})
-    report = {"rows": rows, "matched": index, "missing": missing, "times": cand_times,
-              "ok": all(row["ok"] for row in rows)}
+    report = {"rows": rows, "matched": index, "missing": missing, "times": times, "window": window,
+              "notes": notes, "knots": None if parsed is None else parsed["knots"],
+              "ok": window is None and all(row["ok"] for row in rows)}
     report["hints"] = [] if report["ok"] else diagnose(report, refs, cands, parsed, atol, rtol)
     return report
+
+
+def _rows_of(data: dict, key: str, shape_tail: tuple, source: str, n_times: int) -> np.ndarray:
+    """``data[key]`` as an array with one row per time; ConformanceError naming both counts."""
+    values = _array(data, key, shape_tail, source)
+    if values.shape[0] != n_times:
+        raise ConformanceError(f"{source}: key {key!r} has {values.shape[0]} rows but 'times' has {n_times}")
+    return values
+
+
+def _window_mismatch(first_ref: np.ndarray, first_cand: np.ndarray, times: np.ndarray) -> Optional[dict]:
+    """The first time whose active window (``J_first``) differs, or None: a failed check, since the
+    Jacobian blocks of different windows belong to different control points."""
+    differ = np.flatnonzero(first_ref != first_cand)
+    if not differ.size:
+        return None
+    m = int(differ[0])
+    return {"index": m, "time": float(times[m]), "ref": int(first_ref[m]), "cand": int(first_cand[m]),
+            "count": int(differ.size)}
 
 
 def _close(candidate: np.ndarray, model: np.ndarray, tolerance: float = 1e-6) -> bool:
@@ -382,8 +421,9 @@ def _float32_hint(failing: set, rows: dict) -> List[str]:
     scaled = [row["scaled"] for row in rows.values()]
     if failing and max(scaled) < 3e-5 and sum(value > 1e-9 for value in scaled) >= 4:
         return [f"all quantities differ by 1e-9..3e-5 of their scale (largest {max(scaled):.1e}): the "
-                f"candidate looks like float32 arithmetic (about 1e-7 relative); compute in float64, "
-                f"or check with --rtol 1e-5 if float32 is intended"]
+                f"candidate looks like float32 arithmetic (about 1e-7 relative), or like float64 that loses "
+                f"digits to large absolute times (knots or t0 near 1e9 s keep about 1e-7 s: form t - t0 "
+                f"before anything else); compute in float64, or check with --rtol 1e-5 if float32 is intended"]
     return []
 
 
@@ -395,12 +435,16 @@ def _representation_hint(failing: set, cands, parsed: Optional[dict], times: np.
     if parsed is not None and parsed["knots"] is None:
         swapped = dict(parsed, representation="split" if parsed["representation"] == "se3" else "se3")
         other = evaluate_parsed(swapped, times)
-    if other is not None and _close(cands["p"], other["p"]):
+    if other is not None:  # the other representation evaluated: a hint only if the candidate is it
+        if not _close(cands["p"], other["p"]):
+            return []
         return ["p equals the JOINT SE(3) spline of the same control points (PyPose pp.bspline, Sophus) "
                 "but this vector is split SO(3) x R^3" if parsed["representation"] == "split" else
                 "p equals the SPLIT SO(3) x R^3 spline but this vector is JOINT SE(3) "
                 "(\"representation\": \"se3\")"]
-    return ["only p, v, a differ while R, omega, omegadot agree: the translation is coupled "
+    if failing != {"p", "v", "a"}:
+        return []
+    return ["p, v and a differ while R, omega, omegadot agree: the translation may be coupled "
             "differently, e.g. a JOINT SE(3) spline (PyPose, Sophus) against a split one"]
 
 
@@ -480,18 +524,32 @@ def format_report(report: dict, reference_name: str = "reference", candidate_nam
             continue
         where = f"index {row['index']}, t = {row['time']!r} s"
         if row["segment"] is not None:
-            k = row["segment"]
-            where += f", segment [t_{k}, t_{k + 1}) with t_k = t0 + k dt, u = {row['u']!r}"
+            where += f", {_segment_label(row['segment'], report['knots'])}, u = {row['u']!r}"
         lines.append(f"  {row['quantity']} worst at {where}:")
         for label in ("ref", "cand"):
             value = np.asarray(row[label]).reshape(-1)  # R row by row
             lines.append(f"    {label:<4} {np.array2string(value, precision=12, separator=', ', max_line_width=400)}")
         lines.append(f"    error {row['error']:.3e} (bound {row['bound']:.3e})")
+    window = report["window"]
+    if window is not None:
+        lines.append(f"J_first        FAIL: {window['count']} time(s) with another active window; first at index "
+                     f"{window['index']}, t = {window['time']!r} s: candidate {window['cand']}, reference "
+                     f"{window['ref']} (index convention or knot rule)")
     matched, missing = len(report["times"]), report["missing"]
     if missing.size:
         shown = ", ".join(repr(float(t)) for t in missing[:3]) + (" ..." if missing.size > 3 else "")
         lines.append(f"note: {candidate_name} leaves out {missing.size} reference time(s); checked on its {matched} "
                      f"times (missing: {shown}; a half-open domain drops t_max)")
+    for note in report["notes"]:
+        lines.append(f"note: {note}")
     for hint in report["hints"]:
         lines.append(f"hint: {hint}")
     return "\n".join(lines)
+
+
+def _segment_label(segment: int, knot_vector: Optional[np.ndarray]) -> str:
+    """Where segment ``segment`` lies: uniform t_k = t0 + k dt, or its two entries of 'knots'."""
+    if knot_vector is None:
+        return f"segment [t_{segment}, t_{segment + 1}) with t_k = t0 + k dt"
+    start, end = float(knot_vector[segment + 2]), float(knot_vector[segment + 3])
+    return f"segment {segment} = [knots[{segment + 2}], knots[{segment + 3}]) = [{start!r}, {end!r}) s"
