@@ -114,6 +114,11 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--frames", "5:2"], ["--frames '5:2' selects no frames"]),
     (["--set", "spline.dt=1e6"], ["spline.dt = 1000000.0", "(0, 10]"]),
     (["--method", "coslam", "--export-rate", "5"], ["--export-rate needs --method tsslam"]),
+    (["--set", "local_ba.use_spline=false", "--export-rate", "30"],
+     ["--export-rate needs the spline", "local_ba.use_spline = false"]),
+    (["--set", "spline.knots=adaptive", "--set", "spline.dt_min=0.5", "--set", "spline.dt_max=0.2"],
+     ["spline.dt_min = 0.5 s", "spline.dt_max = 0.2 s"]),
+    (["--set", "spline.knots=adaptive", "--set", "local_ba.use_spline=false"], ["local_ba.use_spline must be true"]),
     (["--resume", "--overwrite"], ["--resume and --overwrite"]),
     (["--resume"], ["--resume given but the output folder"]),
     (["--set", "tracking.nope=1"], ["unknown key 'tracking.nope'"]),
@@ -408,3 +413,32 @@ def test_ctrl_c_resume_refusals_and_resume(runs):
     again = cli("run", "--data", "room", "--out", "stopped", *CHEAP, "--resume", cwd=root)
     assert again.returncode == 0 and "finished run" in again.stdout, again.stdout + again.stderr
     assert snapshot(stopped) == finished
+
+
+def test_resume_of_a_finished_run_without_a_checkpoint_says_it_is_finished(runs):
+    """A run made with --checkpoint-every 0 deletes its checkpoint when it finishes; --resume then
+    has nothing to continue and says so (exit 0), as for a finished run that kept one."""
+    root = runs["root"]
+    finished = root / "finished_without_checkpoint"
+    shutil.copytree(runs["planted"], finished, symlinks=True)
+    (finished / "checkpoint.pt").unlink()
+    before = snapshot(finished)
+    again = cli("run", "--data", "room", "--out", finished.name, *CHEAP, "--resume", cwd=root)
+    assert again.returncode == 0 and "finished run" in again.stdout, again.stdout + again.stderr
+    assert snapshot(finished) == before
+
+
+def test_ctrl_c_in_a_resumed_run_without_checkpoints_points_to_the_checkpoint_it_resumed_from(runs):
+    root = runs["root"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    command = ["--data", "room", "--out", "twice", *CHEAP]
+    first = subprocess.run([sys.executable, "-c", INTERRUPT_AFTER_FRAME_4, *command], cwd=root, env=env,
+                           capture_output=True, text=True, timeout=120)
+    assert first.returncode == 130, first.stderr
+    interrupt_after_frame_7 = INTERRUPT_AFTER_FRAME_4.replace("state.done == 4", "state.done == 7")
+    second = subprocess.run([sys.executable, "-c", interrupt_after_frame_7, *command, "--checkpoint-every", "0",
+                             "--resume"], cwd=root, env=env, capture_output=True, text=True, timeout=120)
+    assert second.returncode == 130, second.stderr
+    message = second.stderr.strip().splitlines()[-1]
+    assert "interrupted after frame 7" in message and "holds 4 frames" in message and "--resume" in message, message
+    assert run.load_checkpoint(root / "twice" / "checkpoint.pt").done == 4

@@ -49,16 +49,26 @@ def estimated_trajectory(state) -> torch.Tensor:
     return coslam_output_poses(state)
 
 
+def export_times(start: float, end: float, rate_hz: float) -> np.ndarray:
+    """(T,) float64 times start + i / rate_hz, i = 0, 1, ..., all < end (seconds)."""
+    count = int(np.ceil((end - start) * rate_hz)) + 1
+    times = start + np.arange(count, dtype=np.float64) / rate_hz
+    return times[times < end]
+
+
 def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     """Sample the spline at ``rate_hz`` over its domain and write one line per time, atomically.
 
+    The times are t_i = start + i / rate_hz for every i with t_i < end (the domain is half-open),
+    each computed from its index: accumulating steps, as ``np.arange`` does, drifts at the
+    magnitude of real timestamps (1e9 s) and could put the last time past the end.
     Columns: t tx ty tz qx qy qz qw vx vy vz wx wy wz, with v the world-frame linear velocity
     (m/s) and w the body-frame angular velocity (rad/s).  Replaces ``path`` atomically (``files.atomic_path``;
     the caller owns the folder).  Returns the (T, 14) float64 rows."""
     if rate_hz <= 0:
         raise ValueError(f"--export-rate must be positive, got {rate_hz}")
     start, end = state.trajectory.domain()
-    times = np.arange(start, end, 1.0 / rate_hz, dtype=np.float64)
+    times = export_times(start, end, rate_hz)
     sample = state.trajectory.evaluate(times, derivatives=1)
     poses = make_pose(sample.rotation, sample.translation).detach().cpu().double().numpy()
     rows = np.concatenate([times[:, None], pose_to_tum(poses), sample.velocity_world.detach().cpu().double().numpy(),

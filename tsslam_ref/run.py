@@ -47,6 +47,7 @@ from . import checkpoint as checkpoint_module
 from . import config as config_module
 from . import data as data_module
 from . import device as device_module
+from . import knot_schedule
 from .cli_args import OneLineParser, number_in
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
@@ -269,6 +270,10 @@ def prepare(args: argparse.Namespace) -> Plan:
     cfg = resolve_config(args)
     if args.export_rate is not None and cfg.method != "tsslam":
         raise BadInput(f"--export-rate needs --method tsslam (a continuous trajectory); the method is {cfg.method}")
+    if args.export_rate is not None and not cfg.local_ba.use_spline:
+        raise BadInput("--export-rate needs the spline (a continuous trajectory); this config has "
+                       "local_ba.use_spline = false")
+    knot_schedule.check_knot_settings(cfg)  # now, before the output folder is touched
     try:
         device = device_module.resolve_device(cfg.device)
     except RuntimeError as error:  # torch's own message for a device it does not know
@@ -287,6 +292,9 @@ def prepare(args: argparse.Namespace) -> Plan:
         plan.gt_mesh = _read_gt_mesh(gt_mesh_path)  # a broken file is named now, not after the run
     if args.resume:
         path = out / "checkpoint.pt"
+        if not path.is_file() and _finished_run(out):  # a finished run made with --checkpoint-every 0
+            plan.finished = True
+            return plan
         if not path.is_file():
             raise BadInput(f"--resume given but {path} does not exist (no checkpoint was written: the run stopped "
                            f"before its first checkpoint, or ran with --checkpoint-every 0)")
@@ -379,7 +387,7 @@ def _interrupted(plan: Plan, progress, reached: Dict[str, int]) -> int:
     """Say where an interrupted run stopped and how to continue it; returns EXIT_INTERRUPTED."""
     _close(progress)
     checkpoint_path = plan.out / "checkpoint.pt"
-    if plan.args.checkpoint_every and checkpoint_path.is_file():
+    if checkpoint_path.is_file():  # this run's, or the one it resumed from (with --checkpoint-every 0)
         where = (f"the checkpoint in {checkpoint_path} holds {reached['checkpoint']} frames; "
                  f"run the same command with --resume to continue")
     else:
