@@ -40,7 +40,7 @@ def test_a_float64_implementation_from_the_formulas_passes_every_vector_at_defau
     for path in VECTOR_PATHS:  # split and joint SE(3)
         data = load(path)
         report = conformance.compare(data, as_candidate(data, spline_formulas.evaluate(data)))
-        assert report["ok"], (path.stem, conformance.format_report(report))
+        assert report["ok"], (path.stem, spline_kit.format_report(report))
         assert max(row["scaled"] for row in report["rows"]) < 1e-12
 
 
