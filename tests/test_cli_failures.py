@@ -442,3 +442,27 @@ def test_ctrl_c_in_a_resumed_run_without_checkpoints_points_to_the_checkpoint_it
     message = second.stderr.strip().splitlines()[-1]
     assert "interrupted after frame 7" in message and "holds 4 frames" in message and "--resume" in message, message
     assert run.load_checkpoint(root / "twice" / "checkpoint.pt").done == 4
+
+
+def test_user_data_without_ground_truth_or_with_a_bad_frame_mid_run(runs):
+    """A ground-truth mesh beside data without ground-truth poses cannot be culled: the run skips
+    the reconstruction metrics (it crashed after the run). A frame that turns out unreadable mid-run
+    exits 2 and says how to go on: --overwrite, or --resume from the checkpoint."""
+    root = runs["root"]
+    with_mesh = [argument for argument in CHEAP if argument != "--no-mesh"]
+    no_gt = root / "room_no_gt"
+    shutil.copytree(root / "room", no_gt)
+    (no_gt / "groundtruth.txt").unlink()
+    assert (no_gt / "gt_mesh.ply").is_file()
+    result = cli("run", "--data", no_gt.name, "--out", "no_gt_out", *with_mesh, cwd=root)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
+    metrics = json.loads((root / "no_gt_out" / "metrics.json").read_text())
+    assert "ate_rmse_m" not in metrics and (root / "no_gt_out" / "mesh.ply").is_file()
+
+    bad_frame = root / "room_bad_frame"
+    shutil.copytree(root / "room", bad_frame)
+    listed = [line.split() for line in (bad_frame / "depth.txt").read_text().splitlines() if not line.startswith("#")]
+    depth_path = bad_frame / listed[6][1]
+    Image.fromarray(np.zeros_like(np.asarray(Image.open(depth_path)))).save(depth_path)  # frame 6: no depth at all
+    result = cli("run", "--data", bad_frame.name, "--out", "bad_frame_out", *CHEAP, cwd=root)
+    refused(result, "--overwrite", "--resume to continue from its checkpoint (6 frames done)")

@@ -429,6 +429,58 @@ def test_generic_folder_layout(tmp_path):
         data.load_sequence(folder)
 
 
+def _folder_layout(folder, stems, depth_mm=800):
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    for i, stem in enumerate(stems):
+        iio.imwrite(folder / f"rgb/{stem}.png", _rgb(8, 6, i))
+        iio.imwrite(folder / f"depth/{stem}.png", _depth(8, 6, depth_mm / 1000, 1000))
+    (folder / "calibration.txt").write_text("9 9 3.5 2.5\n")
+    return folder
+
+
+@pytest.mark.parametrize("stems, seconds", [
+    (["000000", "000001", "000003"], [0.0, 1 / 15, 3 / 15]),  # frame numbers at fps 15, the gap kept
+    (["1520530328189680000", "1520530328223013000"], [1520530328.18968, 1520530328.223013]),  # nanoseconds
+    (["0.0", "0.1", "0.033333", "0.066667"], [0.0, 0.033333, 0.066667, 0.1]),  # seconds, by value
+])
+def test_folder_layout_reads_frame_numbers_nanoseconds_and_seconds(tmp_path, stems, seconds):
+    sequence = data.load_sequence(_folder_layout(tmp_path / "capture", stems), fps=15.0)
+    np.testing.assert_allclose(sequence.timestamps, seconds, rtol=0, atol=1e-6)
+    by_time = sorted(stems, key=float)  # each frame keeps its own images: colour value i of stem i
+    assert [int(sequence[i].rgb[0, 0, 0] * 255 + 0.5) for i in range(len(stems))] == [stems.index(s) for s in by_time]
+
+
+@pytest.mark.parametrize("calibration, words", [
+    ({"fx": 9, "fy": 9, "cx": 3.5, "cy": 2.5, "width": 8}, ["intrinsics.json", "'width' and 'height' come together"]),
+    ({"fx": 0, "fy": 9, "cx": 3.5, "cy": 2.5}, ["intrinsics.json", "'fx' must be > 0, got 0"]),
+    ({"fx": 9, "fy": 9, "cx": 3.5, "cy": 2.5, "depth_scale": 0}, ["intrinsics.json", "'depth_scale' must be > 0"]),
+])
+def test_bad_calibration_values_name_the_file(tmp_path, calibration, words):
+    folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])
+    (folder / "calibration.txt").unlink()
+    (folder / "intrinsics.json").write_text(json.dumps(calibration))
+    with pytest.raises(ValueError) as error:
+        data.load_sequence(folder)
+    assert all(word in str(error.value) for word in words), str(error.value)
+    (folder / "intrinsics.json").unlink()
+    (folder / "calibration.txt").write_text("# fx fy cx cy\nnan 9 3.5 2.5\n")
+    with pytest.raises(ValueError, match=r"calibration\.txt:2: every number must be finite"):
+        data.load_sequence(folder)
+
+
+def test_a_depth_scale_that_contradicts_the_data_folder_is_refused_not_preferred(tmp_path):
+    folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])
+    (folder / "calibration.txt").unlink()
+    (folder / "intrinsics.json").write_text(json.dumps({"fx": 9, "fy": 9, "cx": 3.5, "cy": 2.5, "depth_scale": 1000}))
+    np.testing.assert_allclose(data.load_sequence(folder)[0].depth, 0.8, atol=1e-6)  # the file's scale
+    np.testing.assert_allclose(data.load_sequence(folder, depth_scale=1000)[0].depth, 0.8, atol=1e-6)
+    with pytest.raises(ValueError) as error:  # a preset's 5000 would read 0.16 m
+        data.load_sequence(folder, depth_scale=5000)
+    for words in ("intrinsics.json", "'depth_scale' is 1000", "data.depth_scale is 5000", "--set data.depth_scale=1000"):
+        assert words in str(error.value), str(error.value)
+
+
 # ------------------------------------------------------------------------------------------------
 # Trajectory files
 

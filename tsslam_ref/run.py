@@ -288,7 +288,7 @@ def prepare(args: argparse.Namespace) -> Plan:
     _check_output_folder(out, args.overwrite, args.resume)
     plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)
     gt_mesh_path = Path(sequence.path) / "gt_mesh.ply"
-    if not args.no_mesh and gt_mesh_path.exists():
+    if not args.no_mesh and gt_mesh_path.exists() and sequence.gt_poses is not None:  # culling needs GT cameras
         plan.gt_mesh = _read_gt_mesh(gt_mesh_path)  # a broken file is named now, not after the run
     if args.resume:
         path = out / "checkpoint.pt"
@@ -432,7 +432,10 @@ def execute(plan: Plan) -> int:
         return _tracking_failed(plan, progress, failure)
     except (ValueError, OSError) as error:  # a frame that cannot be read (checked cheaply before the run)
         _close(progress)
-        print(f"error: {error}; the outputs so far are in {out}", file=sys.stderr)
+        resume = (f" or --resume to continue from its checkpoint ({reached['checkpoint']} frames done)"
+                  if (out / "checkpoint.pt").is_file() else "")
+        print(f"error: {error}; the outputs so far are in {out}: after fixing the data, run the same command "
+              f"with --overwrite to start again{resume}", file=sys.stderr)
         return EXIT_BAD_INPUT
     _close(progress)
     write_outputs(plan, result)

@@ -304,8 +304,11 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     """Generic folder (ours): rgb/ and depth/ with the same file names (sorted naturally),
     intrinsics.json or calibration.txt, optional groundtruth.txt / trajectory.txt (TUM format).
 
-    Timestamps: the file stems when all of them are numbers (e.g. '1341841873.273798.png'),
-    else index / fps.  GT is associated to those stamps as in the TUM layout.
+    Timestamps (:func:`folder_timestamps`): stems with a decimal point are seconds
+    ('1341841873.273798.png'), integer stems of 16 or more digits nanoseconds
+    ('1520530328189680000.png'), other integer stems frame numbers (number / fps, so gaps in the
+    numbering stay gaps in time); stems that are not all numbers give index / fps.  Numeric stems
+    are ordered by value.  GT is associated to those stamps as in the TUM layout.
     """
     _require_dir(folder / "rgb")
     _require_dir(folder / "depth")
@@ -317,12 +320,13 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
     if calibrated is None:
         raise FileNotFoundError(f"{folder}: needs intrinsics.json or calibration.txt (see docs/data.md)")
-    try:
-        timestamps = np.asarray([float(p.stem) for p in rgb_paths], dtype=np.float64)
-    except ValueError:
-        timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
+    timestamps = folder_timestamps([p.stem for p in rgb_paths], fps)
+    order = np.argsort(timestamps, kind="stable")  # '0.1' after '0.033333', whatever the sort by name said
+    rgb_paths, depth_paths = [rgb_paths[i] for i in order], [depth_paths[i] for i in order]
+    timestamps = timestamps[order]
     if np.any(np.diff(timestamps) <= 0):
-        raise ValueError(f"{folder / 'rgb'}: numeric file names must increase (timestamps out of order)")
+        repeated = rgb_paths[int(np.flatnonzero(np.diff(timestamps) <= 0)[0]) + 1].name
+        raise ValueError(f"{folder / 'rgb'}: two file names give the same time ({repeated}); each frame needs its own")
     gt_poses = None
     for name in ("groundtruth.txt", "trajectory.txt"):
         if (folder / name).is_file():
@@ -330,6 +334,19 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
             gt_poses = _gt_at(timestamps, gt_times, gt_all, max_time_diff)
             break
     return LayoutIndex("folder", rgb_paths, depth_paths, timestamps, gt_poses, calibrated[0], calibrated[1])
+
+
+def folder_timestamps(stems, fps: float) -> np.ndarray:
+    """(N,) float64 seconds from the ``folder`` layout's file stems (rule in :func:`parse_folder`)."""
+    try:
+        values = [float(stem) for stem in stems]
+    except ValueError:
+        return np.arange(len(stems), dtype=np.float64) / fps
+    if any("." in stem or "e" in stem.lower() for stem in stems):
+        return np.asarray(values, dtype=np.float64)  # seconds
+    if min(len(stem.lstrip("+-")) for stem in stems) >= 16:
+        return np.asarray([int(stem) for stem in stems], dtype=np.float64) / 1e9  # nanoseconds
+    return np.asarray(values, dtype=np.float64) / fps  # frame numbers
 
 
 def _looks_like(folder: Path) -> dict:
