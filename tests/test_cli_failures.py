@@ -466,3 +466,23 @@ def test_user_data_without_ground_truth_or_with_a_bad_frame_mid_run(runs):
     Image.fromarray(np.zeros_like(np.asarray(Image.open(depth_path)))).save(depth_path)  # frame 6: no depth at all
     result = cli("run", "--data", bad_frame.name, "--out", "bad_frame_out", *CHEAP, cwd=root)
     refused(result, "--overwrite", "--resume to continue from its checkpoint (6 frames done)")
+
+
+def test_a_users_own_folder_gets_its_own_layout_and_depth_scale_not_the_presets(tmp_path):
+    """The default preset is TUM's (layout tum, depth 5000 per metre); with --data the folder's
+    layout is detected and its depth scale comes from its calibration file or layout standard
+    (a ScanNet folder read at 5000 would put every depth 5x too near). --dataset, --set and a
+    config file of the user's still decide."""
+    def resolved(*arguments):
+        return run.resolve_config(run.build_parser().parse_args(list(arguments))).data
+
+    assert (resolved().dataset, resolved().depth_scale) == ("tum", 5000.0)  # the bundled slice: the preset's
+    for preset in ([], ["--config", "tum-cpu"], ["--config", "scannet"]):
+        mine = resolved("--data", str(tmp_path), *preset)
+        assert (mine.dataset, mine.depth_scale) == ("auto", None), preset
+    assert resolved("--data", str(tmp_path), "--set", "data.depth_scale=4000").depth_scale == 4000.0
+    assert resolved("--data", str(tmp_path), "--dataset", "scannet").dataset == "scannet"
+    config_file = tmp_path / "mine.json"
+    config_file.write_text(json.dumps({"data": {"dataset": "tum", "depth_scale": 5000.0}}))
+    mine = resolved("--data", str(tmp_path), "--config", str(config_file))
+    assert (mine.dataset, mine.depth_scale) == ("tum", 5000.0)

@@ -160,6 +160,10 @@ def resolve_config(args) -> config_module.Config:
         cfg.parallel = True
     if args.dataset:
         cfg.data.dataset = "tum" if args.dataset == "synthetic" else args.dataset
+    elif args.data and (args.config is None or args.config in config_module.PRESETS):
+        # the user's own folder: its layout, and its own depth scale (calibration file, else the
+        # layout's standard), not the preset's dataset's; --set data.* still decides (applied below)
+        cfg.data.dataset, cfg.data.depth_scale = "auto", None
     frames = parse_frames(args.frames)
     if frames is not None:
         cfg.data.frame_start, cfg.data.frame_stop, cfg.data.frame_step = frames
