@@ -481,6 +481,13 @@ def test_a_depth_scale_that_contradicts_the_data_folder_is_refused_not_preferred
         assert words in str(error.value), str(error.value)
 
 
+def test_lists_written_with_a_byte_order_mark_are_read(tum_folder):
+    folder, rgb, _, _ = tum_folder
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        (folder / name).write_bytes(b"\xef\xbb\xbf" + (folder / name).read_bytes())
+    assert len(data.load_sequence(folder)) == 5  # as without the mark (frame 3 has no depth)
+
+
 # ------------------------------------------------------------------------------------------------
 # Trajectory files
 

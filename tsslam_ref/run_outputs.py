@@ -131,8 +131,11 @@ def write_outputs(plan, result) -> None:
     if checkpoint_path.exists() and not args.checkpoint_every:
         checkpoint_path.unlink()
     summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
-    memory = f"; peak RSS {metrics['peak_rss_mib']:.0f} MiB" if "peak_rss_mib" in metrics else ""
-    print(f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s; {summary}{memory}; outputs in {out}")
+    parts = [f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s",
+             summary or "no ground-truth poses, so no ATE / RPE"]
+    if "peak_rss_mib" in metrics:
+        parts.append(f"peak RSS {metrics['peak_rss_mib']:.0f} MiB")
+    print("; ".join(parts + [f"outputs in {out}"]))
 
 
 def _jsonable(value):

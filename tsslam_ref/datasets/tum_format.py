@@ -33,7 +33,7 @@ def _data_lines(path: Path):
     with open(path, "rb") as handle:
         for number, raw in enumerate(handle, start=1):
             try:
-                line = raw.decode("utf-8")
+                line = raw.decode("utf-8-sig" if number == 1 else "utf-8")  # a byte-order mark some editors write
             except UnicodeDecodeError:
                 raise ValueError(f"{path}:{number}: not text (bytes that are not UTF-8); expected a text file "
                                  f"of whitespace-separated values") from None
