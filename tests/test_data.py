@@ -442,6 +442,8 @@ def _folder_layout(folder, stems, depth_mm=800):
 @pytest.mark.parametrize("stems, seconds", [
     (["000000", "000001", "000003"], [0.0, 1 / 15, 3 / 15]),  # frame numbers at fps 15, the gap kept
     (["1520530328189680000", "1520530328223013000"], [1520530328.18968, 1520530328.223013]),  # nanoseconds
+    (["1520530328189680", "1520530328223013"], [1520530328.18968, 1520530328.223013]),  # microseconds
+    (["1520530328189", "1520530328223"], [1520530328.189, 1520530328.223]),  # milliseconds
     (["0.0", "0.1", "0.033333", "0.066667"], [0.0, 0.033333, 0.066667, 0.1]),  # seconds, by value
 ])
 def test_folder_layout_reads_frame_numbers_nanoseconds_and_seconds(tmp_path, stems, seconds):
@@ -613,3 +615,9 @@ def test_default_synthetic_path_generates_once(tmp_path, monkeypatch):
     assert data.default_synthetic_path(cache, verbose=False) == cache
     assert data.default_synthetic_path(cache, verbose=False) == cache
     assert len(calls) == 1 and calls[0][1]["n_frames"] == 60 and calls[0][1]["seed"] == 0
+
+
+def test_folder_layout_refuses_integer_names_of_no_known_unit(tmp_path):
+    folder = _folder_layout(tmp_path / "capture", ["10", "5000000010"])  # a 5e9 step: 5 s even in ns
+    with pytest.raises(ValueError, match=r"capture/rgb: integer file names 10, 5000000010, \.\.\. step by 5e\+09"):
+        data.load_sequence(folder)

@@ -305,10 +305,11 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     intrinsics.json or calibration.txt, optional groundtruth.txt / trajectory.txt (TUM format).
 
     Timestamps (:func:`folder_timestamps`): stems with a decimal point are seconds
-    ('1341841873.273798.png'), integer stems of 16 or more digits nanoseconds
-    ('1520530328189680000.png'), other integer stems frame numbers (number / fps, so gaps in the
-    numbering stay gaps in time); stems that are not all numbers give index / fps.  Numeric stems
-    are ordered by value.  GT is associated to those stamps as in the TUM layout.
+    ('1341841873.273798.png'); integer stems are frame numbers (number / fps, so gaps in the
+    numbering stay gaps in time) when they step by less than 10, else milliseconds, microseconds
+    or nanoseconds ('1520530328189680000.png'), whichever makes the step a frame spacing; stems
+    that are not all numbers give index / fps.  Numeric stems are ordered by value.  GT is
+    associated to those stamps as in the TUM layout.
     """
     _require_dir(folder / "rgb")
     _require_dir(folder / "depth")
@@ -320,7 +321,7 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
     if calibrated is None:
         raise FileNotFoundError(f"{folder}: needs intrinsics.json or calibration.txt (see docs/data.md)")
-    timestamps = folder_timestamps([p.stem for p in rgb_paths], fps)
+    timestamps = folder_timestamps([p.stem for p in rgb_paths], fps, folder / "rgb")
     order = np.argsort(timestamps, kind="stable")  # '0.1' after '0.033333', whatever the sort by name said
     rgb_paths, depth_paths = [rgb_paths[i] for i in order], [depth_paths[i] for i in order]
     timestamps = timestamps[order]
@@ -336,17 +337,28 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     return LayoutIndex("folder", rgb_paths, depth_paths, timestamps, gt_poses, calibrated[0], calibrated[1])
 
 
-def folder_timestamps(stems, fps: float) -> np.ndarray:
-    """(N,) float64 seconds from the ``folder`` layout's file stems (rule in :func:`parse_folder`)."""
+def folder_timestamps(stems, fps: float, folder: Path = Path(".")) -> np.ndarray:
+    """(N,) float64 seconds from the ``folder`` layout's file stems (rule in :func:`parse_folder`).
+
+    Integer stems: a median step under 10 means frame numbers (n / fps); otherwise the unit is the
+    first of milliseconds, microseconds, nanoseconds that puts the median step between 1 ms and 1 s
+    (a camera's frame spacing); ValueError naming ``folder`` when none does.
+    """
     try:
         values = [float(stem) for stem in stems]
     except ValueError:
         return np.arange(len(stems), dtype=np.float64) / fps
     if any("." in stem or "e" in stem.lower() for stem in stems):
         return np.asarray(values, dtype=np.float64)  # seconds
-    if min(len(stem.lstrip("+-")) for stem in stems) >= 16:
-        return np.asarray([int(stem) for stem in stems], dtype=np.float64) / 1e9  # nanoseconds
-    return np.asarray(values, dtype=np.float64) / fps  # frame numbers
+    numbers = np.asarray([int(stem) for stem in stems], dtype=np.int64)
+    step = float(np.median(np.abs(np.diff(np.sort(numbers))))) if len(numbers) > 1 else 1.0
+    if step < 10:
+        return numbers.astype(np.float64) / fps  # frame numbers
+    for unit in (1e-3, 1e-6, 1e-9):
+        if 1e-3 <= step * unit <= 1.0:
+            return numbers.astype(np.float64) * unit
+    raise ValueError(f"{folder}: integer file names {stems[0]}, {stems[1]}, ... step by {step:g}, which is no frame "
+                     f"spacing in ms, us or ns; name the files by their time in seconds with a decimal point")
 
 
 def _looks_like(folder: Path) -> dict:
