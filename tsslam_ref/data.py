@@ -184,9 +184,8 @@ def load_sequence(
         path: dataset folder.  dataset: 'auto' or one of :data:`LAYOUTS`.
         resize_width: output width in px; None keeps the native size.
         crop_edge: pixels removed from every side before resizing.
-        depth_scale: PNG value per metre; None = the calibration file's, else the layout's standard.
-            A value that differs from the one ``intrinsics.json`` declares is refused (ValueError
-            naming both), never silently preferred.
+        depth_scale: PNG value per metre; None = the calibration file's (never overridden: a
+            different value is refused), else the layout's standard.
         depth_trunc: stored on the sequence for the losses; depth is never zeroed here.
         frame_start, frame_stop, frame_step: Python slice over the usable frames.
         fps: frame rate for layouts without timestamps (time = frame number / fps).
@@ -205,13 +204,7 @@ def load_sequence(
     if require_gt and index.gt_poses is not None:
         _keep_frames_with_gt(index, folder, max_time_diff)
     chosen = _select(index, frame_start, frame_stop, frame_step, folder)
-    if depth_scale is not None and index.depth_scale is not None and depth_scale != index.depth_scale:
-        raise ValueError(f"{folder / 'intrinsics.json'}: 'depth_scale' is {index.depth_scale:g} (PNG value per metre) "
-                         f"but the config's data.depth_scale is {depth_scale:g}; pass --set "
-                         f"data.depth_scale={index.depth_scale:g} to read the depth as the file says, or remove "
-                         f"'depth_scale' from the file to use the config's")
-    if depth_scale is None:
-        depth_scale = index.depth_scale if index.depth_scale is not None else DEPTH_SCALES[kind]
+    depth_scale = _depth_scale(depth_scale, index.depth_scale, kind, folder)
     return RGBDSequence(
         name=folder.resolve().name,
         kind=kind,
@@ -226,6 +219,19 @@ def load_sequence(
         resize_width=resize_width,
         depth_trunc=depth_trunc,
     )
+
+
+def _depth_scale(configured: Optional[float], declared: Optional[float], kind: str, folder: Path) -> float:
+    """PNG value per metre: the config's, else the calibration file's, else the layout's standard;
+    ValueError when the config's contradicts the file's."""
+    if configured is not None and declared is not None and configured != declared:
+        raise ValueError(f"{folder / 'intrinsics.json'}: 'depth_scale' is {declared:g} (PNG value per metre) "
+                         f"but the config's data.depth_scale is {configured:g}; pass --set "
+                         f"data.depth_scale={declared:g} to read the depth as the file says, or remove "
+                         f"'depth_scale' from the file to use the config's")
+    if configured is not None:
+        return configured
+    return declared if declared is not None else DEPTH_SCALES[kind]
 
 
 def load_from_config(data_cfg) -> RGBDSequence:

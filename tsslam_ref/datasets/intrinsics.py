@@ -142,7 +142,11 @@ NEURAL_RGBD_FOCAL = 554.2562584220408
 
 def _checked_calibration(values: dict, where) -> dict:
     """``values`` if its focal lengths, image size and depth scale are positive; else ValueError
-    naming ``where`` (the file, or file:line)."""
+    naming ``where`` (the file, or file:line).  ``width`` and ``height`` come together."""
+    if not all(math.isfinite(value) for value in values.values()):
+        raise ValueError(f"{where}: every number must be finite, got {values}")
+    if ("width" in values) != ("height" in values):
+        raise ValueError(f"{where}: 'width' and 'height' come together (the image size in px); give both or neither")
     for key in ("fx", "fy", "width", "height", "depth_scale"):
         if key in values and not values[key] > 0:
             raise ValueError(f"{where}: '{key}' must be > 0, got {values[key]!r}")
@@ -182,9 +186,6 @@ def read_calibration(folder: Path) -> Optional[dict]:
                 if not isinstance(values[key], (int, float)) or isinstance(values[key], bool) or not math.isfinite(values[key]):
                     raise ValueError(f"{json_path}: '{key}' must be a finite number, got {values[key]!r}")
                 out[key] = values[key]
-        if ("width" in out) != ("height" in out):
-            raise ValueError(f"{json_path}: 'width' and 'height' come together (the image size in px); "
-                             f"give both or neither")
         return _checked_calibration(out, json_path)
     text_path = Path(folder) / CALIBRATION_TXT
     if text_path.is_file():
@@ -205,8 +206,6 @@ def read_calibration(folder: Path) -> Optional[dict]:
                 raise ValueError(
                     f"{text_path}:{number}: expected 'fx fy cx cy' or 'fx fy cx cy width height', got '{stripped}'"
                 )
-            if not all(math.isfinite(value) for value in numbers):
-                raise ValueError(f"{text_path}:{number}: every number must be finite, got '{stripped}'")
             out = dict(zip(("fx", "fy", "cx", "cy"), numbers[:4]))
             if len(numbers) == 6:
                 out["width"], out["height"] = int(numbers[4]), int(numbers[5])
