@@ -43,14 +43,16 @@ def _field_device_dtype(field):
     return torch.device("cpu"), torch.float32
 
 
+def _query(fn, points: np.ndarray, device, dtype) -> np.ndarray:
+    """``fn`` on (M, 3) float64 numpy points moved to ``device`` / ``dtype`` -> float32 numpy output."""
+    return fn(torch.from_numpy(points).to(device=device, dtype=dtype)).float().cpu().numpy()
+
+
 @torch.no_grad()
 def query_in_chunks(fn, points: np.ndarray, chunk: int, device, dtype) -> np.ndarray:
     """Apply ``fn`` to (M, 3) numpy points ``chunk`` at a time -> concatenated numpy output."""
-    parts = []
-    for start in range(0, points.shape[0], chunk):
-        batch = torch.from_numpy(points[start : start + chunk]).to(device=device, dtype=dtype)
-        parts.append(fn(batch).float().cpu().numpy())
-    return np.concatenate(parts)
+    return np.concatenate([_query(fn, points[start : start + chunk], device, dtype)
+                           for start in range(0, points.shape[0], chunk)])
 
 
 @torch.no_grad()
@@ -74,8 +76,7 @@ def query_grid(fn, axes, chunk: int, device, dtype) -> np.ndarray:
     for start in range(0, values.size, chunk):
         flat = np.arange(start, min(start + chunk, values.size))
         points = np.stack([axis[index] for axis, index in zip(axes, np.unravel_index(flat, shape))], axis=-1)
-        batch = torch.from_numpy(points).to(device=device, dtype=dtype)
-        values[start : start + len(flat)] = fn(batch).float().cpu().numpy()
+        values[start : start + len(flat)] = _query(fn, points, device, dtype)
     return values.reshape(shape)
 
 
