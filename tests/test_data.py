@@ -5,6 +5,7 @@ scipy's Slerp over the raw groundtruth.txt lines (real data), hand-computed matr
 """
 
 import json
+import re
 import os
 import tracemalloc
 
@@ -466,9 +467,12 @@ def test_bad_calibration_values_name_the_file(tmp_path, calibration, words):
         data.load_sequence(folder)
     assert all(word in str(error.value) for word in words), str(error.value)
     (folder / "intrinsics.json").unlink()
-    (folder / "calibration.txt").write_text("# fx fy cx cy\nnan 9 3.5 2.5\n")
-    with pytest.raises(ValueError, match=r"calibration\.txt:2: every number must be finite"):
-        data.load_sequence(folder)
+    for line, words in [("nan 9 3.5 2.5", "every number must be finite"),
+                        ("9 9 3.5 2.5 nan 6", "every number must be finite"),  # once a bare int() error
+                        ("9 9 3.5 2.5 8.5 6", "'width' must be a whole number of pixels, got 8.5")]:
+        (folder / "calibration.txt").write_text(f"# fx fy cx cy\n{line}\n")
+        with pytest.raises(ValueError, match=r"calibration\.txt:2: " + re.escape(words)):
+            data.load_sequence(folder)
 
 
 def test_a_depth_scale_that_contradicts_the_data_folder_is_refused_not_preferred(tmp_path):
@@ -488,6 +492,19 @@ def test_lists_written_with_a_byte_order_mark_are_read(tum_folder):
     for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
         (folder / name).write_bytes(b"\xef\xbb\xbf" + (folder / name).read_bytes())
     assert len(data.load_sequence(folder)) == 5  # as without the mark (frame 3 has no depth)
+
+
+def test_file_names_with_commas_and_comma_separated_lists(tum_folder):
+    folder, rgb, _, _ = tum_folder
+    (folder / "rgb").rename(folder / "rgb,left")  # a comma inside a file name
+    lines = (folder / "rgb.txt").read_text().replace(" rgb/", " rgb,left/")
+    (folder / "rgb.txt").write_text(lines)
+    sequence = data.load_sequence(folder)
+    assert len(sequence) == 5 and sequence[4].rgb.shape == (6, 8, 3)
+    depth_lines = (folder / "depth.txt").read_text().splitlines()  # 'stamp,name' and 'stamp, name' still read
+    (folder / "depth.txt").write_text("\n".join(line.replace(" ", "," if i % 2 else ", ", 1) if not line.startswith("#")
+                                                else line for i, line in enumerate(depth_lines)) + "\n")
+    assert len(data.load_sequence(folder)) == 5
 
 
 # ------------------------------------------------------------------------------------------------

@@ -150,6 +150,11 @@ def _checked_calibration(values: dict, where) -> dict:
     for key in ("fx", "fy", "width", "height", "depth_scale"):
         if key in values and not values[key] > 0:
             raise ValueError(f"{where}: '{key}' must be > 0, got {values[key]!r}")
+    for key in ("width", "height"):
+        if key in values:
+            if values[key] != int(values[key]):
+                raise ValueError(f"{where}: '{key}' must be a whole number of pixels, got {values[key]!r}")
+            values[key] = int(values[key])
     return values
 
 
@@ -206,9 +211,7 @@ def read_calibration(folder: Path) -> Optional[dict]:
                 raise ValueError(
                     f"{text_path}:{number}: expected 'fx fy cx cy' or 'fx fy cx cy width height', got '{stripped}'"
                 )
-            out = dict(zip(("fx", "fy", "cx", "cy"), numbers[:4]))
-            if len(numbers) == 6:
-                out["width"], out["height"] = int(numbers[4]), int(numbers[5])
+            out = dict(zip(("fx", "fy", "cx", "cy", "width", "height"), numbers))
             return _checked_calibration(out, f"{text_path}:{number}")
         raise ValueError(f"{text_path}: no calibration line found (expected 'fx fy cx cy [width height]')")
     return None

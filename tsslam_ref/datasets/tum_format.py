@@ -25,8 +25,10 @@ TUM_MAX_TIME_DIFF = 0.02
 """Association tolerance (s) of TUM's associate.py."""
 
 
-def _data_lines(path: Path):
-    """Yield (line_number, fields) for the non-comment, non-blank lines of a text file."""
+def _data_lines(path: Path, commas: bool = True):
+    """Yield (line_number, fields) for the non-comment, non-blank lines of a text file.
+
+    Fields are separated by white space, and by commas too when ``commas`` (numeric rows)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: file not found")
@@ -41,7 +43,7 @@ def _data_lines(path: Path):
                 raise ValueError(f"{path}:{number}: not text (a NUL byte); expected a text file of whitespace-separated values")
             stripped = line.strip()
             if stripped and not stripped.startswith("#"):
-                yield number, stripped.replace(",", " ").split()
+                yield number, (stripped.replace(",", " ") if commas else stripped).split()
 
 
 def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
@@ -56,7 +58,9 @@ def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
             make two frames of one instant).
     """
     stamps, names, numbers = [], [], []
-    for number, fields in _data_lines(path):
+    for number, fields in _data_lines(path, commas=False):
+        if "," in fields[0]:  # a comma-separated line; otherwise a comma belongs to the file name
+            fields = " ".join(fields).replace(",", " ").split()
         if len(fields) < 2:
             raise ValueError(f"{path}:{number}: expected 'timestamp filename', got '{' '.join(fields)}'")
         try:
