@@ -52,6 +52,27 @@ def test_the_stand_in_raises_where_cuda_raises():
         assert all(on_virtual(p) for p in module.parameters()) and on_virtual(module(on_device))
 
 
+def test_the_spline_kit_runs_with_control_points_on_the_stand_in_and_numpy_times():
+    from tsslam_ref import knots, se3_spline, spline, spline_jacobians
+    from tsslam_ref.geometry import so3_exp
+
+    generator = torch.Generator().manual_seed(0)
+    rotations = so3_exp(0.3 * torch.randn(8, 3, dtype=torch.float64, generator=generator))
+    translations = torch.randn(8, 3, dtype=torch.float64, generator=generator)
+    times = np.linspace(0.35, 0.75, 5)  # seconds, inside the domain of dt = 0.1, t0 = 0.1
+    knot_vector = knots.uniform_knots(8, 0.1, 0.1)
+    calls = [lambda R, p: spline.evaluate(R, p, times, 0.1, 0.1, derivatives=2),
+             lambda R, p: knots.evaluate(R, p, times, knot_vector, derivatives=2),
+             lambda R, p: se3_spline.evaluate(R, p, times, 0.1, 0.1, derivatives=2),
+             lambda R, p: tuple(v for k, v in spline_jacobians.jacobians(R, p, times, 0.1, 0.1).items() if k != "first")]
+    for call in calls:
+        plain = call(rotations, translations)
+        with VirtualDevice():
+            moved = call(rotations.to(VIRTUAL), translations.to(VIRTUAL))
+            assert all(on_virtual(value) for value in moved)
+        assert all(torch.equal(a, b) for a, b in zip(moved, plain))
+
+
 @pytest.mark.parametrize("method, knots", [("tsslam", "uniform"), ("coslam", "uniform"), ("tsslam", "adaptive")])
 def test_the_loop_runs_on_an_accelerator_stand_in_with_the_cpu_trajectory(small_sequence, method, knots):
     sequence = data.load_sequence(small_sequence)

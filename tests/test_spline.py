@@ -16,7 +16,7 @@ import scipy.interpolate
 import torch
 from scipy.spatial.transform import Rotation
 
-from tsslam_ref import spline, spline_fit
+from tsslam_ref import knots, spline, spline_fit
 from tsslam_ref.geometry import make_pose, so3_exp, so3_log, vee
 
 F64 = torch.float64
@@ -535,6 +535,28 @@ def test_float32_matches_float64():
     for a, b in zip(s32, s64):
         assert a.dtype == torch.float32
         assert rel_err(a, b) < 1e-5
+
+
+@pytest.mark.parametrize("times", [torch.tensor([1.5e9 + 0.05, 1.5e9 + 0.2], dtype=torch.float32),
+                                   np.array([1.5e9 + 0.05, 1.5e9 + 0.2], dtype=np.float32)])
+def test_float32_times_are_refused_not_rounded_to_one_instant(times):
+    R, P = random_spline(26, n_ctrl=8)
+    with pytest.raises(TypeError, match="float64"):  # float32 puts both stamps at 1.5e9 s
+        spline.evaluate(R, P, times, 0.1, 1.5e9 - 0.3)
+    with pytest.raises(TypeError, match="float64"):
+        knots.locate(times, knots.uniform_knots(8, 0.1, 1.5e9 - 0.3))
+
+
+def test_an_interval_too_short_for_float64_stamps_is_refused():
+    R, P = random_spline(27, n_ctrl=8)
+    t_min, _ = spline.valid_time_range(8, 1e-3, 1.5e9)  # 1 ms at 1.5e9 s: ~4000 ulps, fine
+    spline.evaluate(R, P, [t_min], 1e-3, 1.5e9)
+    for dt in (1e-6, 1e-9):  # the end tolerance (1.3e-6 s) would be a segment or more
+        with pytest.raises(ValueError, match="too short for times near 1500000000.0 s"):
+            spline.valid_time_range(8, dt, 1.5e9)
+    spline.valid_time_range(8, 1e-9, 0.0)  # relative times resolve it
+    with pytest.raises(ValueError, match="too short"):
+        knots.check_knots(1.5e9 + np.array([0, 1, 2, 2 + 1e-6, 3, 4, 5, 6, 7, 8.0]), 8)
 
 
 # ------------------------------------------------------------------------------------------

@@ -91,6 +91,25 @@ def test_push_back_pop_front_and_window_keep_the_curve():
         tiny.push_back(R[3] @ so3_exp(torch.tensor([2.0, 0.0, 0.0], dtype=F64)), P[3])
 
 
+def test_pop_front_at_epoch_stamps_does_not_drift_in_time():
+    R, P = random_controls(28, 1005)
+    traj = BSplineTrajectory(R, P, 0.03, 1.3e9)
+    knot_1000 = 1.3e9 + 1000 * 0.03  # t0 += dt rounds to the stamp's ulp at every pop
+    for _ in range(1000):
+        traj.pop_front()
+    assert traj.t0 == knot_1000
+    traj.t0 = 5.0  # a t0 set by hand starts a new count
+    traj.pop_front()
+    assert traj.t0 == 5.03
+
+
+def test_non_finite_knots_are_named():
+    R, P = random_controls(29, 5)
+    traj = BSplineTrajectory(R, P, 0.1, 0.0)
+    with pytest.raises(ValueError, match=r"finite, got inf s at stored index \d"):
+        traj.push_back(R[0], P[0], knot_time=float("inf"))
+
+
 def test_with_controls_keeps_timing_and_start_pose_and_detaches():
     R, P = random_controls(5, 6)
     start_pose = make_pose(R[1], P[1])

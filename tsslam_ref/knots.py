@@ -49,6 +49,8 @@ def check_knots(knots, n_ctrl: int) -> np.ndarray:
         j = int(np.flatnonzero(steps <= 0)[0])
         raise ValueError(f"knots must be strictly increasing, got knots[{j}] = {float(values[j])!r} s and "
                          f"knots[{j + 1}] = {float(values[j + 1])!r} s")
+    j = int(np.argmin(steps))
+    spline.check_resolvable(float(steps[j]), max(abs(values[j]), abs(values[j + 1])))
     return values
 
 

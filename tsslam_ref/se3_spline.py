@@ -86,10 +86,12 @@ def evaluate(control_rotations: torch.Tensor, control_translations: torch.Tensor
     """
     n_ctrl = control_rotations.shape[0]
     first, u, _ = spline._locate(times, n_ctrl, dt, t0, convention)
+    device = control_translations.device
+    first = first.to(device)
     twists = knot_twists(control_rotations, control_translations)  # (N−1, 6)
-    xi = twists[first[:, None] + torch.arange(3)]  # (M, 3, 6)
+    xi = twists[first[:, None] + torch.arange(3, device=device)]  # (M, 3, 6)
     first_R, first_p = control_rotations[first], control_translations[first]
-    u = u.to(control_translations.dtype).detach()
+    u = u.detach().to(device=device, dtype=control_translations.dtype)
 
     def pose(u_):
         return _pose_at(u_, first_R, first_p, xi)

@@ -175,11 +175,37 @@ def valid_time_range(n_ctrl: int, dt: float, t0: float, convention: str = "paper
     if not dt > 0:
         raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
     t0 = float(t0)
+    check_resolvable(float(dt), t0)
     return t0 + offset * dt, t0 + (offset + n_ctrl - 3) * dt
 
 
+MIN_INTERVAL_ULPS = 1024.0
+"""An interval must span at least this many float64 ulps of its time stamps (u resolved to 1e-3)."""
+
+
+def check_resolvable(interval: float, time: float) -> None:
+    """ValueError when an interval of ``interval`` s near ``time`` s is too short for float64 times
+    to place u in it (below MIN_INTERVAL_ULPS ulps of |time|: at 1.5e9 s, 2.4e-4 s)."""
+    floor = MIN_INTERVAL_ULPS * np.spacing(abs(float(time)))
+    if not interval >= floor:
+        raise ValueError(f"a knot interval of {interval!r} s is too short for times near {float(time)!r} s: float64 "
+                         f"resolves {np.spacing(abs(float(time))):.3g} s there, so it needs >= {floor:.3g} s; "
+                         f"subtract a reference time from the stamps first")
+
+
 def _times_float64(times: TimesLike) -> torch.Tensor:
-    """Times as a float64 tensor (keeps autograd and device of a tensor input)."""
+    """Times as a float64 tensor (keeps autograd and device of a tensor input).
+
+    Raises:
+        TypeError: floating times narrower than float64 (float32 holds about 7 digits: at a
+            1.5e9 s stamp its spacing is 128 s, so the cast would come too late).
+    """
+    dtype = times.dtype if isinstance(times, (torch.Tensor, np.ndarray)) else None
+    narrow = (dtype.is_floating_point and dtype.itemsize < 8) if isinstance(times, torch.Tensor) else (
+        dtype is not None and dtype.kind == "f" and dtype.itemsize < 8)
+    if narrow:
+        raise TypeError(f"times must be float64 seconds (or Python floats), got {dtype}: it cannot hold "
+                        f"absolute stamps (float32 spacing at 1.5e9 s is 128 s)")
     if isinstance(times, torch.Tensor):
         return times.to(torch.float64)
     return torch.as_tensor(np.asarray(times, dtype=np.float64))

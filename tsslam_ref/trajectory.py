@@ -77,6 +77,7 @@ class BSplineTrajectory:
         self.control_translations = control_translations
         self.dt = float(dt)
         self.t0 = float(t0)
+        self._pops = None  # (t0 before the first pop_front, pops since), uniform knots
         self.convention = convention
         self.start_pose = start_pose
         self._knots, self.knot_offset = None, 0
@@ -89,9 +90,12 @@ class BSplineTrajectory:
         knot_offset = int(knot_offset)
         if not knot_offset <= 0 < values.shape[0] + knot_offset:
             raise ValueError(f"knots must hold knot 0: knot_offset = {knot_offset} with {values.shape[0]} knots")
+        if not np.all(np.isfinite(values)):
+            j = int(np.flatnonzero(~np.isfinite(values))[0])
+            raise ValueError(f"knot times must be finite, got {float(values[j])!r} s at stored index {j}")
         steps = np.diff(values)
-        if not np.all(np.isfinite(values)) or np.any(steps <= 0):
-            j = int(np.flatnonzero(~(steps > 0))[0]) if np.any(~(steps > 0)) else 0
+        if np.any(steps <= 0):
+            j = int(np.flatnonzero(steps <= 0)[0])
             raise ValueError(f"knot times must be finite and strictly increasing, got {float(values[j])!r} s then "
                              f"{float(values[min(j + 1, len(values) - 1)])!r} s at stored index {j}")
         if values[-knot_offset] != self.t0:
@@ -273,8 +277,12 @@ class BSplineTrajectory:
             raise ValueError(f"pop_front would leave {self.n_ctrl - 1} control points; a cubic spline needs 4")
         self.control_rotations = self.control_rotations[1:]
         self.control_translations = self.control_translations[1:]
-        if self._knots is None:
-            self.t0 += self.dt
+        if self._knots is None:  # t0 = origin + pops·dt, not t0 += dt, whose rounding adds up pop after pop
+            if self._pops is None or self._pops[0] + self._pops[1] * self.dt != self.t0:
+                self._pops = (self.t0, 0)  # the first pop, or t0 was set since
+            origin, pops = self._pops[0], self._pops[1] + 1
+            self._pops = (origin, pops)
+            self.t0 = origin + pops * self.dt
             return
         self.t0 = self.knot_time(1)
         keep_from = max(0, -2 - (self.knot_offset - 1))  # keep knots -2.. (the basalt convention reads them)
