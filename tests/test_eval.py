@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from scipy import integrate
+from scipy import integrate, optimize
 from scipy.spatial.transform import Rotation
 
 from tsslam_ref import eval as ev
@@ -97,12 +97,45 @@ def test_horn_alignment_is_a_least_squares_minimum():
         assert cost(R, t, s * (1 + rng.normal(scale=1e-3))) > best
 
 
-def test_horn_alignment_rejects_collinear_points():
+def _poses_at(positions):
+    poses = np.tile(np.eye(4), (len(positions), 1, 1))
+    poses[:, :3, 3] = positions
+    return poses
+
+
+def test_ate_of_a_camera_on_a_rail_or_standing_still_is_the_least_squares_minimum():
+    """Collinear or coincident ground truth (a rail, a static camera): the rotation about the line
+    is free but ATE is not.  Oracle: a rigid copy has ATE 0; else a numerical minimisation of the
+    same cost over rotation vector and translation from many starts."""
+    rng = np.random.default_rng(3)
     line = np.outer(np.linspace(0, 1, 10), [1.0, 2.0, 3.0])
-    with pytest.raises(ValueError, match="collinear"):
-        ev.horn_alignment(line, line + 1.0)
+    copy = line @ Rotation.from_rotvec([0.3, -0.2, 0.9]).as_matrix().T + [0.5, -1.0, 2.0]
+    result = ev.ate(_poses_at(line), _poses_at(copy))
+    assert result["ate_rmse_m"] < 1e-12 and result["alignment_unique"] is False
+    for gt_positions in (line, np.zeros((10, 3)) + [1.0, 2.0, 3.0]):  # a rail; a static camera
+        estimate = gt_positions + rng.normal(scale=0.05, size=(10, 3))
+
+        def cost(x):
+            moved = estimate @ Rotation.from_rotvec(x[:3]).as_matrix().T + x[3:]
+            return np.sqrt(np.mean(np.sum((moved - gt_positions) ** 2, axis=1)))
+
+        best = min(optimize.minimize(cost, start, method="Powell", options={"xtol": 1e-10, "ftol": 1e-14}).fun
+                   for start in np.concatenate([rng.normal(size=(12, 6)), np.zeros((1, 6))]))
+        result = ev.ate(_poses_at(gt_positions), _poses_at(estimate))
+        assert result["ate_rmse_m"] == pytest.approx(best, rel=1e-6) and not result["alignment_unique"]
+    spread = rng.normal(size=(10, 3))
+    assert ev.ate(_poses_at(spread), _poses_at(spread + rng.normal(scale=0.05, size=(10, 3))))["alignment_unique"] is True
     with pytest.raises(ValueError, match="at least 3"):
         ev.horn_alignment(np.zeros((2, 3)), np.zeros((2, 3)))
+    assert ev.horn_alignment(np.zeros((4, 3)), line[:4], with_scale=True)[2] == 1.0  # no 0 / 0
+
+
+def test_rpe_refuses_missing_poses_as_ate_does():
+    poses = _poses_at(np.random.default_rng(4).normal(size=(5, 3)))
+    holed = poses.copy()
+    holed[2] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf"):
+        ev.rpe(holed, poses)
 
 
 # ------------------------------------------------------------------------------------------
@@ -471,6 +504,29 @@ def test_cli_trajectory_json_and_bad_file(tmp_path, fr2_desk, capsys):
     assert ev.main(["trajectory", str(tmp_path / "gt.txt"), str(bad)]) == 2
     assert f"{bad}:3" in capsys.readouterr().err
     assert ev.main(["trajectory", str(tmp_path / "missing.txt"), str(bad)]) == 2
+
+
+def test_cli_interpolate_scores_at_the_estimate_stamps_as_a_run_does(tmp_path, capsys):
+    """Oracle: a motion that linear interpolation reproduces exactly (constant velocity, constant
+    rotation rate about one axis), sampled at 100 Hz for the ground truth and at frame stamps
+    between samples for the estimate: interpolated, ATE and RPE are 0; nearest, they are not."""
+    def motion(times):
+        poses = np.tile(np.eye(4), (len(times), 1, 1))
+        poses[:, :3, :3] = Rotation.from_rotvec(np.outer(times - 10.0, [0.0, 0.0, 0.5])).as_matrix()
+        poses[:, :3, 3] = np.outer(times - 10.0, [0.8, -0.3, 0.1])
+        return poses
+
+    gt_times = 10.0 + 0.01 * np.arange(300)
+    est_times = 10.0 + 0.004 + np.arange(40) / 15.0  # never on a GT stamp
+    _write_tum(tmp_path / "gt.txt", gt_times, motion(gt_times))
+    _write_tum(tmp_path / "est.txt", est_times, motion(est_times))
+    arguments = ["trajectory", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--json", "--max-diff", "0.02"]
+    assert ev.main(arguments + ["--interpolate"]) == 0
+    interpolated = json.loads(capsys.readouterr().out)
+    assert interpolated["n_matched"] == 40 and interpolated["ate_rmse_m"] < 1e-7 and interpolated["rpe_rot_rmse_deg"] < 1e-5
+    assert ev.main(arguments) == 0
+    nearest = json.loads(capsys.readouterr().out)
+    assert nearest["ate_rmse_m"] > 1e-3  # 4 ms at 0.86 m/s
 
 
 def test_cli_mesh(tmp_path, capsys):

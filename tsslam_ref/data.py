@@ -42,11 +42,11 @@ from tsslam_ref.datasets.layouts import (
     parse_tum,
 )
 from tsslam_ref.datasets.sequence import Frame, RGBDSequence
-from tsslam_ref.datasets.tum_format import TUM_MAX_TIME_DIFF, read_tum_trajectory, write_tum_trajectory
+from tsslam_ref.datasets.tum_format import TUM_MAX_TIME_DIFF, ground_truth_at, read_tum_trajectory, write_tum_trajectory
 
 __all__ = [
     "Intrinsics", "Frame", "RGBDSequence", "detect_dataset", "load_sequence", "load_from_config",
-    "default_sequence_path", "default_synthetic_path", "read_tum_trajectory", "write_tum_trajectory",
+    "default_sequence_path", "default_synthetic_path", "read_tum_trajectory", "write_tum_trajectory", "ground_truth_at",
     "sequence_info", "back_project", "pixel_rays", "LAYOUTS", "DEPTH_SCALES",
     "SHIPPED_TRAJECTORIES", "trajectory_path", "trajectory_origin",
 ]

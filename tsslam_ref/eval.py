@@ -15,9 +15,10 @@ import os
 import sys
 from typing import Dict, Optional, Sequence
 
+import numpy as np
 import trimesh
 
-from tsslam_ref.data import read_tum_trajectory
+from tsslam_ref.data import ground_truth_at, read_tum_trajectory
 from tsslam_ref.reconstruction_metrics import (  # noqa: F401  (re-exported)
     NEAR_PLANE_M,
     OCCLUSION_EPS_M,
@@ -84,6 +85,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     trajectory.add_argument("--scale", action="store_true", help="Sim(3) alignment (estimate scale)")
     trajectory.add_argument("--delta", type=number_in("--delta", 1, 10**9, integer=True), default=1,
                             help="RPE interval in frames, >= 1")
+    trajectory.add_argument("--interpolate", action="store_true",
+                            help="score against the ground truth interpolated at the estimate's stamps, as a run scores "
+                                 "itself (needs a GT stamp within --max-diff), instead of the nearest GT sample")
     trajectory.add_argument("--json", action="store_true", help="print one JSON object")
     mesh = commands.add_parser("mesh", help="accuracy/completion of REC against GT meshes")
     mesh.add_argument("rec")
@@ -99,6 +103,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.command == "trajectory":
             gt_times, gt_poses = read_tum_trajectory(args.gt)
             est_times, est_poses = read_tum_trajectory(args.est, unique_stamps=True)  # one pose per frame
+            if args.interpolate:  # GT at the estimate's own stamps, then matched one to one
+                gt_poses = ground_truth_at(est_times, gt_times, gt_poses, args.max_diff)
+                known = np.all(np.isfinite(gt_poses.reshape(len(gt_poses), -1)), axis=1)
+                gt_times, gt_poses = est_times[known], gt_poses[known]
             result = evaluate_trajectory(
                 gt_times, gt_poses, est_times, est_poses, args.max_diff, args.scale, args.delta
             )

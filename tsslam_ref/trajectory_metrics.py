@@ -146,8 +146,11 @@ def horn_alignment(model, data, with_scale: bool = False) -> Tuple[np.ndarray, n
         ``(R (3, 3), t (3,), s)``.
 
     Raises:
-        ValueError: shape mismatch, fewer than 3 points, non-finite values, or points that do not
-            span a plane (collinear/coincident), where the rotation is not unique.
+        ValueError: shape mismatch, fewer than 3 points, or non-finite values.
+
+    Points that do not span a plane (collinear, e.g. a camera on a rail, or coincident, a static
+    camera) leave the rotation about their line free; this returns one minimiser, and the
+    residuals' lengths (hence ATE) and s are the same for all of them (:func:`alignment_is_unique`).
 
     Differs from: Horn's quaternion paper gives a symmetric scale; like evo and TUM we use
     Umeyama's (model -> data) least-squares scale.
@@ -164,17 +167,21 @@ def horn_alignment(model, data, with_scale: bool = False) -> Tuple[np.ndarray, n
     model_c, data_c = model - mean_model, data - mean_data  # (N, 3)
     Sigma = data_c.T @ model_c / model.shape[0]  # (3, 3)
     U, D, Vt = np.linalg.svd(Sigma)
-    if D[1] <= _SVD_RANK_EPS * max(D[0], 1e-300):
-        raise ValueError(
-            f"alignment is ambiguous: the {model.shape[0]} positions are collinear or coincident "
-            f"(singular values {D}); use a longer trajectory"
-        )
-    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt))])
+    S = np.diag([1.0, 1.0, 1.0 if np.linalg.det(U) * np.linalg.det(Vt) > 0 else -1.0])
     R = U @ S @ Vt
     var_model = (model_c**2).sum(1).mean()
-    s = float(np.trace(np.diag(D) @ S) / var_model) if with_scale else 1.0
+    s = float(np.trace(np.diag(D) @ S) / var_model) if with_scale and var_model > 0 else 1.0
     t = mean_data - s * R @ mean_model
     return R, t, s
+
+
+def alignment_is_unique(model, data) -> bool:
+    """True when the rotation of :func:`horn_alignment` is unique: the cross-covariance of the
+    centred points has rank >= 2 (neither point set collinear or coincident)."""
+    model_c, data_c = _to_float64(model), _to_float64(data)
+    model_c, data_c = model_c - model_c.mean(0), data_c - data_c.mean(0)
+    D = np.linalg.svd(data_c.T @ model_c / model_c.shape[0], compute_uv=False)
+    return bool(D[1] > _SVD_RANK_EPS * max(D[0], 1e-300))
 
 
 # --------------------------------------------------------------------------------------------
@@ -206,7 +213,8 @@ def ate(gt_poses, est_poses, with_scale: bool = False) -> Dict[str, object]:
     Returns:
         dict with ``ate_rmse_m``, ``ate_mean_m``, ``ate_median_m``, ``ate_std_m``, ``ate_min_m``,
         ``ate_max_m``, ``errors_m`` (N,), ``alignment`` (4, 4) = [[sR, t], [0, 1]] (estimate world ->
-        GT world), ``scale``, ``est_positions_aligned_m`` (N, 3).
+        GT world), ``scale``, ``est_positions_aligned_m`` (N, 3), ``alignment_unique`` (False
+        for collinear or coincident positions: ATE is still exact, the alignment one of many).
     """
     gt_poses = _check_poses(gt_poses, "gt_poses")
     est_poses = _check_poses(est_poses, "est_poses")
@@ -218,7 +226,8 @@ def ate(gt_poses, est_poses, with_scale: bool = False) -> Dict[str, object]:
     alignment = np.eye(4)
     alignment[:3, :3], alignment[:3, 3] = s * R, t
     result: Dict[str, object] = _stats(errors, "ate", "m")
-    result.update(errors_m=errors, alignment=alignment, scale=s, est_positions_aligned_m=aligned)
+    result.update(errors_m=errors, alignment=alignment, scale=s, est_positions_aligned_m=aligned,
+                  alignment_unique=alignment_is_unique(est_poses[:, :3, 3], gt_poses[:, :3, 3]))
     return result
 
 
@@ -255,6 +264,8 @@ def rpe(gt_poses, est_poses, delta: int = 1, est_scale: float = 1.0) -> Dict[str
     if int(delta) != delta or delta < 1:
         raise ValueError(f"delta must be a positive integer number of frames, got {delta}")
     delta = int(delta)
+    if not (np.isfinite(gt_poses).all() and np.isfinite(est_poses).all()):
+        raise ValueError("RPE inputs contain NaN or inf (drop the frames without a pose first)")
     if gt_poses.shape[0] <= delta:
         raise ValueError(f"RPE with delta={delta} frames needs more than {delta} poses, got {gt_poses.shape[0]}")
     est_poses[:, :3, 3] *= est_scale  # est_poses is our own copy

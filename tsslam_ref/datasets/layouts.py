@@ -26,7 +26,7 @@ from tsslam_ref.datasets.intrinsics import (
     Intrinsics,
     read_calibration,
 )
-from tsslam_ref.datasets.tum_format import associate_nearest, interpolate_poses, read_file_list, read_tum_trajectory
+from tsslam_ref.datasets.tum_format import associate_nearest, ground_truth_at, read_file_list, read_tum_trajectory
 from tsslam_ref.geometry import opengl_to_opencv_pose
 
 DEPTH_SCALES = {"tum": 5000.0, "scannet": 1000.0, "neural_rgbd": 1000.0, "replica": 6553.5, "folder": 1000.0}
@@ -96,17 +96,6 @@ def _calibrated_intrinsics(folder: Path, first_depth: Path) -> Optional[tuple]:
     return k, calibration.get("depth_scale")
 
 
-def _gt_at(timestamps: np.ndarray, gt_times: np.ndarray, gt_poses: np.ndarray, max_time_diff: float) -> np.ndarray:
-    """GT pose per frame: NaN unless a GT stamp lies within ``max_time_diff`` (TUM's rule); the value
-    is interpolated between the bracketing GT samples (gap <= 2 max_time_diff), else the nearest."""
-    nearest = associate_nearest(timestamps, gt_times, max_time_diff)
-    poses = interpolate_poses(timestamps, gt_times, gt_poses, max_gap=2.0 * max_time_diff)
-    fallback = (nearest >= 0) & ~np.isfinite(poses).all(axis=(1, 2))
-    poses[fallback] = gt_poses[nearest[fallback]]
-    poses[nearest < 0] = np.nan
-    return poses
-
-
 def listed_file(folder: Path, listing: Path, line: int, name: str) -> Path:
     """``folder / name`` for a file named on line ``line`` of ``listing``, checked to stay inside.
 
@@ -144,8 +133,8 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     """TUM RGB-D: rgb.txt, depth.txt, groundtruth.txt; association by nearest stamp (0.02 s).
 
     Each colour frame takes the nearest depth stamp within ``max_time_diff`` (frames without
-    one are dropped: no depth, no RGB-D frame) and the ground truth of :func:`_gt_at`.  The frame
-    timestamp is the colour stamp.  Intrinsics: ``intrinsics.json`` / ``calibration.txt`` in the
+    one are dropped: no depth, no RGB-D frame) and its ground truth
+    (:func:`tsslam_ref.datasets.tum_format.ground_truth_at`).  The frame timestamp is the colour stamp.  Intrinsics: ``intrinsics.json`` / ``calibration.txt`` in the
     folder if present (our resized slices and synthetic sequences), else the published values of
     the camera named by the folder (freiburg1/2/3, fr3 by default).
     """
@@ -169,7 +158,7 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     gt_poses = None
     if gt_file.is_file():
         gt_times, gt_all = read_tum_trajectory(gt_file)
-        gt_poses = _gt_at(timestamps, gt_times, gt_all, max_time_diff)
+        gt_poses = ground_truth_at(timestamps, gt_times, gt_all, max_time_diff)
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
     if calibrated is not None:
         intrinsics, depth_scale = calibrated
@@ -332,7 +321,7 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     for name in ("groundtruth.txt", "trajectory.txt"):
         if (folder / name).is_file():
             gt_times, gt_all = read_tum_trajectory(folder / name)
-            gt_poses = _gt_at(timestamps, gt_times, gt_all, max_time_diff)
+            gt_poses = ground_truth_at(timestamps, gt_times, gt_all, max_time_diff)
             break
     return LayoutIndex("folder", rgb_paths, depth_paths, timestamps, gt_poses, calibrated[0], calibrated[1])
 

@@ -219,3 +219,19 @@ def interpolate_poses(query: np.ndarray, timestamps: np.ndarray, poses: np.ndarr
         rows = np.flatnonzero(inner)[usable]
         out[rows] = pose
     return out
+
+
+def ground_truth_at(timestamps: np.ndarray, gt_times: np.ndarray, gt_poses: np.ndarray, max_time_diff: float) -> np.ndarray:
+    """Ground-truth pose at each of ``timestamps`` (N,) s, as the loaders give it to a frame:
+    NaN unless a GT stamp lies within ``max_time_diff`` s (TUM's rule); the value is interpolated
+    between the bracketing GT samples (gap <= 2 max_time_diff), else the nearest sample's.
+
+    Returns:
+        (N, 4, 4) float64 camera-to-world poses, NaN where unknown.
+    """
+    nearest = associate_nearest(timestamps, gt_times, max_time_diff)
+    poses = interpolate_poses(timestamps, gt_times, gt_poses, max_gap=2.0 * max_time_diff)
+    fallback = (nearest >= 0) & ~np.isfinite(poses).all(axis=(1, 2))
+    poses[fallback] = gt_poses[nearest[fallback]]
+    poses[nearest < 0] = np.nan
+    return poses
