@@ -487,3 +487,14 @@ def test_a_users_own_folder_gets_its_own_layout_and_depth_scale_not_the_presets(
     config_file.write_text(json.dumps({"data": {"dataset": "tum", "depth_scale": 5000.0}}))
     mine = resolved("--data", str(tmp_path), "--config", str(config_file))
     assert (mine.dataset, mine.depth_scale) == ("tum", 5000.0)
+
+
+def test_output_piped_into_a_reader_that_stops_early_ends_quietly():
+    """`spline_kit docs | head -1`: the reader closes the pipe; no BrokenPipeError traceback."""
+    process = subprocess.Popen([sys.executable, "-m", "tsslam_ref.spline_kit", "docs"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, env=dict(os.environ, PYTHONUNBUFFERED="0"))
+    first_line = process.stdout.readline()
+    process.stdout.close()  # as `head -1` does after one line
+    _, stderr = process.communicate(timeout=120)
+    assert first_line and process.returncode == 0, (process.returncode, stderr.decode())
+    assert b"Traceback" not in stderr and b"BrokenPipe" not in stderr, stderr.decode()

@@ -144,7 +144,7 @@ class LossConfig:
     """Lattice points per axis for the smoothness term (Co-SLAM)."""
     smooth_vox: float = ranged(0.1, ">", 0)
     """Lattice spacing (m) (Co-SLAM)."""
-    smooth_margin: float = 0.05
+    smooth_margin: float = ranged(0.05, ">=", 0)
     """Margin (m) from the box when placing the lattice (Co-SLAM)."""
     rgb_missing: float = ranged(0.05, ">=", 0)
     """Colour-loss factor for rays without valid depth (Co-SLAM; effective weight is its square)."""

@@ -318,5 +318,5 @@ class BSplineTrajectory:
     def __repr__(self) -> str:
         start, end = self.domain()
         return (f"BSplineTrajectory(n_ctrl={self.n_ctrl}, dt={self.dt}, t0={self.t0}, uniform={self.uniform}, "
-                f"convention={self.convention!r}, domain=[{start}, {end}), "
+                f"convention={self.convention!r}, covers=[{start}, {end}), "
                 f"dtype={self.control_translations.dtype})")
