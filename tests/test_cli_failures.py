@@ -359,6 +359,7 @@ def runs(tmp_path_factory):
     (planted / "trajectory_50hz.txt").write_text("an earlier run's export")
     (planted / ".trajectory.txt.abcd1234.tmp").write_text("left by a killed run")
     (planted / "notes.txt").write_text("the user's notes")
+    (planted / "tmp_backup1.tmp").write_text("the user's backup")  # a user's name, not one of our temporaries
     outside_before = snapshot(outside)
     finished = cli("run", "--data", "room", "--out", "planted", "--overwrite", *CHEAP, cwd=root)
     assert finished.returncode == 0 and "Traceback" not in finished.stderr, finished.stderr
@@ -378,6 +379,7 @@ def test_overwrite_replaces_only_our_files_never_through_a_link(runs):
     planted = runs["planted"]
     assert snapshot(runs["outside"]) == runs["outside_before"]  # the link targets are byte-identical
     assert (planted / "notes.txt").read_text() == "the user's notes"
+    assert (planted / "tmp_backup1.tmp").read_text() == "the user's backup"
     assert not (planted / "trajectory_50hz.txt").exists()  # the earlier run's export is gone
     assert not (planted / ".trajectory.txt.abcd1234.tmp").exists()
     for name in ("trajectory.png", "metrics.json"):
@@ -498,3 +500,17 @@ def test_output_piped_into_a_reader_that_stops_early_ends_quietly():
     _, stderr = process.communicate(timeout=120)
     assert first_line and process.returncode == 0, (process.returncode, stderr.decode())
     assert b"Traceback" not in stderr and b"BrokenPipe" not in stderr, stderr.decode()
+
+
+def test_synthesize_force_never_deletes_what_the_user_added(tmp_path, capsys):
+    arguments = ["synthesize", "--out", str(tmp_path / "room"), "--frames", "2", "--size", "16x16", "--mesh-voxel", "0.5"]
+    assert data.main(arguments) == 0
+    (tmp_path / "room" / "notes.txt").write_text("mine")
+    (tmp_path / "room" / "run1").mkdir()  # e.g. a run's outputs kept beside the data
+    before = snapshot(tmp_path / "room")
+    assert data.main(arguments + ["--force"]) == 2
+    assert "notes.txt, run1" in capsys.readouterr().err
+    assert snapshot(tmp_path / "room") == before
+    (tmp_path / "room" / "notes.txt").unlink()
+    (tmp_path / "room" / "run1").rmdir()
+    assert data.main(arguments + ["--force"]) == 0  # its own folder alone is replaced

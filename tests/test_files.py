@@ -65,8 +65,9 @@ def test_only_our_stray_temporaries_are_removed(tmp_path):
     outside.write_text("keep")
     run = tmp_path / "run"
     run.mkdir()
-    ours = [".trajectory.txt.ab12cd_3.tmp", "tmpk2j4h5g6.tmp", "tmpk2j4h5g6.ply.tmp", ".checkpoint.pt.zzzzzzzz.tmp"]
-    theirs = [".notes.txt.ab12cd34.tmp", "user.tmp", ".trajectory.txt.tmp", "trajectory.txt"]
+    ours = [".trajectory.txt.ab12cd_3.tmp", ".checkpoint.pt.zzzzzzzz.tmp"]
+    theirs = [".notes.txt.ab12cd34.tmp", "user.tmp", ".trajectory.txt.tmp", "trajectory.txt",
+              "tmp_backup1.tmp", "tmpdata2024.tmp", "tmpk2j4h5g6.ply.tmp"]  # a user's names, whatever their shape
     for name in ours + theirs:
         (run / name).write_text(name)
     (run / ".metrics.json.q1w2e3r4.tmp").symlink_to(outside)

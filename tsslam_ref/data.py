@@ -292,6 +292,12 @@ def _check_synthesize_out(out: Path, force: bool) -> None:
     if force and out.is_dir() and any(out.iterdir()) and not (out / "scene.json").is_file():
         raise ValueError(f"--out {out} is a non-empty folder without scene.json; --force replaces only a folder "
                          f"written by this command, so choose a new folder")
+    from tsslam_ref.synthetic import SEQUENCE_ENTRIES  # lazy: side module
+
+    foreign = sorted(entry.name for entry in out.iterdir() if entry.name not in SEQUENCE_ENTRIES) if force and out.is_dir() else []
+    if foreign:
+        raise ValueError(f"--out {out} also holds {', '.join(foreign[:5])}{' ...' if len(foreign) > 5 else ''}, which this "
+                         f"command did not write; --force replaces the whole folder, so move them out or choose a new folder")
 
 
 def _print_check(sequence: RGBDSequence, n_files: int) -> None:

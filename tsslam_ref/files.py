@@ -25,9 +25,9 @@ from typing import Callable, Iterator, List, Union
 
 PathLike = Union[str, os.PathLike]
 
-_TEMPORARY = re.compile(r"^(?:\.(?P<name>.+)\.[a-z0-9_]{8}|tmp[a-z0-9_]{8}(?:\.ply)?)\.tmp$")
-"""Names of our temporary files: ``.<name>.<8 random characters>.tmp`` (this module, the trajectory
-writer) and ``tmp<8 random characters>[.ply].tmp`` (what earlier versions wrote)."""
+_TEMPORARY = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp$")
+"""Names of our temporary files: ``.<name>.<8 random characters>.tmp``, hidden and named after the
+output they were to become (a user's ``tmp12345678.tmp`` is not ours)."""
 
 
 def normal_mode() -> int:
@@ -84,15 +84,14 @@ def is_temporary_of(name: str, is_output: Callable[[str], bool]) -> bool:
     match = _TEMPORARY.match(name)
     if match is None:
         return False
-    return match.group("name") is None or is_output(match.group("name"))
+    return is_output(match.group("name"))
 
 
 def remove_stray_temporaries(folder: PathLike, is_output: Callable[[str], bool]) -> List[Path]:
     """Remove our temporary files left in ``folder`` by a killed process.
 
     Removed are plain files (or links, which are unlinked, never followed) named
-    ``.<name>.<8 random characters>.tmp`` where ``is_output(name)`` is true, and the
-    ``tmp<8 random characters>[.ply].tmp`` files that earlier versions wrote.  Anything else is
+    ``.<name>.<8 random characters>.tmp`` where ``is_output(name)`` is true.  Anything else is
     left alone.  Returns the removed paths.
     """
     removed = []

@@ -47,6 +47,9 @@ import torch
 from tsslam_ref.datasets.intrinsics import Intrinsics, pixel_rays
 from tsslam_ref.datasets.tum_format import interpolate_poses, read_tum_trajectory, write_tum_trajectory
 
+SEQUENCE_ENTRIES = frozenset({"rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.json",
+                              "gt_mesh.ply", "scene.json"})
+"""What :func:`synthesize` writes into its folder, and all that ``--force`` may replace."""
 ROOM_MIN = (-2.0, -1.5, 0.0)
 ROOM_MAX = (2.0, 1.5, 2.5)
 DEFAULT_BOXES = (  # (centre xyz, half extents xyz, base colour rgb)
