@@ -291,6 +291,17 @@ def test_eval_refuses_repeated_stamps_binary_input_and_bad_thresholds(tmp_path, 
     assert snapshot(tmp_path) == before
 
 
+def test_spline_kit_output_that_cannot_be_written_is_one_line(tmp_path, capsys):
+    vector = spline_kit.shipped_vectors()[0]
+    (tmp_path / "a_folder").mkdir()
+    before = snapshot(tmp_path)
+    refused_in_process(capsys, spline_kit.main, ["evaluate", vector, "-o", tmp_path / "missing" / "out.json"],
+                       "out.json", "missing does not exist")
+    refused_in_process(capsys, spline_kit.main, ["evaluate", vector, "-o", tmp_path / "a_folder", "--force"],
+                       "a_folder", "is a folder")
+    assert snapshot(tmp_path) == before
+
+
 def test_spline_kit_refuses_negative_and_nan_tolerances(tmp_path, capsys):
     reference = spline_kit.shipped_vectors()[0]
     for arguments in (["--atol", "-1"], ["--atol", "nan"], ["--rtol=-1e-9"], ["--rtol", "abc"]):
@@ -514,3 +525,29 @@ def test_synthesize_force_never_deletes_what_the_user_added(tmp_path, capsys):
     (tmp_path / "room" / "notes.txt").unlink()
     (tmp_path / "room" / "run1").rmdir()
     assert data.main(arguments + ["--force"]) == 0  # its own folder alone is replaced
+
+
+def test_an_output_folder_that_cannot_be_written_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
+    """No write permission is refused before the run (the check, as root cannot lose permission,
+    is driven through os.access); a disk that fills up while the outputs are written ends in one
+    line naming the folder, exit 2, not a traceback."""
+    assert data.main(["synthesize", "--out", str(tmp_path / "room"), "--frames", "4", "--size", "32x24",
+                      "--mesh-voxel", "0.5"]) == 0
+    capsys.readouterr()
+    (tmp_path / "empty").mkdir()
+    before = snapshot(tmp_path)
+    with monkeypatch.context() as patch:
+        patch.setattr(run.os, "access", lambda path, mode: False)
+        refused_in_process(capsys, run.main, ["--out", tmp_path / "new" / "run"], "cannot create the output folder",
+                           "no permission to write in")
+        refused_in_process(capsys, run.main, ["--out", tmp_path / "empty"], "empty", "no permission to write in it")
+    assert snapshot(tmp_path) == before
+
+    def disk_full(*_):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(run, "write_outputs", disk_full)
+    arguments = [a for a in CHEAP if a not in ("0:10",)]
+    arguments[arguments.index("--frames") + 1:arguments.index("--frames") + 1] = ["0:3"]
+    refused_in_process(capsys, run.main, arguments + ["--data", tmp_path / "room", "--out", tmp_path / "out"],
+                       "cannot write the outputs in", "No space left on device")

@@ -49,10 +49,13 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
 
     Raises:
         IsADirectoryError: ``path`` is a folder (not a link to one).
+        FileNotFoundError: the folder ``path`` would go into does not exist.
     """
     path = Path(path)
     if path.is_dir() and not path.is_symlink():
         raise IsADirectoryError(f"{path}: is a folder, expected a file name to write")
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"{path}: the folder {path.parent} does not exist")
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(handle)
     try:

@@ -34,6 +34,7 @@ Layer 4 (system).
 
 import argparse
 import json
+import os
 import re
 import sys
 from dataclasses import dataclass
@@ -185,7 +186,11 @@ def _check_output_folder(out: Path, overwrite: bool, resume: bool) -> None:
             parent = parent.parent
         if not parent.is_dir():
             raise BadInput(f"cannot create the output folder {out}: {parent} is not a folder")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise BadInput(f"cannot create the output folder {out}: no permission to write in {parent}")
         return
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise BadInput(f"output folder {out}: no permission to write in it")
     names = [entry.name for entry in out.iterdir()]
     if names and not (overwrite or resume):
         raise BadInput(f"output folder {out} is not empty; pass --overwrite to replace the files of an earlier run "
@@ -464,6 +469,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"interrupted while writing the outputs in {plan.out}; run the same command with --resume "
               f"(or --overwrite) to finish", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except OSError as error:  # the output folder stopped taking files (disk full, permissions changed)
+        print(f"error: cannot write the outputs in {plan.out}: {error}; what was written before is intact "
+              f"(files are replaced whole), free the space or fix the folder and run with --resume or --overwrite",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

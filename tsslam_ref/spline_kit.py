@@ -234,7 +234,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             conformance.check_tolerances(args.atol, args.rtol)
             return 0 if _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol) else 1
         return _check_all(args.folder, args.atol, args.rtol)
-    except (conformance.ConformanceError, FileExistsError, ValueError) as error:
+    except (conformance.ConformanceError, ValueError, OSError) as error:  # OSError: FileExistsError, no such folder, ...
         print(f"error: {error}", file=sys.stderr)
         return 2
 
