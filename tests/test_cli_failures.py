@@ -122,6 +122,9 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--resume", "--overwrite"], ["--resume and --overwrite"]),
     (["--resume"], ["--resume given but the output folder"]),
     (["--set", "tracking.nope=1"], ["unknown key 'tracking.nope'"]),
+    (["--set", "tracking.iters.real=3"], ["unknown key 'tracking.iters.real'"]),  # Python attributes are no keys
+    (["--set", "tracking.__doc__=x"], ["unknown key 'tracking.__doc__'"]),
+    (["--set", "__doc__=x"], ["unknown key '__doc__'"]),
 ])
 def test_every_bad_value_is_refused_naming_it(tmp_path, capsys, arguments, needles):
     before = snapshot(tmp_path)

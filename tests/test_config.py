@@ -113,3 +113,12 @@ def test_ranges_live_with_their_fields_and_each_one_is_enforced():
         bad = _outside(comparison, bound)
         with pytest.raises(ValueError, match=re.escape(f"{key} = {bad!r} must be")):
             config.apply_overrides(config.tum_cpu(), [f"{key}={json.dumps(bad)}"])
+
+
+@pytest.mark.parametrize("values, key", [({"__dict__": 5}, "'__dict__'"), ({"tracking": {"__dict__": 5}}, "'tracking.__dict__'"),
+                                         ({"tracking": {"iters": 3, "__class__": 1}}, "'tracking.__class__'")])
+def test_a_config_file_names_python_attributes_as_unknown_keys(tmp_path, values, key):
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps(values))
+    with pytest.raises(ValueError, match=re.escape(f"mine.json: unknown") + ".*" + re.escape(key)):
+        config.load(str(path))

@@ -28,6 +28,12 @@ def to_dict(cfg: Any) -> Dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+def _has_field(target: Any, name: str) -> bool:
+    """Whether ``target`` is a config dataclass with a field ``name`` (not any Python attribute:
+    ``__doc__`` or ``real`` are no keys)."""
+    return dataclasses.is_dataclass(target) and name in {item.name for item in dataclasses.fields(target)}
+
+
 def set_values(cfg: Any, values: Dict[str, Any], source: str = "<dict>") -> Any:
     """Set the values of a nested dict ``{section: {key: value}}`` on ``cfg`` in place; returns ``cfg``.
 
@@ -35,14 +41,14 @@ def set_values(cfg: Any, values: Dict[str, Any], source: str = "<dict>") -> Any:
     here (:func:`validate` does that).
     """
     for key, value in values.items():
-        if not hasattr(cfg, key):
+        if not _has_field(cfg, key):
             raise ValueError(f"{source}: unknown config section or key '{key}'")
         current = getattr(cfg, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
                 raise ValueError(f"{source}: section '{key}' must be an object, got {type(value).__name__}")
             for sub_key, sub_value in value.items():
-                if not hasattr(current, sub_key):
+                if not _has_field(current, sub_key):
                     raise ValueError(f"{source}: unknown key '{key}.{sub_key}'")
                 setattr(current, sub_key, sub_value)
         else:
@@ -161,10 +167,10 @@ def apply_overrides(cfg: Any, overrides: Sequence[str]) -> Any:
         parts = path.strip().split(".")
         target = cfg
         for part in parts[:-1]:
-            if not hasattr(target, part):
+            if not _has_field(target, part):
                 raise ValueError(f"override '{item}': unknown section '{part}'")
             target = getattr(target, part)
-        if not hasattr(target, parts[-1]) or dataclasses.is_dataclass(getattr(target, parts[-1])):
+        if not _has_field(target, parts[-1]) or dataclasses.is_dataclass(getattr(target, parts[-1])):
             raise ValueError(f"override '{item}': unknown key '{path}'")
         value = _parse_value(text.strip())
         if {f.name: f.type for f in dataclasses.fields(target)}[parts[-1]] is str and not isinstance(value, str):
