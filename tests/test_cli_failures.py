@@ -125,6 +125,7 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--set", "tracking.iters.real=3"], ["unknown key 'tracking.iters.real'"]),  # Python attributes are no keys
     (["--set", "tracking.__doc__=x"], ["unknown key 'tracking.__doc__'"]),
     (["--set", "__doc__=x"], ["unknown key '__doc__'"]),
+    (["--frames", "0:100:10"], ["0.336 s apart", "spline.dt = 0.25 s", "--set spline.dt=0.35"]),  # every 10th frame
 ])
 def test_every_bad_value_is_refused_naming_it(tmp_path, capsys, arguments, needles):
     before = snapshot(tmp_path)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tsslam_ref import knot_policy
+from tsslam_ref import config, knot_policy, knot_schedule
 
 ARGS = dict(dt_min=0.05, dt_max=0.4, rotation_tolerance=0.005, position_tolerance=0.005)
 
@@ -125,3 +125,20 @@ def test_place_knots_names_bad_input():
     times[4] = times[3]
     with pytest.raises(ValueError, match=r"times\[3\]"):
         knot_policy.place_knots(times, rotations, positions, 0.3, **ARGS)
+
+
+def test_frames_further_apart_than_the_uniform_knot_spacing_are_refused():
+    """An interval without a frame leaves its control point to extrapolation and a fit with no data
+    (the curve rings); uniform knots refuse it, naming the gap, and the other settings pass."""
+    cfg = config.tiny()
+    cfg.method, cfg.spline.dt = "tsslam", 0.3
+    times = 1341841873.0 + np.array([0.0, 0.1, 0.2, 0.55, 0.6])
+    with pytest.raises(ValueError, match=r"frames 2 and 3 .* 0\.350 s apart, more than spline\.dt = 0\.3 s.*spline\.dt=0\.35"):
+        knot_schedule.check_frame_spacing(cfg, times)
+    knot_schedule.check_frame_spacing(cfg, times[:3])  # 0.1 s apart: fine
+    for key, value in (("method", "coslam"), ("knots", "adaptive"), ("use_spline", False), ("dt", 0.35)):
+        other = config.tiny()
+        other.method, other.spline.dt = "tsslam", 0.3
+        section = other if key == "method" else other.local_ba if key == "use_spline" else other.spline
+        setattr(section, key, value)
+        knot_schedule.check_frame_spacing(other, times)

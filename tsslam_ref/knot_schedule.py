@@ -13,6 +13,8 @@ Layer 4 (system support): reads the loop's state (``slam.SLAMState``) and its co
 ``knot_policy``.  User doc: docs/system.md, "Adaptive knots".
 """
 
+import math
+
 import numpy as np
 
 from . import knot_policy
@@ -33,6 +35,29 @@ def plan_next_interval(state, frame_index: int, n: int) -> None:
                                              previous_start, start, end, spline_cfg.dt_min, spline_cfg.dt_max,
                                              spline_cfg.rotation_tolerance, spline_cfg.position_tolerance)
     trajectory.plan_interval_end(n + 1, next_end, assumed_spacing=next_end - end)
+
+
+def check_frame_spacing(cfg: Config, timestamps) -> None:
+    """ValueError when two consecutive frames lie more than ``spline.dt`` apart with uniform knots.
+
+    An interval holding no frame has nothing to place its control point: it is extrapolated from
+    the control polygon, and the next fit frees it with no data, so the curve rings there (2 Hz
+    frames with dt = 0.3 s: rotation errors of tens of degrees, exit 0).  Adaptive knots end each
+    interval at a frame and are not affected; nor is a run without the spline.
+    """
+    if cfg.method != "tsslam" or cfg.spline.knots != "uniform" or not cfg.local_ba.use_spline:
+        return
+    times = np.asarray(timestamps, dtype=np.float64)
+    if len(times) < 2:
+        return
+    gaps = np.diff(times)
+    worst = int(np.argmax(gaps))
+    if gaps[worst] > cfg.spline.dt:
+        suggestion = math.ceil(gaps[worst] * 20.0) / 20.0  # the next 0.05 s
+        raise ValueError(
+            f"frames {worst} and {worst + 1} (t = {times[worst]:.6f} s, {times[worst + 1]:.6f} s) are {gaps[worst]:.3f} s "
+            f"apart, more than spline.dt = {cfg.spline.dt} s, so a spline interval would hold no frame to fit its "
+            f"control point; use --set spline.dt={suggestion:g} (or more), --set spline.knots=adaptive, or --method coslam")
 
 
 def check_knot_settings(cfg: Config) -> None:

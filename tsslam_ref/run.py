@@ -291,6 +291,7 @@ def prepare(args: argparse.Namespace) -> Plan:
     if len(sequence) < 2:
         selection = f"--frames {args.frames} selects" if args.frames else f"{sequence.path} has"
         raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
+    knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
     sequence.check_files()
     sequence[0]  # decode frame 0 fully (the map is placed from its depth; an all-zero depth is refused)
     out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"

@@ -141,6 +141,7 @@ def prepare_run(sequence, cfg: Config, device: Optional[torch.device], state: Op
     if np.any(np.diff(np.asarray(sequence.timestamps, dtype=np.float64)) <= 0):
         raise ValueError("frame timestamps must be strictly increasing")
     knot_schedule.check_knot_settings(cfg)
+    knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
     device = device or resolve_device(cfg.device)
     if state is None:
         state = initial_state(sequence, cfg, device)
