@@ -51,7 +51,9 @@ def interruptible(main, prog: str) -> int:
     import sys
 
     try:
-        return main()
+        code = main()
+        sys.stdout.flush()  # here, not at exit, so that a closed pipe is caught below
+        return code
     except KeyboardInterrupt:
         print(f"{prog}: interrupted; nothing was left half-written", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -470,6 +470,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"interrupted while writing the outputs in {plan.out}; run the same command with --resume "
               f"(or --overwrite) to finish", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:  # stdout piped into a reader that quit (`| head`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        print(f"error: standard output was closed (the reader of a pipe quit), so the run stopped; --resume "
+              f"continues it from its last checkpoint in {plan.out}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except OSError as error:  # the output folder stopped taking files (disk full, permissions changed)
         print(f"error: cannot write the outputs in {plan.out}: {error}; what was written before is intact "
               f"(files are replaced whole), free the space or fix the folder and run with --resume or --overwrite",

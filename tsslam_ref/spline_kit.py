@@ -234,6 +234,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             conformance.check_tolerances(args.atol, args.rtol)
             return 0 if _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol) else 1
         return _check_all(args.folder, args.atol, args.rtol)
+    except BrokenPipeError:  # the reader of our output went away: cli_args.interruptible ends quietly
+        raise
     except (conformance.ConformanceError, ValueError, OSError) as error:  # OSError: FileExistsError, no such folder, ...
         print(f"error: {error}", file=sys.stderr)
         return 2
