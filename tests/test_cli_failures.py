@@ -555,3 +555,15 @@ def test_an_output_folder_that_cannot_be_written_is_one_line_and_exit_2(tmp_path
     arguments[arguments.index("--frames") + 1:arguments.index("--frames") + 1] = ["0:3"]
     refused_in_process(capsys, run.main, arguments + ["--data", tmp_path / "room", "--out", tmp_path / "out"],
                        "cannot write the outputs in", "No space left on device")
+
+
+def test_the_closing_line_says_why_there_is_no_ate():
+    from types import SimpleNamespace
+    from tsslam_ref import run_outputs
+
+    two_known = np.full((5, 4, 4), np.nan)
+    two_known[[0, 3]] = np.eye(4)
+    assert run_outputs._why_no_metrics(SimpleNamespace(gt_poses=None)) == "no ground-truth poses, so no ATE / RPE"
+    assert run_outputs._why_no_metrics(SimpleNamespace(gt_poses=np.full((5, 4, 4), np.nan))).startswith("no ground-truth")
+    assert run_outputs._why_no_metrics(SimpleNamespace(gt_poses=two_known)) == (
+        "only 2 frames with a ground-truth pose, so no ATE / RPE (they need 3)")

@@ -638,3 +638,14 @@ def test_folder_layout_refuses_integer_names_of_no_known_unit(tmp_path):
     folder = _folder_layout(tmp_path / "capture", ["10", "5000000010"])  # a 5e9 step: 5 s even in ns
     with pytest.raises(ValueError, match=r"capture/rgb: integer file names 10, 5000000010, \.\.\. step by 5e\+09"):
         data.load_sequence(folder)
+
+
+def test_frames_closer_than_a_microsecond_are_refused(tum_folder):
+    """Trajectory files keep microseconds (%.6f): two frames 0.4 µs apart would share a stamp."""
+    folder, rgb, _, _ = tum_folder
+    lines = (folder / "rgb.txt").read_text().splitlines()
+    stamp = lines[3].split()[0]  # the second frame
+    close = f"{float(lines[2].split()[0]) + 4e-7:.7f}"
+    (folder / "rgb.txt").write_text("\n".join(lines).replace(f"{stamp} ", f"{close} ", 1) + "\n")
+    with pytest.raises(ValueError, match=r"frames 0 and 1 are [0-9.e-]+ s apart .* at least 1 µs apart"):
+        data.load_sequence(folder)

@@ -223,3 +223,8 @@ def test_synthesize_cli_start_offset(tmp_path, shared_data, capsys):
     assert data.main(["synthesize", "--out", str(tmp_path / "y"), "--trajectory", str(trajectory),
                       "--start", "-1"]) == 2
     assert "--start must be >= 0" in capsys.readouterr().err
+    assert data.main(["synthesize", "--out", str(tmp_path / "z"), "--trajectory", "tum_vi_room1", "--start", "2",
+                      "--frames", "8"]) == 2  # the shipped stretch holds 15-24 s of the recording
+    message = capsys.readouterr().err
+    assert "--start 2 s: tum_vi_room1.txt covers 15.000 to 24.000 s" in message and "[15.000, 23.767]" in message, message
+    assert not (tmp_path / "z").exists()

@@ -204,6 +204,7 @@ def load_sequence(
     if require_gt and index.gt_poses is not None:
         _keep_frames_with_gt(index, folder, max_time_diff)
     chosen = _select(index, frame_start, frame_stop, frame_step, folder)
+    _check_microseconds_apart(index.timestamps[chosen], folder)
     depth_scale = _depth_scale(depth_scale, index.depth_scale, kind, folder)
     return RGBDSequence(
         name=folder.resolve().name,
@@ -219,6 +220,18 @@ def load_sequence(
         resize_width=resize_width,
         depth_trunc=depth_trunc,
     )
+
+
+def _check_microseconds_apart(timestamps: np.ndarray, folder: Path) -> None:
+    """ValueError when two frames share a time stamp at the microseconds that trajectory files keep
+    (``%.6f``): their poses would be written at one time, and no evaluator could tell them apart."""
+    written = np.char.mod("%.6f", timestamps)
+    same = np.flatnonzero(written[1:] == written[:-1])
+    if same.size:
+        i = int(same[0])
+        raise ValueError(f"{folder}: frames {i} and {i + 1} are {timestamps[i + 1] - timestamps[i]:.3g} s apart "
+                         f"({timestamps[i]!r}, {timestamps[i + 1]!r} s); trajectories keep time stamps to the "
+                         f"microsecond, so frames must be at least 1 µs apart")
 
 
 def _depth_scale(configured: Optional[float], declared: Optional[float], kind: str, folder: Path) -> float:
@@ -352,6 +365,20 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_start_covered(trajectory: Path, origin: float, start: float, n_frames: int, fps: float) -> None:
+    """ValueError in the command line's terms (--start, seconds after the origin) when the frames
+    from ``start`` fall outside the trajectory's time stamps."""
+    stamps = read_tum_trajectory(trajectory)[0]
+    first, last = float(stamps[0] - origin), float(stamps[-1] - origin)
+    latest = last - (n_frames - 1) / fps
+    if latest < first:
+        raise ValueError(f"{trajectory.name} covers {last - first:.3f} s, too short for {n_frames} frames at {fps:g} fps; "
+                         f"use fewer --frames or a higher --fps")
+    if not first <= start <= latest:
+        raise ValueError(f"--start {start:g} s: {trajectory.name} covers {first:.3f} to {last:.3f} s after its origin, so "
+                         f"{n_frames} frames at {fps:g} fps need --start in [{first:.3f}, {latest:.3f}] s")
+
+
 def _synthesize(args: argparse.Namespace) -> int:
     """``synthesize --out DIR ...``: render a synthetic TUM-layout sequence; prints its folder."""
     from tsslam_ref import synthetic  # lazy: the renderer needs torch
@@ -366,6 +393,7 @@ def _synthesize(args: argparse.Namespace) -> int:
                 raise ValueError(f"--start must be >= 0 seconds and finite, got {args.start}")
         if trajectory is not None:
             start_time = trajectory_origin(trajectory) + args.start
+            _check_start_covered(trajectory, start_time - args.start, args.start, args.frames, args.fps)
         out = synthetic.synthesize(
             args.out, trajectory=trajectory, n_frames=args.frames, width=args.size[0], height=args.size[1],
             fps=args.fps, seed=args.seed, clean_depth=args.clean_depth, overwrite=args.force, mesh_voxel=args.mesh_voxel,

@@ -101,6 +101,14 @@ def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, m
         plt.close(figure)
 
 
+def _why_no_metrics(sequence) -> str:
+    """The closing line's words when a run has no ATE / RPE."""
+    ground_truth = ground_truth_known(sequence)
+    if ground_truth is None or not ground_truth[1].any():
+        return "no ground-truth poses, so no ATE / RPE"
+    return f"only {int(ground_truth[1].sum())} frames with a ground-truth pose, so no ATE / RPE (they need 3)"
+
+
 def write_outputs(plan, result) -> None:
     """trajectory.txt, metrics.json, mesh.ply, the continuous export and the plots of a finished run.
 
@@ -131,8 +139,7 @@ def write_outputs(plan, result) -> None:
     if checkpoint_path.exists() and not args.checkpoint_every:
         checkpoint_path.unlink()
     summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
-    parts = [f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s",
-             summary or "no ground-truth poses, so no ATE / RPE"]
+    parts = [f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s", summary or _why_no_metrics(sequence)]
     if "peak_rss_mib" in metrics:
         parts.append(f"peak RSS {metrics['peak_rss_mib']:.0f} MiB")
     print("; ".join(parts + [f"outputs in {out}"]))
