@@ -122,3 +122,16 @@ def test_a_config_file_names_python_attributes_as_unknown_keys(tmp_path, values,
     path.write_text(json.dumps(values))
     with pytest.raises(ValueError, match=re.escape(f"mine.json: unknown") + ".*" + re.escape(key)):
         config.load(str(path))
+
+
+def test_a_partial_config_file_starts_from_the_preset_it_names(tmp_path):
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps({"name": "tum-cpu", "tracking": {"iters": 10}}))
+    expected = config.tum_cpu()
+    expected.tracking.iters = 10
+    assert config.load(str(path)) == expected
+    path.write_text(json.dumps({"tracking": {"iters": 10}}))  # no preset named: the built-in defaults
+    assert config.load(str(path)).tracking.n_rays == config.Config().tracking.n_rays
+    saved = tmp_path / "saved.json"
+    config.save(config.synthetic_cpu(), str(saved))
+    assert config.load(str(saved)) == config.synthetic_cpu()

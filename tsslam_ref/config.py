@@ -406,11 +406,20 @@ PRESETS: Dict[str, Callable[[], Config]] = {
 
 
 def load(name_or_file: str) -> Config:
-    """A preset by name (see :data:`PRESETS`) or a JSON config file written by :func:`save`."""
+    """A preset by name (see :data:`PRESETS`) or a JSON config file (as :func:`save` writes).
+
+    A file's values are set on the preset its ``"name"`` names (a saved config names the preset it
+    started from), so ``{"name": "tum-cpu", "tracking": {"iters": 10}}`` is tum-cpu with 10
+    tracking iterations; a file without a preset name starts from :class:`Config`'s defaults.
+    """
     if name_or_file in PRESETS:
         return PRESETS[name_or_file]()
     if os.path.isfile(name_or_file):
-        return from_dict(read_json_values(name_or_file), source=name_or_file)
+        values = read_json_values(name_or_file)
+        base = values.get("name")
+        if isinstance(base, str) and base in PRESETS:
+            return validate(set_values(PRESETS[base](), values, name_or_file), name_or_file)
+        return from_dict(values, source=name_or_file)
     raise ValueError(
         f"config '{name_or_file}' is neither a preset ({', '.join(PRESETS)}) nor an existing JSON file"
     )
