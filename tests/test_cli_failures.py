@@ -126,6 +126,9 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--set", "tracking.__doc__=x"], ["unknown key 'tracking.__doc__'"]),
     (["--set", "__doc__=x"], ["unknown key '__doc__'"]),
     (["--frames", "0:100:10"], ["0.336 s apart", "spline.dt = 0.25 s", "--set spline.dt=0.35"]),  # every 10th frame
+    (["--set", "tracking.ignore_edge=60"], ["tracking.ignore_edge = 60 px", "160x120", "expected < 60"]),  # was mid-run
+    (["--set", "tracking.n_rays=30000"], ["tracking.n_rays = 30000", "16500 pixels"]),
+    (["--set", "mapping.first_n_rays=30000"], ["mapping.first_n_rays = 30000", "19200 pixels"]),
 ])
 def test_every_bad_value_is_refused_naming_it(tmp_path, capsys, arguments, needles):
     before = snapshot(tmp_path)

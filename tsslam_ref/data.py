@@ -114,12 +114,15 @@ def trajectory_origin(path) -> float:
 
 
 def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int, path: Path):
+    """Indices of the frames ``[frame_start:frame_stop:frame_step]``; ValueError for none, or two of
+    them less than 1 µs apart."""
     n = len(index.timestamps)
     if frame_step < 1 or frame_start < 0 or (frame_stop is not None and frame_stop < 0):
         raise ValueError(f"invalid frame range start={frame_start} stop={frame_stop} step={frame_step} (need start, stop >= 0, step >= 1)")
     chosen = np.arange(n)[frame_start:frame_stop:frame_step]
     if len(chosen) == 0:
         raise ValueError(f"{path}: frame range start={frame_start} stop={frame_stop} step={frame_step} selects no frame out of {n}")
+    _check_microseconds_apart(index.timestamps[chosen], path)
     return chosen
 
 
@@ -204,7 +207,6 @@ def load_sequence(
     if require_gt and index.gt_poses is not None:
         _keep_frames_with_gt(index, folder, max_time_diff)
     chosen = _select(index, frame_start, frame_stop, frame_step, folder)
-    _check_microseconds_apart(index.timestamps[chosen], folder)
     depth_scale = _depth_scale(depth_scale, index.depth_scale, kind, folder)
     return RGBDSequence(
         name=folder.resolve().name,

@@ -48,7 +48,7 @@ from . import checkpoint as checkpoint_module
 from . import config as config_module
 from . import data as data_module
 from . import device as device_module
-from . import knot_schedule
+from . import knot_schedule, tracking
 from .cli_args import OneLineParser, number_in
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
@@ -293,7 +293,8 @@ def prepare(args: argparse.Namespace) -> Plan:
         raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
     knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
     sequence.check_files()
-    sequence[0]  # decode frame 0 fully (the map is placed from its depth; an all-zero depth is refused)
+    first = sequence[0]  # decode frame 0 fully (the map is placed from its depth; an all-zero depth is refused)
+    tracking.check_ray_budget(cfg, *first.depth.shape)  # the loop's own check, on the processed size
     out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
     _check_output_folder(out, args.overwrite, args.resume)
     plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)

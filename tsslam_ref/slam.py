@@ -52,7 +52,7 @@ from .losses import RenderLossSettings
 from .mapping import estimate_bound, fit_map, make_map_optimizer
 from .render import RayBatch
 from .timings import Timings
-from .tracking import TrackingResult, constant_velocity_init, track_frame
+from .tracking import TrackingResult, check_ray_budget, constant_velocity_init, track_frame
 from .trajectory import BSplineTrajectory
 
 
@@ -142,6 +142,7 @@ def prepare_run(sequence, cfg: Config, device: Optional[torch.device], state: Op
         raise ValueError("frame timestamps must be strictly increasing")
     knot_schedule.check_knot_settings(cfg)
     knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
+    check_ray_budget(cfg, *sequence[0].depth.shape)
     device = device or resolve_device(cfg.device)
     if state is None:
         state = initial_state(sequence, cfg, device)

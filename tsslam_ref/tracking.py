@@ -26,7 +26,7 @@ from typing import List, Optional
 
 import torch
 
-from .config import TrackingConfig
+from .config import Config, TrackingConfig
 from .bundle import PoseIncrement, frozen
 from .geometry import invert_pose, make_pose, orthonormalize
 from .losses import RenderLossSettings, render_loss
@@ -107,3 +107,19 @@ def track_frame(
             loss.backward()
             optimizer.step()
     return TrackingResult(pose=best_pose, losses=losses, best_iteration=best_iteration)
+
+
+def check_ray_budget(cfg: Config, height: int, width: int) -> None:
+    """ValueError naming the key when a frame of ``height`` x ``width`` px (after crop and resize)
+    has fewer pixels than a step samples: tracking inside ``tracking.ignore_edge``, the first map."""
+    edge = cfg.tracking.ignore_edge
+    inner = max(0, height - 2 * edge) * max(0, width - 2 * edge)
+    if inner == 0:
+        raise ValueError(f"tracking.ignore_edge = {edge} px leaves no pixel of the {width}x{height} frames; "
+                         f"expected < {min(height, width) // 2 + min(height, width) % 2}")
+    if cfg.tracking.n_rays > inner:
+        raise ValueError(f"tracking.n_rays = {cfg.tracking.n_rays} is more than the {inner} pixels of a {width}x{height} "
+                         f"frame inside tracking.ignore_edge = {edge} px")
+    if cfg.mapping.first_n_rays > height * width:
+        raise ValueError(f"mapping.first_n_rays = {cfg.mapping.first_n_rays} is more than the {height * width} pixels "
+                         f"of a {width}x{height} frame")
