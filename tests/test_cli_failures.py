@@ -275,6 +275,7 @@ def test_broken_calibration_and_ground_truth_mesh_are_named_before_the_run(datas
     assert not (tmp_path / "out").exists()
     (dataset / "intrinsics.json").write_bytes(np.random.default_rng(5).bytes(300))
     refused_in_process(capsys, data.main, ["info", dataset], "intrinsics.json", "not a text file")
+    refused_in_process(capsys, data.main, ["info", dataset / "rgb.txt"], "rgb.txt", "is a file; expected a dataset folder")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -293,7 +294,9 @@ def test_eval_refuses_repeated_stamps_binary_input_and_bad_thresholds(tmp_path, 
     for arguments, needle in ((["mesh", "a.ply", "b.ply", "--threshold", "nan"], "--threshold nan"),
                               (["trajectory", gt, gt, "--max-diff", "0"], "--max-diff 0"),
                               (["trajectory", gt, gt, "--delta", "0"], "--delta 0"),
-                              (["mesh", "a.ply", "b.ply", "--points", "0"], "--points 0")):
+                              (["mesh", "a.ply", "b.ply", "--points", "0"], "--points 0"),
+                              (["trajectory", tmp_path, gt], "is a folder; expected a text file"),
+                              (["mesh", tmp_path, tmp_path], "is a folder; expected a mesh file")):
         refused_in_process(capsys, evaluation.main, arguments, needle)
     assert snapshot(tmp_path) == before
 

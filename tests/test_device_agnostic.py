@@ -94,3 +94,14 @@ def test_the_command_line_in_two_threads_runs_on_the_stand_in(small_sequence, tm
     with VirtualDevice():
         assert run.main(arguments) == 0
     assert (out / "trajectory.txt").is_file() and (out / "mesh.ply").is_file()
+
+
+def test_a_cuda_device_number_the_machine_lacks_is_refused_naming_it(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # a one-GPU machine, as CUDA reports it
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert device_module.resolve_device("cuda:0") == torch.device("cuda", 0)
+    with pytest.raises(ValueError, match=r"device 'cuda:1' was asked for but this machine has 1 CUDA device"):
+        device_module.resolve_device("cuda:1")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match=r"device 'cuda:1' was asked for but torch.cuda.is_available\(\) is False"):
+        device_module.resolve_device("cuda:1")

@@ -130,7 +130,7 @@ def _layout_of(folder: Path, dataset: str) -> str:
     """The layout of ``folder``: ``dataset`` itself, or detected for 'auto'; raises for a missing
     folder or an unknown layout name."""
     if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: dataset folder not found")
+        raise FileNotFoundError(f"{folder}: " + ("is a file; expected a dataset folder" if folder.exists() else "dataset folder not found"))
     kind = detect_dataset(folder) if dataset == "auto" else dataset
     if kind not in LAYOUTS:
         raise ValueError(f"dataset '{dataset}' unknown; expected 'auto' or one of {sorted(LAYOUTS)}")

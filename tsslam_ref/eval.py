@@ -51,7 +51,7 @@ __all__ = [
 
 def _load_mesh(path: str) -> trimesh.Trimesh:
     if not os.path.isfile(path):
-        raise ValueError(f"{path}: mesh file not found")
+        raise ValueError(f"{path}: " + ("is a folder; expected a mesh file" if os.path.isdir(path) else "mesh file not found"))
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as error:  # trimesh raises many kinds of errors for bad files

@@ -378,7 +378,7 @@ def detect_dataset(path) -> str:
     """
     folder = Path(path)
     if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: dataset folder not found")
+        raise FileNotFoundError(f"{folder}: " + ("is a file; expected a dataset folder" if folder.exists() else "dataset folder not found"))
     checks = _looks_like(folder)
     for kind, missing in checks.items():
         if not missing:

@@ -31,7 +31,7 @@ def _data_lines(path: Path, commas: bool = True):
     Fields are separated by white space, and by commas too when ``commas`` (numeric rows)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
+        raise FileNotFoundError(f"{path}: " + ("is a folder; expected a text file" if path.is_dir() else "file not found"))
     with open(path, "rb") as handle:
         for number, raw in enumerate(handle, start=1):
             try:
