@@ -573,3 +573,23 @@ def test_the_closing_line_says_why_there_is_no_ate():
     assert run_outputs._why_no_metrics(SimpleNamespace(gt_poses=np.full((5, 4, 4), np.nan))).startswith("no ground-truth")
     assert run_outputs._why_no_metrics(SimpleNamespace(gt_poses=two_known)) == (
         "only 2 frames with a ground-truth pose, so no ATE / RPE (they need 3)")
+
+
+@pytest.mark.parametrize("motion", ["standing still", "turning in place"])
+def test_a_camera_standing_still_or_turning_in_place_gets_its_ate(tmp_path, capsys, motion):
+    """Collinear or coincident ground-truth positions made the run crash after its last frame (the
+    alignment refused them), with no metrics.json; now both methods finish with a finite ATE."""
+    times = np.arange(0.0, 2.0, 0.01)
+    yaw = np.radians(10.0) * times if motion == "turning in place" else np.zeros_like(times)
+    half = yaw / 2.0  # quaternion of a rotation about the camera's y axis (x, y, z, w)
+    rows = np.column_stack([times, np.zeros((len(times), 3)), np.zeros_like(half), np.sin(half), np.zeros_like(half), np.cos(half)])
+    np.savetxt(tmp_path / "motion.txt", rows, fmt="%.9f")
+    assert data.main(["synthesize", "--out", str(tmp_path / "room"), "--trajectory", str(tmp_path / "motion.txt"),
+                      "--frames", "8", "--size", "48x36", "--fps", "10", "--mesh-voxel", "0.5"]) == 0
+    for method in ("coslam", "tsslam"):
+        arguments = [a for a in CHEAP if a != "coslam"]
+        arguments[arguments.index("--method") + 1:arguments.index("--method") + 1] = [method]
+        out = tmp_path / f"out_{method}"
+        assert run.main(arguments + ["--data", str(tmp_path / "room"), "--out", str(out)]) == 0, capsys.readouterr().err
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert np.isfinite(metrics["ate_rmse_m"]) and metrics["ate_rmse_m"] < 0.5, metrics
