@@ -593,3 +593,20 @@ def test_a_camera_standing_still_or_turning_in_place_gets_its_ate(tmp_path, caps
         assert run.main(arguments + ["--data", str(tmp_path / "room"), "--out", str(out)]) == 0, capsys.readouterr().err
         metrics = json.loads((out / "metrics.json").read_text())
         assert np.isfinite(metrics["ate_rmse_m"]) and metrics["ate_rmse_m"] < 0.5, metrics
+
+
+def test_a_map_without_a_surface_still_ends_with_metrics(runs, tmp_path, monkeypatch, capsys):
+    """Meshing after the last frame can find no surface; the trajectory and its metrics are written
+    anyway, with a note, exit 0 (it was a traceback with no metrics.json)."""
+    from tsslam_ref import mesh
+
+    def no_surface(*_, **__):
+        raise ValueError("extract_mesh: the SDF has no zero crossing inside the bound")
+
+    monkeypatch.setattr(mesh, "extract_mesh", no_surface)
+    with_mesh = [argument for argument in CHEAP if argument != "--no-mesh"]
+    assert run.main(with_mesh + ["--data", str(runs["root"] / "room"), "--out", str(tmp_path / "out")]) == 0
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert "ate_rmse_m" in metrics and metrics["mesh_note"].startswith("no mesh.ply: extract_mesh: the SDF has no zero")
+    assert not (tmp_path / "out" / "mesh.ply").exists()
+    assert "warning: no mesh.ply" in capsys.readouterr().err

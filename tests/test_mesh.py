@@ -93,3 +93,36 @@ def test_no_surface_raises():
     field = AnalyticField(lambda p: torch.ones(p.shape[0], dtype=p.dtype))
     with pytest.raises(ValueError, match="zero crossing"):
         extract_mesh(field, voxel_size=0.1)
+
+
+class UnitBoxField:
+    """A normalised SDF given directly (no truncation scaling) on the unit box."""
+
+    def __init__(self, sdf):
+        self.sdf = sdf
+        self.bound = torch.tensor([[0.0, 1.0]] * 3, dtype=torch.float64)
+
+
+def test_the_cutoff_keeps_exactly_the_cells_whose_corners_are_near_the_surface():
+    """Co-SLAM's rule per cell: mesh it iff all 8 corners have |s| < cutoff.  Oracle: fields whose
+    one crossing cell is (or is not) such a cell, anywhere in the box, the last layer included."""
+    def steps(values, edges):  # s as a step function of x: values[i] between edges[i-1] and edges[i]
+        return lambda p: torch.as_tensor(np.asarray(values)[np.searchsorted(edges, p[:, 0].numpy(), side="right")],
+                                         dtype=p.dtype)
+
+    far_corner = UnitBoxField(steps([-10.0, 1.0], [0.45]))  # crossing cell 0.4-0.5 has a corner at -10
+    with pytest.raises(ValueError, match="zero crossing"):
+        extract_mesh(far_corner, voxel_size=0.1, sdf_cutoff=3.0, color=False)
+    near_corners = UnitBoxField(steps([-1.0, 1.0, 10.0], [0.45, 0.55]))  # corners -1 / +1: kept
+    wall = extract_mesh(near_corners, voxel_size=0.1, sdf_cutoff=3.0, color=False)
+    assert np.allclose(wall.vertices[:, 0], 0.45) and np.ptp(wall.vertices[:, 1]) == pytest.approx(1.0)
+    top_layer = UnitBoxField(lambda p: (p[:, 0] - 0.95) / 0.1)  # the crossing in the box's last cell
+    plane = extract_mesh(top_layer, voxel_size=0.1, sdf_cutoff=3.0, color=False)
+    assert np.allclose(plane.vertices[:, 0], 0.95) and np.ptp(plane.vertices[:, 2]) == pytest.approx(1.0)
+
+
+def test_a_grid_too_large_is_refused_before_any_memory_is_taken():
+    field = UnitBoxField(lambda p: p[:, 0] - 0.5)
+    field.bound = torch.tensor([[0.0, 82.0], [0.0, 62.0], [0.0, 67.0]], dtype=torch.float64)  # a depth scale 10x off
+    with pytest.raises(ValueError, match=r"82.0 x 62.0 x 67.0 m bound at voxel_size 0.03 m needs 1.26e\+10 grid points"):
+        extract_mesh(field, voxel_size=0.03, color=False)

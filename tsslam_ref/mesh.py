@@ -25,6 +25,11 @@ from skimage.measure import marching_cubes
 from .files import atomic_write_bytes
 
 
+MAX_GRID_POINTS = 400_000_000
+"""Largest marching-cubes grid (about 1.6 GB of float32 SDF values, 6 GB with the masks and the
+float64 copy scikit-image takes); tum-cpu's final mesh of the bundled slice has 2.2 million points."""
+
+
 def _grid_axes(bound: np.ndarray, voxel_size: float):
     """Per-axis sample coordinates: N = round(extent / voxel + 0.0005) cells, N + 1 points."""
     axes = []
@@ -33,6 +38,11 @@ def _grid_axes(bound: np.ndarray, voxel_size: float):
         if n_cells < 1:
             raise ValueError(f"bound side {high - low:.4f} m is smaller than voxel_size {voxel_size} m")
         axes.append(np.linspace(low, high, n_cells + 1))
+    n_points = int(np.prod([len(axis) for axis in axes], dtype=np.float64))
+    if n_points > MAX_GRID_POINTS:
+        sides = " x ".join(f"{high - low:.1f}" for low, high in bound)
+        raise ValueError(f"a mesh of the {sides} m bound at voxel_size {voxel_size} m needs {n_points:.3g} grid points "
+                         f"(more than {MAX_GRID_POINTS:.0e}); raise the voxel size (mesh.voxel_final) or check the depth scale")
     return axes
 
 
@@ -119,11 +129,15 @@ def extract_mesh(
             for dz in (0, 1):
                 cell_keep &= near[dx : dx + near.shape[0] - 1, dy : dy + near.shape[1] - 1, dz : dz + near.shape[2] - 1]
     mask = np.zeros(near.shape, dtype=bool)
-    mask[:-1, :-1, :-1] = cell_keep  # scikit-image reads a cell's mask at its lowest corner
+    mask[1:, 1:, 1:] = cell_keep  # scikit-image reads a cell's mask at its highest corner (tested)
     if not (sdf.min() < 0 < sdf.max()) or not cell_keep.any():
         raise ValueError("extract_mesh: the SDF has no zero crossing inside the bound")
     spacing = tuple(float(axis[1] - axis[0]) for axis in axes)
-    vertices, faces, _, _ = marching_cubes(sdf, level=0.0, spacing=spacing, mask=mask)
+    try:
+        vertices, faces, _, _ = marching_cubes(sdf, level=0.0, spacing=spacing, mask=mask)
+    except RuntimeError:  # scikit-image: "No surface found" in the kept cells
+        raise ValueError(f"extract_mesh: the SDF has no zero crossing in the cells near a surface "
+                         f"(all 8 corners with |s| < sdf_cutoff = {sdf_cutoff})") from None
     vertices = vertices + bound[:, 0]
     # scikit-image's default ("descent") winding already points face normals to positive SDF.
     vertex_colors = None

@@ -9,6 +9,7 @@ and calls these.
 """
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -109,6 +110,25 @@ def _why_no_metrics(sequence) -> str:
     return f"only {int(ground_truth[1].sum())} frames with a ground-truth pose, so no ATE / RPE (they need 3)"
 
 
+def mesh_outputs(plan, field) -> dict:
+    """Write ``mesh.ply`` of the final map; returns the reconstruction metrics (when a GT mesh is
+    known), or a ``mesh_note`` when the map holds no surface to mesh or its grid is too large: the
+    run's trajectory and metrics are written either way."""
+    from .mesh import extract_mesh, save_mesh
+
+    cfg = plan.cfg
+    try:
+        mesh = extract_mesh(field, None, cfg.mesh.voxel_final, sdf_cutoff=cfg.mesh.sdf_cutoff)
+    except ValueError as error:
+        note = f"no mesh.ply: {error}"
+        print(f"warning: {note}", file=sys.stderr)
+        return {"mesh_note": note}
+    save_mesh(mesh, plan.out / "mesh.ply", overwrite=True)
+    if plan.gt_mesh is None or len(mesh.faces) == 0:
+        return {}
+    return reconstruction_metrics(mesh, plan.gt_mesh, plan.sequence, cfg.seed)
+
+
 def write_outputs(plan, result) -> None:
     """trajectory.txt, metrics.json, mesh.ply, the continuous export and the plots of a finished run.
 
@@ -117,7 +137,6 @@ def write_outputs(plan, result) -> None:
     """
     args, cfg, sequence, out = plan.args, plan.cfg, plan.sequence, plan.out
     from .export import export_continuous
-    from .mesh import extract_mesh, save_mesh
 
     data_module.write_tum_trajectory(out / "trajectory.txt", result.timestamps, result.poses, overwrite=True)
     metrics = {"method": cfg.method, "sequence": sequence.name, "frames": int(len(sequence)),
@@ -126,10 +145,7 @@ def write_outputs(plan, result) -> None:
     metrics["runtime"] = result.state.timings.table()
     metrics["environment"] = compute_environment(plan.device)
     if not args.no_mesh:
-        mesh = extract_mesh(result.state.field, None, cfg.mesh.voxel_final, sdf_cutoff=cfg.mesh.sdf_cutoff)
-        save_mesh(mesh, out / "mesh.ply", overwrite=True)
-        if plan.gt_mesh is not None and len(mesh.faces) > 0:
-            metrics.update(reconstruction_metrics(mesh, plan.gt_mesh, sequence, cfg.seed))
+        metrics.update(mesh_outputs(plan, result.state.field))
     if args.export_rate is not None:
         export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
     metrics.update(peak_memory(plan.device))  # after the mesh: the run's and the mesh's peak
