@@ -33,6 +33,20 @@ def test_export_of_a_spline_at_timestamp_size_writes_every_sample(tmp_path, rate
     trajectory = BSplineTrajectory(torch.eye(3, dtype=torch.float64).repeat(6, 1, 1),
                                    torch.zeros(6, 3, dtype=torch.float64), 0.3, STAMP - 0.6)
     start, end = trajectory.domain()
-    rows = export_continuous(SimpleNamespace(trajectory=trajectory), rate, tmp_path / "export.txt")
+    frames_past_the_end = SimpleNamespace(trajectory=trajectory, timestamps=np.array([start, end + 1.0]), done=2)
+    rows = export_continuous(frames_past_the_end, rate, tmp_path / "export.txt")
     assert rows[0, 0] == start and rows[-1, 0] < end and len(rows) == len(export_times(start, end, rate))
     assert np.loadtxt(tmp_path / "export.txt").shape == rows.shape
+
+
+def test_the_export_stops_at_the_last_frame_not_at_the_end_of_the_last_interval(tmp_path):
+    """Past the last frame the spline is held by nothing; the export ends at that frame's time,
+    which it includes when a sample falls on it."""
+    trajectory = BSplineTrajectory(torch.eye(3, dtype=torch.float64).repeat(6, 1, 1),
+                                   torch.zeros(6, 3, dtype=torch.float64), 0.25, 100.0 - 0.5)
+    start, end = trajectory.domain()  # [100.0, 100.75)
+    state = SimpleNamespace(trajectory=trajectory, timestamps=np.array([100.0, 100.3, 100.5, 100.7]), done=3)
+    rows = export_continuous(state, 10.0, tmp_path / "export.txt")
+    assert np.allclose(rows[:, 0], 100.0 + np.arange(6) / 10.0, rtol=0, atol=1e-12)  # 100.0 .. 100.5, frame 2's time
+    state.done = 4
+    assert export_continuous(state, 10.0, tmp_path / "export.txt")[-1, 0] == pytest.approx(100.7)

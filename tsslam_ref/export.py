@@ -57,10 +57,13 @@ def export_times(start: float, end: float, rate_hz: float) -> np.ndarray:
 
 
 def export_continuous(state, rate_hz: float, path) -> np.ndarray:
-    """Sample the spline at ``rate_hz`` over its domain and write one line per time, atomically.
+    """Sample the spline at ``rate_hz`` over the frames' time span and write one line per time, atomically.
 
-    The times are t_i = start + i / rate_hz for every i with t_i < end (the domain is half-open),
-    each computed from its index: accumulating steps, as ``np.arange`` does, drifts at the
+    The times are t_i = start + i / rate_hz from the domain's start (the first frame) up to the
+    last processed frame's time (``state.timestamps[state.done - 1]``), and before the domain's
+    half-open end.  The spline goes on past the last frame to the end of its last interval, held
+    there by no frame (an extrapolation that can run metres off): that part is not written.  Each
+    time is computed from its index: accumulating steps, as ``np.arange`` does, drifts at the
     magnitude of real timestamps (1e9 s) and could put the last time past the end.
     Columns: t tx ty tz qx qy qz qw vx vy vz wx wy wz, with v the world-frame linear velocity
     (m/s) and w the body-frame angular velocity (rad/s).  Replaces ``path`` atomically (``files.atomic_path``;
@@ -68,7 +71,8 @@ def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     if rate_hz <= 0:
         raise ValueError(f"--export-rate must be positive, got {rate_hz}")
     start, end = state.trajectory.domain()
-    times = export_times(start, end, rate_hz)
+    last_frame = float(state.timestamps[state.done - 1])
+    times = export_times(start, min(end, float(np.nextafter(last_frame, np.inf))), rate_hz)
     sample = state.trajectory.evaluate(times, derivatives=1)
     poses = make_pose(sample.rotation, sample.translation).detach().cpu().double().numpy()
     rows = np.concatenate([times[:, None], pose_to_tum(poses), sample.velocity_world.detach().cpu().double().numpy(),
