@@ -129,14 +129,20 @@ def test_place_knots_names_bad_input():
 
 def test_frames_further_apart_than_the_uniform_knot_spacing_are_refused():
     """An interval without a frame leaves its control point to extrapolation and a fit with no data
-    (the curve rings); uniform knots refuse it, naming the gap, and the other settings pass."""
+    (the curve rings): a gap longer than the shortest interval is refused, naming it and the way out."""
     cfg = config.tiny()
     cfg.method, cfg.spline.dt = "tsslam", 0.3
     times = 1341841873.0 + np.array([0.0, 0.1, 0.2, 0.55, 0.6])
     with pytest.raises(ValueError, match=r"frames 2 and 3 .* 0\.350 s apart, more than spline\.dt = 0\.3 s.*spline\.dt=0\.35"):
         knot_schedule.check_frame_spacing(cfg, times)
     knot_schedule.check_frame_spacing(cfg, times[:3])  # 0.1 s apart: fine
-    for key, value in (("method", "coslam"), ("knots", "adaptive"), ("use_spline", False), ("dt", 0.35)):
+    cfg.spline.knots, cfg.spline.dt_min = "adaptive", 0.1  # its shortest interval: the 0.35 s gap is refused too
+    with pytest.raises(ValueError, match=r"more than the shortest adaptive interval, min\(spline\.dt, spline\.dt_min\) = 0\.1 s"
+                                         r".*--set spline\.dt_min=0\.35 --set spline\.dt=0\.35"):
+        knot_schedule.check_frame_spacing(cfg, times)
+    cfg.spline.dt_min = cfg.spline.dt = 0.35
+    knot_schedule.check_frame_spacing(cfg, times)
+    for key, value in (("method", "coslam"), ("use_spline", False), ("dt", 0.35)):
         other = config.tiny()
         other.method, other.spline.dt = "tsslam", 0.3
         section = other if key == "method" else other.local_ba if key == "use_spline" else other.spline

@@ -38,26 +38,34 @@ def plan_next_interval(state, frame_index: int, n: int) -> None:
 
 
 def check_frame_spacing(cfg: Config, timestamps) -> None:
-    """ValueError when two consecutive frames lie more than ``spline.dt`` apart with uniform knots.
+    """ValueError when two consecutive frames lie further apart than the shortest spline interval.
 
     An interval holding no frame has nothing to place its control point: it is extrapolated from
     the control polygon, and the next fit frees it with no data, so the curve rings there (2 Hz
-    frames with dt = 0.3 s: rotation errors of tens of degrees, exit 0).  Adaptive knots end each
-    interval at a frame and are not affected; nor is a run without the spline.
+    frames with dt = 0.3 s: rotation errors of tens of degrees, exit 0).  The shortest interval is
+    ``spline.dt`` with uniform knots; with adaptive knots the first interval's ``spline.dt`` or
+    ``spline.dt_min``, whichever is shorter (intervals planned at it then step over frames, and
+    the policy, which measures the motion from the frames inside them, never recovers).  A run
+    without the spline has no intervals to leave empty.
     """
-    if cfg.method != "tsslam" or cfg.spline.knots != "uniform" or not cfg.local_ba.use_spline:
+    if cfg.method != "tsslam" or not cfg.local_ba.use_spline:
         return
     times = np.asarray(timestamps, dtype=np.float64)
     if len(times) < 2:
         return
     gaps = np.diff(times)
     worst = int(np.argmax(gaps))
-    if gaps[worst] > cfg.spline.dt:
+    uniform = cfg.spline.knots == "uniform"
+    shortest = cfg.spline.dt if uniform else min(cfg.spline.dt, cfg.spline.dt_min)
+    if gaps[worst] > shortest:
         suggestion = math.ceil(gaps[worst] * 20.0) / 20.0  # the next 0.05 s
+        which, fix = ((f"spline.dt = {cfg.spline.dt} s", f"--set spline.dt={suggestion:g} (or more)") if uniform else
+                      (f"the shortest adaptive interval, min(spline.dt, spline.dt_min) = {shortest} s",
+                       f"--set spline.dt_min={suggestion:g} --set spline.dt={max(suggestion, cfg.spline.dt):g} (or more)"))
         raise ValueError(
             f"frames {worst} and {worst + 1} (t = {times[worst]:.6f} s, {times[worst + 1]:.6f} s) are {gaps[worst]:.3f} s "
-            f"apart, more than spline.dt = {cfg.spline.dt} s, so a spline interval would hold no frame to fit its "
-            f"control point; use --set spline.dt={suggestion:g} (or more), --set spline.knots=adaptive, or --method coslam")
+            f"apart, more than {which}, so a spline interval would hold no frame to fit its control point; "
+            f"use {fix}, or --method coslam")
 
 
 def check_knot_settings(cfg: Config) -> None:
