@@ -29,6 +29,7 @@ import torch
 import trimesh
 
 from tsslam_ref import config, data
+from tsslam_ref.cli_args import OneLineParser, number_in
 from tsslam_ref import mesh as mesh_module
 from tsslam_ref.device import frame_to_device
 from tsslam_ref.field import SceneField
@@ -79,12 +80,14 @@ def measure(variant: str, preset: str, voxel: float, fit_iters: int) -> dict:
             time.sleep(0.002)
 
     before = resident_mib()
-    sampler = threading.Thread(target=sample)
+    sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
     start = time.perf_counter()
-    mesh = mesh_module.extract_mesh(field, None, voxel)
+    try:
+        mesh = mesh_module.extract_mesh(field, None, voxel)
+    finally:  # the sampler stops on an error too, or the child would never exit
+        done.set()
     seconds = time.perf_counter() - start
-    done.set()
     sampler.join()
     points = int(np.prod([len(axis) for axis in mesh_module._grid_axes(field.bound.numpy(), voxel)]))
     return {"variant": variant, "extra_mib": peak[0] - before, "seconds": seconds, "grid_points": points,
@@ -94,17 +97,20 @@ def measure(variant: str, preset: str, voxel: float, fit_iters: int) -> dict:
 def run_child(variant: str, args) -> dict:
     command = [sys.executable, os.path.abspath(__file__), "--child", variant, "--preset", args.preset,
                "--voxel", str(args.voxel), "--fit-iters", str(args.fit_iters)]
-    output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
-    return json.loads(output.strip().splitlines()[-1])
+    child = subprocess.run(command, capture_output=True, text=True)
+    if child.returncode != 0:
+        last = (child.stderr.strip().splitlines() or ["(no message)"])[-1]
+        raise RuntimeError(f"the {variant} measurement failed: {last}")
+    return json.loads(child.stdout.strip().splitlines()[-1])
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="tum-cpu")
-    parser.add_argument("--voxel", type=float, default=None, help="grid spacing in m (default: the preset's "
-                        "mesh.voxel_final)")
-    parser.add_argument("--fit-iters", type=int, default=20)
-    parser.add_argument("--repeats", type=int, default=2)
+    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="tum-cpu", choices=sorted(config.PRESETS))
+    parser.add_argument("--voxel", type=number_in("--voxel", 0, 10, low_open=True), default=None,
+                        help="grid spacing in m, in (0, 10] (default: the preset's mesh.voxel_final)")
+    parser.add_argument("--fit-iters", type=number_in("--fit-iters", 1, 10**6, integer=True), default=20)
+    parser.add_argument("--repeats", type=number_in("--repeats", 1, 1000, integer=True), default=2)
     parser.add_argument("--child", choices=VARIANTS, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.voxel is None:
@@ -116,9 +122,13 @@ def main(argv=None) -> int:
         print("bench_mesh.py reads the resident set size from /proc/self/statm (Linux); not found here")
         return 2
     rows = {variant: [] for variant in VARIANTS}
-    for _ in range(args.repeats):
-        for variant in VARIANTS:
-            rows[variant].append(run_child(variant, args))
+    try:
+        for _ in range(args.repeats):
+            for variant in VARIANTS:
+                rows[variant].append(run_child(variant, args))
+    except RuntimeError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     first = rows["chunked"][0]
     print(f"mesh of the map fitted to teddy frame 0 ({args.preset}, {args.fit_iters} iterations), voxel "
           f"{args.voxel} m: {first['grid_points']:,} grid points, {first['faces']:,} faces")

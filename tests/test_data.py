@@ -360,8 +360,14 @@ def test_scannet_layout(tmp_path):
     np.testing.assert_allclose(frame.rgb, 80 / 255, atol=2 / 255)
     np.testing.assert_allclose(frame.depth, 3.5, atol=1e-6)
     np.testing.assert_allclose(frame.pose_c2w, poses[2], atol=1e-12)
+    np.savetxt(folder / "intrinsic/intrinsic_depth.txt", [[0, 0, 3.6, 0], [0, 6.2, 2.7, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    with pytest.raises(ValueError, match=r"intrinsic_depth\.txt: .*fx, fy > 0"):  # once without the file's name
+        data.load_sequence(folder)
     (folder / "intrinsic/intrinsic_depth.txt").unlink()
     with pytest.raises(FileNotFoundError, match="intrinsic_depth.txt"):
+        data.load_sequence(folder)
+    np.savetxt(folder / "pose/20.txt", np.concatenate([poses[2], poses[0]]))  # two matrices in one pose file
+    with pytest.raises(ValueError, match=r"20\.txt: 2 4x4 matrices; expected one"):
         data.load_sequence(folder)
 
 
@@ -387,6 +393,10 @@ def test_neural_rgbd_layout_converts_opengl_poses(tmp_path):
     np.testing.assert_allclose(frame.pose_c2w[:3, 3], gl[:3, 3])
     (folder / "focal.txt").write_text("300.5\n")
     assert data.load_sequence(folder).intrinsics.fx == 300.5
+    (folder / "focal.txt").write_text("-500\n")
+    with pytest.raises(ValueError, match=r"focal\.txt: .*fx, fy > 0"):
+        data.load_sequence(folder)
+    (folder / "focal.txt").unlink()
     (folder / "poses.txt").write_text("1 0 0\n")
     with pytest.raises(ValueError, match=r"poses\.txt:1: expected 4 numbers"):
         data.load_sequence(folder)

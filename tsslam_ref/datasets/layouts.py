@@ -206,6 +206,15 @@ def _invalid_to_nan(poses: np.ndarray) -> np.ndarray:
     return poses
 
 
+def _intrinsics_from(path: Path, fx, fy, cx, cy, width: int, height: int) -> Intrinsics:
+    """:class:`Intrinsics`, with a refusal (non-positive or non-finite focal length) naming ``path``,
+    the file the values came from (for NeuralRGBD without ``focal.txt``: the built-in value)."""
+    try:
+        return Intrinsics(float(fx), float(fy), float(cx), float(cy), width, height)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
 def parse_scannet(folder: Path, fps: float) -> LayoutIndex:
     """ScanNet export: color/<n>.jpg, depth/<n>.png (mm), pose/<n>.txt (c2w OpenCV; inf -> NaN),
     intrinsic/intrinsic_depth.txt.  Colour is resized to the depth size; time = n / fps."""
@@ -225,14 +234,17 @@ def parse_scannet(folder: Path, fps: float) -> LayoutIndex:
         if not depth_path.stem.isdigit():
             raise ValueError(f"{depth_path}: ScanNet frame names must be integers (frame numbers)")
         rgb_paths.append(colour[depth_path.stem])
-        poses.append(_read_matrix_lines(pose_path, 4, "4x4 camera-to-world pose")[0])
+        matrices = _read_matrix_lines(pose_path, 4, "4x4 camera-to-world pose")
+        if len(matrices) != 1:
+            raise ValueError(f"{pose_path}: {len(matrices)} 4x4 matrices; expected one camera-to-world pose")
+        poses.append(matrices[0])
         numbers.append(int(depth_path.stem))
     k_path = folder / "intrinsic" / "intrinsic_depth.txt"
     if not k_path.is_file():
         raise FileNotFoundError(f"{k_path}: ScanNet depth intrinsics not found (export them with SensReader)")
     k = _read_matrix_lines(k_path, 4, "4x4 intrinsic matrix")[0]
     width, height = image_size(depth_paths[0])
-    intrinsics = Intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
+    intrinsics = _intrinsics_from(k_path, k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
     timestamps = np.asarray(numbers, dtype=np.float64) / fps
     return LayoutIndex("scannet", rgb_paths, depth_paths, timestamps, _invalid_to_nan(np.stack(poses)), intrinsics, None)
 
@@ -262,7 +274,7 @@ def parse_neural_rgbd(folder: Path, fps: float) -> LayoutIndex:
         except (ValueError, IndexError):
             raise ValueError(f"{focal_path}:1: expected one number (the focal length in pixels)") from None
     width, height = image_size(depth_paths[0])
-    intrinsics = Intrinsics(focal, focal, width / 2.0, height / 2.0, width, height)
+    intrinsics = _intrinsics_from(focal_path, focal, focal, width / 2.0, height / 2.0, width, height)
     poses = opengl_to_opencv_pose(_invalid_to_nan(poses_gl[: len(rgb_paths)]))
     timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
     return LayoutIndex("neural_rgbd", rgb_paths, depth_paths, timestamps, poses, intrinsics, None)
