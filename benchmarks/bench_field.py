@@ -13,7 +13,6 @@ Target (ours): 1024 rays x 43 samples, table 2^16, 2 threads, float32, under 100
 Usage: python benchmarks/bench_field.py [--repeats 10] [--rays 256 1024 4096] [--presets ...]
 """
 
-import argparse
 import statistics
 import time
 
@@ -23,6 +22,7 @@ from tsslam_ref import config, hash_kernel
 from tsslam_ref.field import SceneField
 from tsslam_ref.mapping import make_map_optimizer
 from tsslam_ref.device import peak_memory, tune_cpu_allocator
+from tsslam_ref.cli_args import OneLineParser, number_in
 
 BOX = [[-3.5, 3.0], [-3.0, 3.0], [-3.0, 3.0]]  # TUM fr1_desk (Co-SLAM), 6.5 m
 
@@ -61,11 +61,11 @@ def peak_memory_mb(field, optimizer, points, device):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=10)
-    parser.add_argument("--rays", type=int, nargs="+", default=[256, 1024, 4096])
-    parser.add_argument("--presets", nargs="+", default=["tum-cpu", "synthetic-cpu", "tum", "synthetic"])
-    parser.add_argument("--threads", type=int, default=2)
+    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=number_in("--repeats", 1, 10000, integer=True), default=10)
+    parser.add_argument("--rays", type=number_in("--rays", 1, 10000000, integer=True), nargs="+", default=[256, 1024, 4096])
+    parser.add_argument("--presets", nargs="+", choices=sorted(config.PRESETS), default=["tum-cpu", "synthetic-cpu", "tum", "synthetic"])
+    parser.add_argument("--threads", type=number_in("--threads", 1, 1024, integer=True), default=2)
     parser.add_argument("--no-reference", action="store_true", help="time only the default path (skip the PyTorch fast path and the reference path)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)

@@ -12,7 +12,6 @@ Usage: python benchmarks/bench_spline.py [--n 1000000] [--chunk 131072] [--threa
 Timings depend on machine load; report them with that caveat.
 """
 
-import argparse
 import time
 
 import numpy as np
@@ -22,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from tsslam_ref import spline
 from tsslam_ref.geometry import so3_exp, vee
+from tsslam_ref.cli_args import OneLineParser, number_in
 
 
 def random_control_points(n_ctrl: int, dtype: torch.dtype, seed: int = 0):
@@ -66,12 +66,12 @@ def autograd_in_time(R, P, times, dt):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=1_000_000, help="number of query times")
-    parser.add_argument("--chunk", type=int, default=131072, help="times per evaluate call (memory bound)")
-    parser.add_argument("--n-ctrl", type=int, default=1000)
-    parser.add_argument("--autograd-fraction", type=float, default=0.01, help="subsample for baseline (a)")
-    parser.add_argument("--threads", type=int, default=2)
+    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=number_in("--n", 1, 1000000000, integer=True), default=1_000_000, help="number of query times")
+    parser.add_argument("--chunk", type=number_in("--chunk", 1, 1000000000, integer=True), default=131072, help="times per evaluate call (memory bound)")
+    parser.add_argument("--n-ctrl", type=number_in("--n-ctrl", 4, 10**7, integer=True), default=1000)
+    parser.add_argument("--autograd-fraction", type=number_in("--autograd-fraction", 0, 1, low_open=True), default=0.01, help="subsample for baseline (a)")
+    parser.add_argument("--threads", type=number_in("--threads", 1, 1024, integer=True), default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     dt = 0.03

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 
 from tsslam_ref import config, data, parallel, slam, spline_fit
+from tsslam_ref.cli_args import OneLineParser, number_in
 from tsslam_ref.device import compute_environment, peak_memory, tune_cpu_allocator
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
 from tsslam_ref.run_outputs import ground_truth_known
@@ -242,7 +243,7 @@ def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mi
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM slice)")
     parser.add_argument("--config", default="tum-cpu")
     parser.add_argument("--frames", default=None, help="START:STOP[:STEP]")
@@ -256,7 +257,7 @@ def main() -> None:
                         help="also run TS-SLAM with knots placed by the motion (spline.knots=adaptive) on --seeds")
     parser.add_argument("--skip", nargs="+", default=[], choices=["baseline", "tsslam"],
                         help="leave out the Co-SLAM baseline (and with it the offline control) or the default TS-SLAM row")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=number_in("--threads", 1, 1024, integer=True), default=2)
     parser.add_argument("--json", default=None, help="write every row to this JSON file")
     parser.add_argument("--overwrite", action="store_true", help="allow replacing an existing --json file")
     parser.add_argument("--against", default=None, metavar="FILE",
@@ -267,13 +268,16 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     tune_cpu_allocator()
 
-    base = config.apply_overrides(config.load(args.config), args.overrides)
-    base.data.path = args.data
-    if args.frames:
-        from tsslam_ref.run import parse_frames
+    try:
+        base = config.apply_overrides(config.load(args.config), args.overrides)
+        base.data.path = args.data
+        if args.frames:
+            from tsslam_ref.run import parse_frames
 
-        base.data.frame_start, base.data.frame_stop, base.data.frame_step = parse_frames(args.frames)
-    sequence = data.load_from_config(base.data)
+            base.data.frame_start, base.data.frame_stop, base.data.frame_step = parse_frames(args.frames)
+        sequence = data.load_from_config(base.data)
+    except (ValueError, OSError) as error:  # run.BadInput is a ValueError
+        parser.error(str(error))
     ground_truth = ground_truth_known(sequence)
     with_ground_truth = 0 if ground_truth is None else int(ground_truth[1].sum())
     if with_ground_truth < 3:
@@ -294,6 +298,8 @@ def main() -> None:
         variants["paper schedule"] = ["method=tsslam", "mapping.tsslam_map_every=0"]  # no map update between intervals
     for dt in args.dts:
         variants[f"TS-SLAM dt={dt:g} s"] = ["method=tsslam", f"spline.dt={dt}"]
+    if not variants:
+        parser.error(f"--skip {' '.join(args.skip)} leaves nothing to run (add --adaptive, --ablations or --dts)")
 
     environment = compute_environment(benchmark_device(base))
     print(f"sequence {sequence.name}: {len(sequence)} frames, {sequence.intrinsics.width}x{sequence.intrinsics.height}, "

@@ -22,6 +22,7 @@ from tsslam_ref import data, knot_policy, spline_fit, trajectory_metrics
 from tsslam_ref.config import SplineConfig
 from tsslam_ref.geometry import rotation_angle_deg
 from tsslam_ref.synthetic import resample_trajectory
+from tsslam_ref.cli_args import OneLineParser, number_in
 
 STRETCHES = ["tum_rgbd_fr2_desk:0", "tum_vi_room1:16", "tum_vi_room1:20", "tum_vi_room2:16"]
 
@@ -55,13 +56,13 @@ def curve_rows(times: np.ndarray, truth: torch.Tensor, noisy: torch.Tensor, dts,
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--stretch", type=parse_stretch, nargs="+", default=[parse_stretch(s) for s in STRETCHES],
                         help="NAME:START, a shipped trajectory (or a TUM-format file) and seconds from its start")
     parser.add_argument("--frames", type=int, default=60)
-    parser.add_argument("--fps", type=float, default=30.0)
+    parser.add_argument("--fps", type=number_in("--fps", 0, 1000, low_open=True), default=30.0)
     parser.add_argument("--dts", type=float, nargs="+", default=[0.30, 0.25, 0.15, 0.10])
-    parser.add_argument("--noise", type=float, default=0.001, help="position noise (m) on the fitted poses")
+    parser.add_argument("--noise", type=number_in("--noise", 0, 1), default=0.001, help="position noise (m) on the fitted poses")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
     if args.frames < 4 or min(args.dts) <= 0:

@@ -30,7 +30,6 @@ tests/test_gpu_check.py checks its pieces on the CPU (the kernel comparison, the
 refusals); the figures are in the README's "Results".
 """
 
-import argparse
 import copy
 import json
 import os
@@ -49,6 +48,7 @@ from tsslam_ref.files import atomic_write_text
 from tsslam_ref.geometry import rotation_angle_deg, so3_exp
 from tsslam_ref.mapping import make_map_optimizer
 from tsslam_ref.run import parse_frames, trajectory_metrics
+from tsslam_ref.cli_args import OneLineParser, number_in
 
 from bench_field import BOX, time_iterations  # benchmarks/ is on the path when this script runs
 
@@ -189,13 +189,13 @@ def print_timings(report: Dict[str, object], device: torch.device) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", default="0:20", help="START:STOP[:STEP] of the bundled slice (default 0:20)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--device", default="cuda", help="the device checked against the CPU (default cuda)")
-    parser.add_argument("--tolerance-cm", type=float, default=0.5,
+    parser.add_argument("--tolerance-cm", type=number_in("--tolerance-cm", 0, 1000, low_open=True), default=0.5,
                         help="allowed mean-ATE difference beyond the CPU's seed range (default 0.5)")
-    parser.add_argument("--threads", type=int, default=2, help="CPU threads of the CPU runs (default 2)")
+    parser.add_argument("--threads", type=number_in("--threads", 1, 1024, integer=True), default=2, help="CPU threads of the CPU runs (default 2)")
     parser.add_argument("--json", default="runs/gpu_check.json")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     args = parser.parse_args(argv)
@@ -213,6 +213,9 @@ def main(argv=None) -> int:
     base = config.load("tum-cpu")
     base.data.frame_start, base.data.frame_stop, base.data.frame_step = frames
     sequence = data.load_from_config(base.data)
+    if len(sequence) < 2:
+        print(f"error: --frames {args.frames} selects {len(sequence)} frame; a run needs at least 2", file=sys.stderr)
+        return 2
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     print(f"{sequence.name}: {len(sequence)} frames, tum-cpu, seeds {args.seeds}; CPU ({args.threads} threads) "
           f"against {device} ({name})")

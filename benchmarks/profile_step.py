@@ -21,7 +21,6 @@ Usage: python benchmarks/profile_step.py [--preset tum-cpu] [--repeats 20] [--to
                                          [--tracking-rays N [N ...]]
 """
 
-import argparse
 import dataclasses
 import statistics
 import time
@@ -35,6 +34,7 @@ from tsslam_ref.device import frame_to_device, tune_cpu_allocator
 from tsslam_ref.field import SceneField
 from tsslam_ref.losses import RenderLossSettings, render_loss
 from tsslam_ref.mapping import FramePixels, estimate_bound, fit_map, make_map_optimizer
+from tsslam_ref.cli_args import OneLineParser, number_in
 
 
 def build(cfg, fit_iters: int):
@@ -130,11 +130,11 @@ def tracking_ray_scaling(cfg, field, frames, poses, settings, generator, ray_cou
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="tum-cpu")
-    parser.add_argument("--repeats", type=int, default=20)
+    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="tum-cpu", choices=sorted(config.PRESETS))
+    parser.add_argument("--repeats", type=number_in("--repeats", 1, 10000, integer=True), default=20)
     parser.add_argument("--top", type=int, default=15)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=number_in("--threads", 1, 1024, integer=True), default=2)
     parser.add_argument("--fit-iters", type=int, default=50)
     parser.add_argument("--tracking-rays", type=int, nargs="+", default=None,
                         help="time the tracking iteration at these ray counts (and fit a line) instead of profiling")

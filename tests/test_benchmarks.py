@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 STORED_TEDDY = ROOT / "tsslam_ref" / "assets" / "results" / "teddy_tum-cpu_3seeds.json"
 STORED_FR2 = ROOT / "tsslam_ref" / "assets" / "results" / "fr2_desk_synthetic-cpu_3seeds.json"
@@ -167,3 +169,24 @@ def test_bench_mesh_chunked_and_whole_grid_give_the_same_mesh():
     assert result.returncode == 0, result.stdout + result.stderr
     assert "PLY bytes: identical in every run" in result.stdout
     assert "chunked / whole (medians)" in result.stdout
+
+
+@pytest.mark.parametrize("script, arguments, needle", [
+    ("bench_mesh.py", ["--voxel", "9", "--fit-iters", "1", "--repeats", "1"], "smaller than voxel_size 9.0 m"),  # hung
+    ("bench_mesh.py", ["--voxel", "0"], "--voxel 0"),
+    ("bench_spline.py", ["--n", "0"], "--n 0"),
+    ("bench_spline.py", ["--n-ctrl", "2"], "--n-ctrl 2"),
+    ("bench_field.py", ["--repeats", "0"], "--repeats 0"),
+    ("bench_field.py", ["--presets", "nosuch"], "nosuch"),
+    ("profile_step.py", ["--threads", "0"], "--threads 0"),
+    ("curve_floor.py", ["--noise", "-1"], "--noise -1"),
+    ("gpu_check.py", ["--device", "cpu", "--frames", "0:1", "--json", "check.json"], "selects 1 frame"),
+    ("bench_system.py", ["--frames", "6:2"], "--frames '6:2'"),
+    ("bench_system.py", ["--skip", "baseline", "tsslam"], "leaves nothing to run"),
+])
+def test_benchmarks_refuse_bad_arguments_in_one_line(tmp_path, script, arguments, needle):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *arguments], cwd=tmp_path, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert needle in result.stderr.strip().splitlines()[-1], result.stderr
