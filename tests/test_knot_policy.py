@@ -142,7 +142,14 @@ def test_frames_further_apart_than_the_uniform_knot_spacing_are_refused():
         knot_schedule.check_frame_spacing(cfg, times)
     cfg.spline.dt_min = cfg.spline.dt = 0.35
     knot_schedule.check_frame_spacing(cfg, times)
-    for key, value in (("method", "coslam"), ("use_spline", False), ("dt", 0.35)):
+    five_hz = 1341841873.0 + np.arange(12) / 5.0  # no gap over dt = 0.25 s, but 1.25 frames per interval
+    cfg = config.tiny()
+    cfg.method, cfg.spline.dt = "tsslam", 0.25
+    with pytest.raises(ValueError, match=r"0\.200 s apart \(median\), more than half of spline\.dt = 0\.25 s.*spline\.dt=0\.4"):
+        knot_schedule.check_frame_spacing(cfg, five_hz)
+    cfg.spline.dt = 0.4
+    knot_schedule.check_frame_spacing(cfg, five_hz)
+    for key, value in (("method", "coslam"), ("use_spline", False), ("dt", 0.7)):
         other = config.tiny()
         other.method, other.spline.dt = "tsslam", 0.3
         section = other if key == "method" else other.local_ba if key == "use_spline" else other.spline
