@@ -488,3 +488,15 @@ def test_kernel_build_name_separates_checkouts_and_source_versions(tmp_path, mon
     with open(copy / hash_kernel.ONEBLOB_SOURCE.name, "a") as source:
         source.write("\n")
     assert hash_kernel.build_name() not in (name, other_checkout)  # edited source: a new build
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["torch", "compiled"])
+def test_an_empty_batch_gives_empty_outputs_on_every_path(compiled, request):
+    """The PyTorch fast path (the one CUDA runs) took the min of an empty tensor."""
+    if compiled:
+        request.getfixturevalue("compiled_kernel")
+    cfg = config.tiny().field
+    cfg.compiled_kernel = compiled
+    field = SceneField(cfg, torch.tensor([[0.0, 1.0]] * 3), generator=torch.Generator().manual_seed(0))
+    rgb, sdf = field(torch.zeros(0, 3))
+    assert rgb.shape == (0, 3) and sdf.shape == (0,)

@@ -321,7 +321,7 @@ class HashGridEncoding(nn.Module):
             size = self.sizes[:n_dense].view(-1, 1)
             base = i0[:n_dense] + (j0[:n_dense] + k0[:n_dense] * resolution) * resolution  # (Ld, N)
             offsets = self.offsets[:n_dense].view(-1, 1)
-            inside = bool(base.min() >= 0) and bool((base + 1 + resolution + resolution**2 < size).all())
+            inside = bool((base >= 0).all()) and bool((base + 1 + resolution + resolution**2 < size).all())  # True for N = 0
             if inside:
                 base = base + offsets  # fold the level offsets in once
             for c, (dx, dy, dz) in enumerate(CORNER_OFFSETS):
