@@ -610,3 +610,21 @@ def test_a_map_without_a_surface_still_ends_with_metrics(runs, tmp_path, monkeyp
     assert "ate_rmse_m" in metrics and metrics["mesh_note"].startswith("no mesh.ply: extract_mesh: the SDF has no zero")
     assert not (tmp_path / "out" / "mesh.ply").exists()
     assert "warning: no mesh.ply" in capsys.readouterr().err
+
+
+def test_depth_mostly_beyond_the_map_range_is_warned_about_before_the_run(tmp_path, capsys):
+    """A depth scale 5x off put 99 % of the depth beyond render.far: the map was built from a few
+    pixels and the reconstruction was empty, with no word; the check reads frame 0 in prepare."""
+    assert data.main(["synthesize", "--out", str(tmp_path / "room"), "--frames", "3", "--size", "32x24",
+                      "--mesh-voxel", "0.5"]) == 0
+    calibration = json.loads((tmp_path / "room" / "intrinsics.json").read_text())
+    calibration.pop("depth_scale")  # PNGs at 5000 per metre, read at 1000: five times too far
+    (tmp_path / "room" / "intrinsics.json").write_text(json.dumps(calibration))
+    capsys.readouterr()
+    common = ["--data", str(tmp_path / "room"), "--config", "tiny", "--out", str(tmp_path / "out")]
+    run.prepare(run.build_parser().parse_args(common + ["--set", "data.depth_scale=1000"]))
+    warning = capsys.readouterr().err
+    assert "warning: 99 % of frame 0's measured depth lies beyond 4 m" in warning and "data.depth_scale = 1000" in warning
+    run.prepare(run.build_parser().parse_args(common + ["--set", "data.depth_scale=5000"]))
+    assert "warning" not in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -171,6 +171,18 @@ def resolve_config(args) -> config_module.Config:
     return config_module.apply_overrides(cfg, args.overrides)
 
 
+def _warn_if_depth_beyond_range(cfg, sequence, depth: np.ndarray) -> None:
+    """A warning (the run goes on) when most of frame 0's measured depth lies beyond the range the
+    map uses, min(data.depth_trunc, render.far): the usual sign of a wrong depth scale, which
+    otherwise gives a map built from a few pixels and an empty reconstruction."""
+    limit = min(cfg.data.depth_trunc, cfg.render.far)
+    measured = depth[depth > 0]
+    if measured.size and np.mean(measured < limit) < 0.5:
+        print(f"warning: {100 * np.mean(measured >= limit):.0f} % of frame 0's measured depth lies beyond {limit:g} m "
+              f"(data.depth_trunc, render.far; median {np.median(measured):.2f} m); check the depth scale "
+              f"(data.depth_scale = {sequence.depth_scale:g} PNG values per metre)", file=sys.stderr)
+
+
 def _check_output_folder(out: Path, overwrite: bool, resume: bool) -> None:
     """Refuse an unusable ``--out`` before anything is written (see :func:`prepare`)."""
     if out.is_symlink() and not out.exists():
@@ -295,6 +307,7 @@ def prepare(args: argparse.Namespace) -> Plan:
     sequence.check_files()
     first = sequence[0]  # decode frame 0 fully (the map is placed from its depth; an all-zero depth is refused)
     tracking.check_ray_budget(cfg, *first.depth.shape)  # the loop's own check, on the processed size
+    _warn_if_depth_beyond_range(cfg, sequence, first.depth)
     out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
     _check_output_folder(out, args.overwrite, args.resume)
     plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)
