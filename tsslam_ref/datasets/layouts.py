@@ -134,9 +134,10 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
 
     Each colour frame takes the nearest depth stamp within ``max_time_diff`` (frames without
     one are dropped: no depth, no RGB-D frame) and its ground truth
-    (:func:`tsslam_ref.datasets.tum_format.ground_truth_at`).  The frame timestamp is the colour stamp.  Intrinsics: ``intrinsics.json`` / ``calibration.txt`` in the
-    folder if present (our resized slices and synthetic sequences), else the published values of
-    the camera named by the folder (freiburg1/2/3, fr3 by default).
+    (:func:`tsslam_ref.datasets.tum_format.ground_truth_at`).  The frame timestamp is the colour
+    stamp.  Intrinsics: ``intrinsics.json`` / ``calibration.txt`` in the folder if present (our
+    resized slices and synthetic sequences), else the published values of the camera named by the
+    folder (freiburg1/2/3, fr3 by default).
     """
     rgb_times, rgb_names, rgb_lines = read_file_list(folder / "rgb.txt")
     depth_times, depth_names, depth_lines = read_file_list(folder / "depth.txt")
