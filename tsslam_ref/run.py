@@ -171,6 +171,22 @@ def resolve_config(args) -> config_module.Config:
     return config_module.apply_overrides(cfg, args.overrides)
 
 
+def _checked_sequence(cfg, frames: Optional[str]):
+    """The sequence of ``cfg.data``, checked as far as it can be before the run: at least 2 frames,
+    their spacing against the spline's intervals, every file's header, frame 0 decoded (the map is
+    placed from its depth; an all-zero depth is refused) and its size against the ray counts."""
+    sequence = data_module.load_from_config(cfg.data)
+    if len(sequence) < 2:
+        selection = f"--frames {frames} selects" if frames else f"{sequence.path} has"
+        raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
+    knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
+    sequence.check_files()
+    first = sequence[0]
+    tracking.check_ray_budget(cfg, *first.depth.shape)  # the loop's own check, on the processed size
+    _warn_if_depth_beyond_range(cfg, sequence, first.depth)
+    return sequence
+
+
 def _warn_if_depth_beyond_range(cfg, sequence, depth: np.ndarray) -> None:
     """A warning (the run goes on) when most of frame 0's measured depth lies beyond the range the
     map uses, min(data.depth_trunc, render.far): the usual sign of a wrong depth scale, which
@@ -299,15 +315,7 @@ def prepare(args: argparse.Namespace) -> Plan:
         device = device_module.resolve_device(cfg.device)
     except RuntimeError as error:  # torch's own message for a device it does not know
         raise BadInput(f"device {cfg.device!r} cannot be used ({error})") from None
-    sequence = data_module.load_from_config(cfg.data)
-    if len(sequence) < 2:
-        selection = f"--frames {args.frames} selects" if args.frames else f"{sequence.path} has"
-        raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
-    knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
-    sequence.check_files()
-    first = sequence[0]  # decode frame 0 fully (the map is placed from its depth; an all-zero depth is refused)
-    tracking.check_ray_budget(cfg, *first.depth.shape)  # the loop's own check, on the processed size
-    _warn_if_depth_beyond_range(cfg, sequence, first.depth)
+    sequence = _checked_sequence(cfg, args.frames)
     out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
     _check_output_folder(out, args.overwrite, args.resume)
     plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)
