@@ -135,3 +135,21 @@ def test_knot_times_survive_a_checkpoint_and_older_checkpoints_load_as_uniform(s
         del plain["trajectory"][key]
     older = checkpoint.from_plain(plain).trajectory
     assert older.uniform and older.dt == state.trajectory.dt and older.t0 == state.trajectory.t0
+
+
+def test_a_flipped_bit_in_a_tensor_is_refused_not_resumed(state, tmp_path):
+    """torch.load does not check the zip's CRC-32: a flipped bit in the map's table loaded and a
+    resumed run ended with another trajectory at exit 0.  The stored CRCs are the oracle."""
+    import zipfile
+
+    path = tmp_path / "flipped.pt"
+    checkpoint.save(state, path)
+    with zipfile.ZipFile(path) as archive:
+        largest = max(archive.infolist(), key=lambda info: info.file_size)
+    content = bytearray(path.read_bytes())
+    header = content.index(largest.filename.encode(), largest.header_offset)  # the local header's file name
+    payload = header + len(largest.filename) + 64  # well inside the stored (uncompressed) tensor bytes
+    content[payload + largest.file_size // 2] ^= 0x10
+    path.write_bytes(bytes(content))
+    with pytest.raises(checkpoint.CheckpointError, match=r"flipped.pt: the checkpoint is corrupt \(entry .* CRC"):
+        checkpoint.load(path)

@@ -628,3 +628,34 @@ def test_depth_mostly_beyond_the_map_range_is_warned_about_before_the_run(tmp_pa
     run.prepare(run.build_parser().parse_args(common + ["--set", "data.depth_scale=5000"]))
     assert "warning" not in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_resume_with_a_frame_removed_names_where_the_frames_differ(runs, tmp_path):
+    root = runs["root"]
+    shutil.copytree(root / "room", tmp_path / "room")
+    shutil.copytree(runs["stopped"], tmp_path / "stopped")
+    lines = (tmp_path / "room" / "rgb.txt").read_text().splitlines()
+    data_lines = [i for i, line in enumerate(lines) if line and not line.startswith("#")]
+    del lines[data_lines[2]]  # the third frame
+    (tmp_path / "room" / "rgb.txt").write_text("\n".join(lines) + "\n")
+    before = snapshot(tmp_path / "stopped")
+    refused(cli("run", *CHEAP, "--data", "room", "--out", "stopped", "--resume", cwd=tmp_path),  # the run's own paths
+            "--resume refused", "differ from those in", "the first difference at frame 2")
+    assert snapshot(tmp_path / "stopped") == before
+
+
+def test_ctrl_c_while_the_outputs_are_written_gives_advice_that_works(runs, tmp_path, monkeypatch, capsys):
+    """metrics.json marks a finished run, so it is written last; and --resume is advised only when a
+    checkpoint is there to resume from (it was advised always, and then refused)."""
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run, "write_outputs", interrupted)
+    data_folder = str(runs["root"] / "room")
+    cheap = [a for a in CHEAP if a != "0:10"]
+    cheap[cheap.index("--frames") + 1:cheap.index("--frames") + 1] = ["0:3"]
+    assert run.main(cheap + ["--data", data_folder, "--out", str(tmp_path / "a")]) == 130  # a checkpoint every frame
+    assert "run the same command with --resume to finish them from its checkpoint" in capsys.readouterr().err
+    no_checkpoint = cheap[:cheap.index("--checkpoint-every") + 1] + ["0"] + cheap[cheap.index("--checkpoint-every") + 2:]
+    assert run.main(no_checkpoint + ["--data", data_folder, "--out", str(tmp_path / "b")]) == 130
+    assert "run the same command with --overwrite to run it again" in capsys.readouterr().err

@@ -13,6 +13,7 @@ Layer 4 (system): used by ``run.py``; knows the state of ``slam.py``.
 """
 
 import json
+import zipfile
 from pathlib import Path
 from typing import Any, Dict
 
@@ -145,6 +146,20 @@ def save(state, path) -> Path:
     return Path(path)
 
 
+def _check_crc(path: Path) -> None:
+    """CheckpointError naming the entry when a stored CRC-32 does not match its bytes: torch.load
+    does not check them, and a flipped bit in a tensor would resume a different run without a word.
+    A file that is not a zip archive is left to torch.load's own refusal."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError):
+        return
+    if bad is not None:
+        raise CheckpointError(f"{path}: the checkpoint is corrupt (entry {bad} fails its CRC check); "
+                              f"start the run again with --overwrite")
+
+
 def read(path) -> Dict[str, Any]:
     """The checked plain dict of a checkpoint file (no Python object is ever constructed from it).
 
@@ -157,6 +172,7 @@ def read(path) -> Dict[str, Any]:
         raise CheckpointError(f"{path}: checkpoint not found")
     if path.stat().st_size == 0:
         raise CheckpointError(f"{path}: the checkpoint is empty (0 bytes); expected a file written by tsslam_ref.run")
+    _check_crc(path)
     try:
         values = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for corrupt, truncated or foreign files

@@ -338,8 +338,11 @@ def prepare(args: argparse.Namespace) -> Plan:
                            + f"; only {', '.join(RESULT_NEUTRAL)} may change on --resume")
         saved_times = values["timestamps"].numpy()
         if saved_times.shape != sequence.timestamps.shape or not np.array_equal(saved_times, sequence.timestamps):
+            common = min(len(saved_times), len(sequence))
+            differ = np.flatnonzero(saved_times[:common] != sequence.timestamps[:common])
+            first = int(differ[0]) if differ.size else common
             raise BadInput(f"--resume refused: the frames of {sequence.path} differ from those in {path} "
-                           f"({len(saved_times)} frames saved, {len(sequence)} now)")
+                           f"({len(saved_times)} frames saved, {len(sequence)} now; the first difference at frame {first})")
         plan.finished = _finished_run(out)
         if not plan.finished:
             try:
@@ -401,9 +404,9 @@ def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
         reached["done"] = current.done
         if progress is not None:
             progress.update(1)
-        if every and current.done % every == 0:
-            write_partial_trajectory(current, out)
+        if every and current.done % every == 0:  # the checkpoint first: trajectory.txt never gets ahead of it
             save_checkpoint(current, out / "checkpoint.pt")
+            write_partial_trajectory(current, out)
             reached["checkpoint"] = current.done
 
     return on_frame
@@ -489,8 +492,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         return execute(plan)
     except KeyboardInterrupt:
-        print(f"interrupted while writing the outputs in {plan.out}; run the same command with --resume "
-              f"(or --overwrite) to finish", file=sys.stderr)
+        how = ("--resume to finish them from its checkpoint" if (plan.out / "checkpoint.pt").is_file()
+               and not (plan.out / "metrics.json").is_file() else "--overwrite to run it again")
+        print(f"interrupted while writing the outputs in {plan.out}; run the same command with {how}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # stdout piped into a reader that quit (`| head`)
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush

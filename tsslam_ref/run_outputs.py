@@ -149,8 +149,8 @@ def write_outputs(plan, result) -> None:
     if args.export_rate is not None:
         export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
     metrics.update(peak_memory(plan.device))  # after the mesh: the run's and the mesh's peak
-    atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
+    atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))  # last: it marks a finished run
     checkpoint_path = out / "checkpoint.pt"
     if checkpoint_path.exists() and not args.checkpoint_every:
         checkpoint_path.unlink()
