@@ -120,7 +120,7 @@ def test_ranges_live_with_their_fields_and_each_one_is_enforced():
 def test_a_config_file_names_python_attributes_as_unknown_keys(tmp_path, values, key):
     path = tmp_path / "mine.json"
     path.write_text(json.dumps(values))
-    with pytest.raises(ValueError, match=re.escape(f"mine.json: unknown") + ".*" + re.escape(key)):
+    with pytest.raises(ValueError, match=re.escape("mine.json: unknown") + ".*" + re.escape(key)):
         config.load(str(path))
 
 
