@@ -406,8 +406,8 @@ def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
             progress.update(1)
         if every and current.done % every == 0:  # the checkpoint first: trajectory.txt never gets ahead of it
             save_checkpoint(current, out / "checkpoint.pt")
-            write_partial_trajectory(current, out)
             reached["checkpoint"] = current.done
+            write_partial_trajectory(current, out)
 
     return on_frame
 
