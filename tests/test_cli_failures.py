@@ -659,3 +659,12 @@ def test_ctrl_c_while_the_outputs_are_written_gives_advice_that_works(runs, tmp_
     no_checkpoint = cheap[:cheap.index("--checkpoint-every") + 1] + ["0"] + cheap[cheap.index("--checkpoint-every") + 2:]
     assert run.main(no_checkpoint + ["--data", data_folder, "--out", str(tmp_path / "b")]) == 130
     assert "run the same command with --overwrite to run it again" in capsys.readouterr().err
+
+
+def test_starting_a_run_does_not_import_trimesh():
+    """trimesh wraps its networkx import in `except BaseException`, which swallowed a Ctrl-C in a
+    run's first seconds (the run went on to exit 0); it is now imported only to read or score a mesh."""
+    check = "import sys, tsslam_ref.run; print('trimesh' in sys.modules, 'networkx' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", check], env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout.split() == ["False", "False"], (result.stdout, result.stderr)

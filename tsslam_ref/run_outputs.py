@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from . import data as data_module
-from . import eval as eval_module
+from . import trajectory_metrics as trajectory_metrics_module
 from .device import compute_environment, peak_memory
 from .files import atomic_path, atomic_write_text
 
@@ -49,7 +49,7 @@ def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> d
     if ground_truth is None:
         return {}
     gt, known = ground_truth
-    return eval_module.evaluate_trajectory(timestamps[known], gt[known], timestamps, poses)
+    return trajectory_metrics_module.evaluate_trajectory(timestamps[known], gt[known], timestamps, poses)
 
 
 def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
@@ -62,11 +62,13 @@ def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
     intrinsics = sequence.intrinsics
     camera = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height)
     poses = np.asarray(sequence.gt_poses)[::2]
-    culled = eval_module.cull_mesh(mesh, poses, camera)
-    culled_gt = eval_module.cull_mesh(gt_mesh, poses, camera)
+    from .reconstruction_metrics import cull_mesh, mesh_metrics  # lazy: trimesh, only when there is a GT mesh
+
+    culled = cull_mesh(mesh, poses, camera)
+    culled_gt = cull_mesh(gt_mesh, poses, camera)
     if len(culled.faces) == 0 or len(culled_gt.faces) == 0:
         return {"reconstruction_note": "nothing left after culling"}
-    return eval_module.mesh_metrics(culled, culled_gt, n_points=50_000, threshold=0.05, seed=seed)
+    return mesh_metrics(culled, culled_gt, n_points=50_000, threshold=0.05, seed=seed)
 
 
 def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, metrics: dict) -> None:
@@ -92,7 +94,7 @@ def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, m
     ground_truth = _known_ground_truth(sequence)
     if ground_truth is not None:
         gt, known = ground_truth
-        result = eval_module.ate(gt[known], poses[known])
+        result = trajectory_metrics_module.ate(gt[known], poses[known])
         figure, axis = plt.subplots(figsize=(6, 3))
         axis.plot(timestamps[known] - timestamps[0], np.asarray(result["errors_m"]) * 100)
         axis.set_xlabel("time since first frame [s]"), axis.set_ylabel("position error after alignment [cm]")
