@@ -58,7 +58,14 @@ def interruptible(main, prog: str) -> int:
         print(f"{prog}: interrupted; nothing was left half-written", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # output piped into `head` or a pager that quit: stop quietly, as Unix tools do
-        import os
-
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        silence_stdout()
         return 0
+
+
+def silence_stdout() -> None:
+    """Point standard output at /dev/null after its reader went away, so that the flush at exit
+    does not raise a second BrokenPipeError."""
+    import os
+    import sys
+
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

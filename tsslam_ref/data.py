@@ -40,6 +40,7 @@ from tsslam_ref.datasets.layouts import (
     parse_replica,
     parse_scannet,
     parse_tum,
+    require_dataset_folder,
 )
 from tsslam_ref.datasets.sequence import Frame, RGBDSequence
 from tsslam_ref.datasets.tum_format import TUM_MAX_TIME_DIFF, ground_truth_at, read_tum_trajectory, write_tum_trajectory
@@ -129,8 +130,7 @@ def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int,
 def _layout_of(folder: Path, dataset: str) -> str:
     """The layout of ``folder``: ``dataset`` itself, or detected for 'auto'; raises for a missing
     folder or an unknown layout name."""
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: " + ("is a file; expected a dataset folder" if folder.exists() else "dataset folder not found"))
+    require_dataset_folder(folder)
     kind = detect_dataset(folder) if dataset == "auto" else dataset
     if kind not in LAYOUTS:
         raise ValueError(f"dataset '{dataset}' unknown; expected 'auto' or one of {sorted(LAYOUTS)}")

@@ -49,7 +49,7 @@ from . import config as config_module
 from . import data as data_module
 from . import device as device_module
 from . import knot_schedule, tracking
-from .cli_args import OneLineParser, number_in
+from .cli_args import OneLineParser, number_in, silence_stdout
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import write_outputs, write_partial_trajectory
@@ -497,7 +497,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"interrupted while writing the outputs in {plan.out}; run the same command with {how}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # stdout piped into a reader that quit (`| head`)
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        silence_stdout()
         print(f"error: standard output was closed (the reader of a pipe quit), so the run stopped; --resume "
               f"continues it from its last checkpoint in {plan.out}", file=sys.stderr)
         return EXIT_INTERRUPTED

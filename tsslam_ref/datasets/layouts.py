@@ -65,6 +65,12 @@ def _images(folder: Path, prefix: str = "") -> List[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
+def require_dataset_folder(folder: Path) -> None:
+    """FileNotFoundError naming ``folder`` unless it is a folder (a file given instead is said so)."""
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: " + ("is a file; expected a dataset folder" if folder.exists() else "dataset folder not found"))
+
+
 def _require_dir(path: Path) -> None:
     if not path.is_dir():
         raise FileNotFoundError(f"{path}: folder not found")
@@ -390,8 +396,7 @@ def detect_dataset(path) -> str:
         ValueError: no layout matches; the message lists every layout tried and what was missing.
     """
     folder = Path(path)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: " + ("is a file; expected a dataset folder" if folder.exists() else "dataset folder not found"))
+    require_dataset_folder(folder)
     checks = _looks_like(folder)
     for kind, missing in checks.items():
         if not missing:
