@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import config, data, eval as evaluation, parallel, run, slam, synthetic
+from tsslam_ref import config, data, eval as evaluation, hash_kernel, parallel, run, run_outputs, slam, synthetic
+from tsslam_ref.field import SceneField
 
 
 @pytest.fixture(scope="module")
@@ -210,8 +211,11 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "runtime", "accuracy_m"):
         assert key in metrics
+    paths = metrics["environment"].pop("map_kernels")
     assert metrics["environment"] == {"torch": torch.__version__, "device": "cpu", "threads": torch.get_num_threads(),
                                       "cpu_capability": torch.backends.cpu.get_cpu_capability()}
+    expected_path = "compiled" if hash_kernel.available() else "pytorch"
+    assert paths["hash_grid"] == paths["oneblob"] == expected_path
     saved = config.load(str(out / "config.json"))
     assert saved.method == "tsslam" and saved.spline.dt == 0.2 and saved.data.frame_stop == 12
     for name in ("mesh.ply", "trajectory.png", "errors.png", "checkpoint.pt", "trajectory_50hz.txt"):
@@ -413,3 +417,17 @@ def test_a_non_finite_mapping_loss_ends_the_run_as_a_tracking_failure(monkeypatc
         state = SimpleNamespace(cfg=small_config(method))
         with pytest.raises(slam.TrackingFailure, match=r"after frame 7 \(t = 0.233 s\).*not finite"):
             slam.after_tracking(state, SimpleNamespace(index=7, timestamp=7 / 30))
+
+
+def test_metrics_record_which_code_ran_the_map(monkeypatch):
+    """metrics.json's environment says whether the compiled kernel or the PyTorch path encoded the
+    map (they agree to rounding only), and why the kernel did not load."""
+    bound = torch.tensor([[-1.0, 1.0]] * 3)
+    cpu = torch.device("cpu")
+    switched_off = config.FieldConfig(compiled_kernel=False, compiled_oneblob=False)
+    assert run_outputs.map_kernels(SceneField(switched_off, bound), cpu) == {"hash_grid": "pytorch", "oneblob": "pytorch"}
+    monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
+    monkeypatch.setenv("TSSLAM_NO_COMPILED_KERNEL", "1")
+    paths = run_outputs.map_kernels(SceneField(config.FieldConfig(), bound), cpu)
+    assert paths["hash_grid"] == paths["oneblob"] == "pytorch"
+    assert "TSSLAM_NO_COMPILED_KERNEL" in paths["kernel_error"]
