@@ -153,3 +153,25 @@ def test_a_flipped_bit_in_a_tensor_is_refused_not_resumed(state, tmp_path):
     path.write_bytes(bytes(content))
     with pytest.raises(checkpoint.CheckpointError, match=r"flipped.pt: the checkpoint is corrupt \(entry .* CRC"):
         checkpoint.load(path)
+
+
+def test_entries_that_disagree_with_the_frame_count_are_refused_naming_the_entry(state, tmp_path):
+    """A pose table of another length, or a frame number past the frames done, used to load and
+    fail frames later inside the loop with a traceback."""
+    done = state.done
+    cases = {
+        "short_poses": (lambda plain: plain.update(frame_poses=plain["frame_poses"][:-1]), "'frame_poses' has shape"),
+        "keyframe_past_done": (lambda plain: plain["keyframes"]["frame_indices"].__setitem__(0, done + 3),
+                               f"'keyframes/frame_indices' names frame {done + 3}"),
+        "tracked_past_done": (lambda plain: plain["tracking_output"].update({done + 1: torch.eye(4)}),
+                              f"'tracking_output' names frame {done + 1}"),
+        "uneven_keyframes": (lambda plain: plain["keyframes"]["timestamps"].pop(), "'keyframes' holds lists of different"),
+    }
+    for name, (damage, message) in cases.items():
+        plain = checkpoint.to_plain(state)
+        damage(plain)
+        torch.save(plain, tmp_path / f"{name}.pt")
+        with pytest.raises(checkpoint.CheckpointError, match=f"{name}.pt: checkpoint entry {message}"):
+            checkpoint.load(tmp_path / f"{name}.pt")
+    checkpoint.save(state, tmp_path / "good.pt")
+    assert checkpoint.load(tmp_path / "good.pt").done == done  # the real state passes every check

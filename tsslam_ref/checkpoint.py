@@ -192,7 +192,30 @@ def read(path) -> Dict[str, Any]:
             raise CheckpointError(f"{path}: checkpoint entry '{key}' is missing or not a {kind.__name__}")
     if not 0 <= values["done"] <= len(values["timestamps"]):
         raise CheckpointError(f"{path}: checkpoint says {values['done']} frames done of {len(values['timestamps'])}")
+    _check_rows(path, values)
     return values
+
+
+def _check_rows(path: Path, values: Dict[str, Any]) -> None:
+    """CheckpointError naming the entry when the per-frame entries disagree with the frame count:
+    a pose table of another length, or a frame number outside the sequence, would fail only
+    frames later, inside the loop."""
+    n_frames = len(values["timestamps"])
+    if tuple(values["frame_poses"].shape) != (n_frames, 4, 4):
+        raise CheckpointError(f"{path}: checkpoint entry 'frame_poses' has shape {tuple(values['frame_poses'].shape)}, "
+                              f"expected ({n_frames}, 4, 4) for its {n_frames} time stamps")
+    keyframes = values["keyframes"]
+    lengths = {key: len(keyframes.get(key) or []) for key in ("rays", "frame_indices", "timestamps")}
+    if len(set(lengths.values())) != 1:
+        raise CheckpointError(f"{path}: checkpoint entry 'keyframes' holds lists of different lengths {lengths}")
+    frame_numbers = {"keyframes/frame_indices": list(keyframes["frame_indices"])}
+    for key in ("tracking_output", "keyframe_of_frame", "relative_to_keyframe", "window_rays"):
+        frame_numbers[key] = list(values[key])
+    for key, numbers in frame_numbers.items():
+        outside = [number for number in numbers if not 0 <= int(number) < max(values["done"], 1)]
+        if outside:
+            raise CheckpointError(f"{path}: checkpoint entry '{key}' names frame {outside[0]}, outside the "
+                                  f"{values['done']} frames done (0-{max(values['done'], 1) - 1})")
 
 
 def load(path, device=None):
