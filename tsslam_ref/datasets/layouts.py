@@ -206,6 +206,13 @@ def _read_matrix_lines(path: Path, per_line: int, what: str) -> np.ndarray:
     return np.asarray(values).reshape(-1, 4, 4)
 
 
+def _one_pose_per_frame(poses: np.ndarray, path: Path, frames: int, images: Path) -> None:
+    """ValueError naming ``path`` and both counts unless it holds exactly one pose per frame."""
+    if len(poses) != frames:
+        raise ValueError(f"{path}: {len(poses)} poses for {frames} frames in {images}; expected exactly one pose "
+                         f"per frame, in the frames' order")
+
+
 def _invalid_to_nan(poses: np.ndarray) -> np.ndarray:
     bad = ~np.isfinite(poses).all(axis=(1, 2))
     poses = poses.copy()
@@ -271,8 +278,7 @@ def parse_neural_rgbd(folder: Path, fps: float) -> LayoutIndex:
     if len(rgb_paths) != len(depth_paths):
         raise ValueError(f"{folder / 'images'} has {len(rgb_paths)} images but {depth_dir} has {len(depth_paths)}")
     poses_gl = _read_matrix_lines(folder / "poses.txt", 4, "4 lines per 4x4 pose")
-    if len(poses_gl) < len(rgb_paths):
-        raise ValueError(f"{folder / 'poses.txt'}: {len(poses_gl)} poses for {len(rgb_paths)} images")
+    _one_pose_per_frame(poses_gl, folder / "poses.txt", len(rgb_paths), folder / "images")
     focal = NEURAL_RGBD_FOCAL
     focal_path = folder / "focal.txt"
     if focal_path.is_file():
@@ -282,7 +288,7 @@ def parse_neural_rgbd(folder: Path, fps: float) -> LayoutIndex:
             raise ValueError(f"{focal_path}:1: expected one number (the focal length in pixels)") from None
     width, height = image_size(depth_paths[0])
     intrinsics = _intrinsics_from(focal_path, focal, focal, width / 2.0, height / 2.0, width, height)
-    poses = opengl_to_opencv_pose(_invalid_to_nan(poses_gl[: len(rgb_paths)]))
+    poses = opengl_to_opencv_pose(_invalid_to_nan(poses_gl))
     timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
     return LayoutIndex("neural_rgbd", rgb_paths, depth_paths, timestamps, poses, intrinsics, None)
 
@@ -299,12 +305,11 @@ def parse_replica(folder: Path, fps: float) -> LayoutIndex:
     if [p.stem[5:] for p in rgb_paths] != [p.stem[5:] for p in depth_paths]:
         raise ValueError(f"{results}: frame*.jpg ({len(rgb_paths)}) and depth*.png ({len(depth_paths)}) do not pair up")
     poses = _read_matrix_lines(folder / "traj.txt", 16, "16 numbers per line")
-    if len(poses) < len(rgb_paths):
-        raise ValueError(f"{folder / 'traj.txt'}: {len(poses)} poses for {len(rgb_paths)} frames")
+    _one_pose_per_frame(poses, folder / "traj.txt", len(rgb_paths), results)
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
     intrinsics = calibrated[0] if calibrated else REPLICA_INTRINSICS
     timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
-    return LayoutIndex("replica", rgb_paths, depth_paths, timestamps, _invalid_to_nan(poses[: len(rgb_paths)]),
+    return LayoutIndex("replica", rgb_paths, depth_paths, timestamps, _invalid_to_nan(poses),
                        intrinsics, calibrated[1] if calibrated else None)
 
 
