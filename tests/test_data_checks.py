@@ -67,3 +67,94 @@ def test_one_pose_per_frame_still_loads_with_unknown_poses(tmp_path):
     sequence = data.load_sequence(folder, require_gt=False)
     assert len(sequence) == 3 and sequence.frames_with_gt == 2 and sequence[1].pose_c2w is None
     np.testing.assert_allclose(sequence[2].pose_c2w[:3, 3], poses_gl[2, :3, 3])
+
+
+# ------------------------------------------------------------------------------------------------
+# Poses must be rigid transforms
+
+
+def _not_rigid(kind):
+    """A pose (4, 4) whose rotation block is ``kind``: scaled 1.01, sheared, mirrored (det -1), or
+    the whole matrix transposed (translation in the bottom row)."""
+    pose = _random_poses(1, seed=7)[0]
+    if kind == "scaled":
+        pose[:3, :3] *= 1.01
+    elif kind == "sheared":
+        pose[:3, :3] = pose[:3, :3] @ np.array([[1.0, 0.05, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    elif kind == "mirrored":
+        pose[:3, 0] *= -1.0
+    else:
+        pose = pose.T.copy()
+    return pose
+
+
+EXPECTED_WORDS = {"scaled": r"\|R\^T R - I\| = 0\.0201 and det 1\.0303", "sheared": r"\|R\^T R - I\| = 0\.05",
+                  "mirrored": r"\|R\^T R - I\| = [0-9.e-]+ and det -1\b", "transposed": r"bottom row [-0-9.e ]+ 1;"}
+
+
+@pytest.mark.parametrize("kind", ["scaled", "sheared", "mirrored", "transposed"])
+def test_replica_pose_that_is_not_rigid_is_refused_naming_its_line(tmp_path, kind):
+    poses = _random_poses(3)
+    poses[2] = _not_rigid(kind)
+    folder = make_replica(tmp_path / "room0", 3, poses)
+    with pytest.raises(ValueError, match=r"traj\.txt:3: the pose for results/frame000002\.jpg is not a rigid "
+                                         r"transform: .*" + EXPECTED_WORDS[kind]):
+        data.load_sequence(folder)
+
+
+@pytest.mark.parametrize("kind", ["scaled", "mirrored"])
+def test_neural_rgbd_pose_that_is_not_rigid_is_refused_naming_its_line(tmp_path, kind):
+    poses = _random_poses(3)
+    poses[1] = _not_rigid(kind)
+    folder = make_neural_rgbd(tmp_path / "scene", 3, poses)
+    with pytest.raises(ValueError, match=r"poses\.txt:5: the pose for images/img1\.png .*" + EXPECTED_WORDS[kind]):
+        data.load_sequence(folder)
+
+
+def _scannet(folder, poses, fmt="%.18e"):
+    for sub in ("color", "depth", "pose", "intrinsic"):
+        (folder / sub).mkdir(parents=True)
+    for n, pose in enumerate(poses):
+        Image.fromarray(np.full((12, 16, 3), 40 * n, np.uint8)).save(folder / f"color/{n * 10}.jpg", quality=100)
+        iio.imwrite(folder / f"depth/{n * 10}.png", _depth(8, 6, 1.5 + n, 1000))
+        np.savetxt(folder / f"pose/{n * 10}.txt", pose, fmt=fmt)
+    np.savetxt(folder / "intrinsic/intrinsic_depth.txt", [[6.1, 0, 3.6, 0], [0, 6.2, 2.7, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    return folder
+
+
+def test_scannet_pose_that_is_not_rigid_is_refused_and_inf_poses_stay_unknown(tmp_path):
+    poses = _random_poses(3)
+    poses[1] = -np.inf  # ScanNet's invalid pose: unknown ground truth, as before
+    folder = _scannet(tmp_path / "scene0000_00", poses)
+    sequence = data.load_sequence(folder, require_gt=False)
+    assert sequence.frames_with_gt == 2 and sequence[1].pose_c2w is None
+    np.savetxt(folder / "pose/20.txt", _not_rigid("scaled"))
+    with pytest.raises(ValueError, match=r"pose/20\.txt:1: the pose for frame 20 .*" + EXPECTED_WORDS["scaled"]):
+        data.load_sequence(folder)
+
+
+@pytest.mark.parametrize("fmt", ["%.6g", "%.4f"])
+def test_poses_printed_with_a_few_digits_still_load(tmp_path, fmt):
+    """Real files print 6-9 significant digits (ScanNet '%g'-like); 4 decimals pass too."""
+    poses = _random_poses(3, seed=11)
+    sequence = data.load_sequence(_scannet(tmp_path / "scene", poses, fmt))
+    np.testing.assert_allclose(sequence.gt_poses, poses, atol=1e-4)
+    replica = make_replica(tmp_path / "room0", 3, poses)
+    np.savetxt(replica / "traj.txt", poses.reshape(-1, 16), fmt=fmt)
+    np.testing.assert_allclose(data.load_sequence(replica).gt_poses, poses, atol=1e-4)
+
+
+def test_groundtruth_quaternion_far_from_unit_norm_is_refused(tmp_path):
+    """TUM-format ground truth (folder and tum layouts): a quaternion of norm 2 was normalised silently;
+    columns in another order give such norms.  TUM's own 4-decimal quaternions still load."""
+    from test_data import _folder_layout
+
+    folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])
+    rows = ["1.0 0 0 0 0.0000 0.7071 0.0000 0.7071", "2.0 0 0 0 0 1.4142 0 1.4142"]
+    (folder / "groundtruth.txt").write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
+    with pytest.raises(ValueError, match=r"groundtruth\.txt:3: quaternion qx qy qz qw = 0 1\.4142 0 1\.4142 has "
+                                         r"norm 1\.99998; expected a unit quaternion"):
+        data.load_sequence(folder)
+    (folder / "groundtruth.txt").write_text("\n".join([rows[0], rows[0].replace("1.0", "2.0", 1)]) + "\n")
+    rotation = data.load_sequence(folder).gt_poses[1, :3, :3]  # about y by 90 degrees
+    np.testing.assert_allclose(rotation, [[0, 0, 1], [0, 1, 0], [-1, 0, 0]], atol=1e-4)

@@ -180,15 +180,19 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     return LayoutIndex("tum", rgb_paths, depth_paths, timestamps, gt_poses, intrinsics, depth_scale)
 
 
-def _read_matrix_lines(path: Path, per_line: int, what: str) -> np.ndarray:
+def _read_matrix_lines(path: Path, per_line: int, what: str):
     """All numbers of a text file as (-1, 4, 4) matrices, ``per_line`` (4 or 16) numbers per line.
+
+    Returns:
+        matrices (M, 4, 4) float64 and, per matrix, the number (1-based) of its file's line that
+        holds its first row.
 
     Raises:
         FileNotFoundError / ValueError naming the file (and line) for missing or malformed content.
     """
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path}: file not found ({what})")
-    values = []
+    values, line_numbers = [], []
     with open(path) as handle:
         for number, line in enumerate(handle, start=1):
             fields = line.split()
@@ -201,9 +205,35 @@ def _read_matrix_lines(path: Path, per_line: int, what: str) -> np.ndarray:
             if len(numbers) != per_line:
                 raise ValueError(f"{path}:{number}: expected {per_line} numbers per line ({what}), got {len(numbers)}")
             values.extend(numbers)
+            line_numbers.append(number)
     if not values or len(values) % 16:
         raise ValueError(f"{path}: holds {len(values)} numbers, not a whole number of 4x4 matrices ({what})")
-    return np.asarray(values).reshape(-1, 4, 4)
+    return np.asarray(values).reshape(-1, 4, 4), line_numbers[:: 16 // per_line]
+
+
+POSE_TOLERANCE = 1e-3
+"""Largest |R^T R - I| (max over entries) and |bottom row - (0, 0, 0, 1)| of a pose read from text:
+poses printed with 4 or more decimals stay far below it; a scale of 1.001 or a shear does not."""
+
+
+def check_rigid_poses(poses: np.ndarray, path: Path, line_numbers: List[int], frame_names: List[str]) -> None:
+    """ValueError naming ``path``:line and the frame for the first finite pose (N, 4, 4) whose 3x3
+    block is not a rotation (|R^T R - I| > :data:`POSE_TOLERANCE` or det <= 0) or whose bottom row is
+    not 0 0 0 1.  Poses holding inf / NaN (unknown ground truth) are not checked."""
+    finite = np.isfinite(poses).all(axis=(1, 2))
+    poses = np.where(finite[:, None, None], poses, np.eye(4))  # unknown poses pass, without inf arithmetic
+    rotations = poses[:, :3, :3]
+    deviation = np.abs(np.swapaxes(rotations, 1, 2) @ rotations - np.eye(3)).max(axis=(1, 2))
+    determinant = np.linalg.det(rotations)
+    bottom = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    bad = np.flatnonzero(finite & ((deviation > POSE_TOLERANCE) | (determinant <= 0) | (bottom > POSE_TOLERANCE)))
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"{path}:{line_numbers[i]}: the pose for {frame_names[i]} is not a rigid transform: its 3x3 block "
+            f"has |R^T R - I| = {deviation[i]:.3g} and det {determinant[i]:.6g}, its bottom row "
+            f"{' '.join(f'{v:g}' for v in poses[i, 3])}; expected a rotation (|R^T R - I| <= {POSE_TOLERANCE:g}, "
+            f"det +1, not a scaled, sheared or mirrored matrix) and a bottom row 0 0 0 1")
 
 
 def _one_pose_per_frame(poses: np.ndarray, path: Path, frames: int, images: Path) -> None:
@@ -248,15 +278,16 @@ def parse_scannet(folder: Path, fps: float) -> LayoutIndex:
         if not depth_path.stem.isdigit():
             raise ValueError(f"{depth_path}: ScanNet frame names must be integers (frame numbers)")
         rgb_paths.append(colour[depth_path.stem])
-        matrices = _read_matrix_lines(pose_path, 4, "4x4 camera-to-world pose")
+        matrices, lines = _read_matrix_lines(pose_path, 4, "4x4 camera-to-world pose")
         if len(matrices) != 1:
             raise ValueError(f"{pose_path}: {len(matrices)} 4x4 matrices; expected one camera-to-world pose")
+        check_rigid_poses(matrices, pose_path, lines, [f"frame {depth_path.stem}"])
         poses.append(matrices[0])
         numbers.append(int(depth_path.stem))
     k_path = folder / "intrinsic" / "intrinsic_depth.txt"
     if not k_path.is_file():
         raise FileNotFoundError(f"{k_path}: ScanNet depth intrinsics not found (export them with SensReader)")
-    k = _read_matrix_lines(k_path, 4, "4x4 intrinsic matrix")[0]
+    k = _read_matrix_lines(k_path, 4, "4x4 intrinsic matrix")[0][0]
     width, height = image_size(depth_paths[0])
     intrinsics = _intrinsics_from(k_path, k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
     timestamps = np.asarray(numbers, dtype=np.float64) / fps
@@ -277,8 +308,9 @@ def parse_neural_rgbd(folder: Path, fps: float) -> LayoutIndex:
         raise ValueError(f"{folder / 'images'}: no images")
     if len(rgb_paths) != len(depth_paths):
         raise ValueError(f"{folder / 'images'} has {len(rgb_paths)} images but {depth_dir} has {len(depth_paths)}")
-    poses_gl = _read_matrix_lines(folder / "poses.txt", 4, "4 lines per 4x4 pose")
+    poses_gl, lines = _read_matrix_lines(folder / "poses.txt", 4, "4 lines per 4x4 pose")
     _one_pose_per_frame(poses_gl, folder / "poses.txt", len(rgb_paths), folder / "images")
+    check_rigid_poses(poses_gl, folder / "poses.txt", lines, [f"images/{p.name}" for p in rgb_paths])
     focal = NEURAL_RGBD_FOCAL
     focal_path = folder / "focal.txt"
     if focal_path.is_file():
@@ -304,8 +336,9 @@ def parse_replica(folder: Path, fps: float) -> LayoutIndex:
         raise ValueError(f"{results}: no frame*.jpg images")
     if [p.stem[5:] for p in rgb_paths] != [p.stem[5:] for p in depth_paths]:
         raise ValueError(f"{results}: frame*.jpg ({len(rgb_paths)}) and depth*.png ({len(depth_paths)}) do not pair up")
-    poses = _read_matrix_lines(folder / "traj.txt", 16, "16 numbers per line")
+    poses, lines = _read_matrix_lines(folder / "traj.txt", 16, "16 numbers per line")
     _one_pose_per_frame(poses, folder / "traj.txt", len(rgb_paths), results)
+    check_rigid_poses(poses, folder / "traj.txt", lines, [f"results/{p.name}" for p in rgb_paths])
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
     intrinsics = calibrated[0] if calibrated else REPLICA_INTRINSICS
     timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps

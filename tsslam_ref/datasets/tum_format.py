@@ -23,6 +23,10 @@ from tsslam_ref.geometry import matrix_to_quaternion_xyzw, pose_to_tum, quaterni
 
 TUM_MAX_TIME_DIFF = 0.02
 """Association tolerance (s) of TUM's associate.py."""
+QUATERNION_NORM_TOLERANCE = 0.01
+"""Largest |norm - 1| of a trajectory line's quaternion.  It is normalised on reading, so any
+precision passes (TUM's 4 decimals are off by 1e-4 at most); a norm off by more means columns in
+another order or a broken writer."""
 
 
 def _data_lines(path: Path, commas: bool = True):
@@ -89,10 +93,10 @@ def read_tum_trajectory(path, unique_stamps: bool = False) -> Tuple[np.ndarray, 
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: '<file>:<line>: ...' for a line without 8 numbers, a zero quaternion, a
-            decreasing timestamp, a repeated one when ``unique_stamps`` (an estimate: one pose
-            per frame; recorded ground truth such as TUM fr2/desk repeats a few stamps), or a
-            file with no poses.
+        ValueError: '<file>:<line>: ...' for a line without 8 numbers, a quaternion whose norm
+            is 0 or off 1 by more than :data:`QUATERNION_NORM_TOLERANCE`, a decreasing timestamp,
+            a repeated one when ``unique_stamps`` (an estimate: one pose per frame; recorded ground
+            truth such as TUM fr2/desk repeats a few stamps), or a file with no poses.
     """
     stamps, rows, numbers = [], [], []
     for number, fields in _data_lines(path):
@@ -106,6 +110,10 @@ def read_tum_trajectory(path, unique_stamps: bool = False) -> Tuple[np.ndarray, 
             raise ValueError(f"{path}:{number}: non-finite value in '{' '.join(fields)}'")
         if np.linalg.norm(values[4:8]) < 1e-12:
             raise ValueError(f"{path}:{number}: zero quaternion")
+        if abs(np.linalg.norm(values[4:8]) - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise ValueError(f"{path}:{number}: quaternion qx qy qz qw = {' '.join(fields[4:8])} has norm "
+                             f"{np.linalg.norm(values[4:8]):.6g}; expected a unit quaternion (norm within "
+                             f"{QUATERNION_NORM_TOLERANCE:g} of 1) in the order 'timestamp tx ty tz qx qy qz qw'")
         if unique_stamps and stamps and values[0] == stamps[-1]:
             raise ValueError(f"{path}:{number}: timestamp {fields[0]} repeats line {numbers[-1]}'s; expected one pose per time stamp")
         if stamps and values[0] < stamps[-1]:
