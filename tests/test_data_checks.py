@@ -158,3 +158,39 @@ def test_groundtruth_quaternion_far_from_unit_norm_is_refused(tmp_path):
     (folder / "groundtruth.txt").write_text("\n".join([rows[0], rows[0].replace("1.0", "2.0", 1)]) + "\n")
     rotation = data.load_sequence(folder).gt_poses[1, :3, :3]  # about y by 90 degrees
     np.testing.assert_allclose(rotation, [[0, 0, 1], [0, 1, 0], [-1, 0, 0]], atol=1e-4)
+
+
+# ------------------------------------------------------------------------------------------------
+# Colour of another aspect ratio than the depth
+
+
+def test_scannet_colour_of_1296x968_for_640x480_depth_is_resized(tmp_path):
+    """Real ScanNet: colour 1296x968 (aspect 1.339) for depth 640x480 (1.333), 0.4 % apart: accepted,
+    resized edge onto edge (a red | blue split at the colour's middle lands at the depth's middle)."""
+    folder = _scannet(tmp_path / "scene0000_00", _random_poses(1))
+    colour = np.zeros((968, 1296, 3), np.uint8)
+    colour[:, :648, 0] = 255
+    colour[:, 648:, 2] = 255
+    Image.fromarray(colour).save(folder / "color/0.jpg", quality=100)
+    iio.imwrite(folder / "depth/0.png", _depth(640, 480, 1.5, 1000))
+    sequence = data.load_sequence(folder)
+    assert sequence.check_files() == 2
+    rgb = sequence[0].rgb
+    assert rgb.shape == (480, 640, 3)
+    assert rgb[240, 318, 0] > 0.9 and rgb[240, 318, 2] < 0.1 and rgb[240, 321, 2] > 0.9 and rgb[240, 321, 0] < 0.1
+
+
+@pytest.mark.parametrize("colour_size", [(32, 18), (33, 24)])  # 16:9 for 4:3 depth (33 % apart); 3.1 % apart
+def test_colour_of_another_aspect_ratio_than_the_depth_is_refused(tmp_path, colour_size):
+    from test_data import _folder_layout
+
+    folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])  # 8x6 depth
+    iio.imwrite(folder / "rgb/2.0.png", _rgb(*colour_size, 0))
+    sequence = data.load_sequence(folder)
+    width, height = colour_size
+    words = rf"rgb/2\.0\.png: colour image is {width}x{height} \(aspect [0-9.]+\) but the depth images are 8x6 .*within 1 %"
+    with pytest.raises(ValueError, match=words):
+        sequence[1]
+    with pytest.raises(ValueError, match=words):
+        sequence.check_files()
+    sequence[0]  # the other frame still reads

@@ -109,6 +109,26 @@ def check_image(path, role: str, size: Optional[Tuple[int, int]] = None) -> Tupl
     return found_size
 
 
+COLOUR_ASPECT_TOLERANCE = 0.01
+"""Largest relative difference between the colour's and the depth's aspect ratio (width / height).
+Colour is resized to the depth size and shares the depth's intrinsics; ScanNet's 1296x968 colour for
+640x480 depth differs by 0.4 %, a 16:9 colour for 4:3 depth by 33 %."""
+
+
+def check_colour_aspect(path, colour_size: Tuple[int, int], depth_size: Tuple[int, int]) -> None:
+    """ValueError naming the colour file ``path`` when its (width, height) ``colour_size`` has
+    another aspect ratio than the depth's ``depth_size`` by more than :data:`COLOUR_ASPECT_TOLERANCE`
+    (resizing it to the depth size would stretch it, and its pixels would miss the depth's)."""
+    (colour_w, colour_h), (depth_w, depth_h) = colour_size, depth_size
+    difference = (colour_w / colour_h) / (depth_w / depth_h) - 1.0
+    if abs(difference) > COLOUR_ASPECT_TOLERANCE:
+        raise ValueError(
+            f"{path}: colour image is {colour_w}x{colour_h} (aspect {colour_w / colour_h:.4f}) but the depth images "
+            f"are {depth_w}x{depth_h} (aspect {depth_w / depth_h:.4f}), {100 * abs(difference):.1f} % apart; colour "
+            f"is resized to the depth size and uses the depth's intrinsics, so expected the depth's aspect ratio "
+            f"within {100 * COLOUR_ASPECT_TOLERANCE:g} % (register or crop the colour to the depth's view first)")
+
+
 def resize_rgb(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     """(H, W, 3) float32 -> (height, width, 3) float32, bilinear (antialiased), edges onto edges."""
     if rgb.shape[1] == width and rgb.shape[0] == height:

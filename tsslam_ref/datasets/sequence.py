@@ -20,7 +20,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from tsslam_ref.datasets.images import check_image, crop, output_size, read_depth, read_rgb, resize_depth, resize_rgb
+from tsslam_ref.datasets.images import check_colour_aspect, check_image, crop, output_size, read_depth, read_rgb, resize_depth, resize_rgb
 from tsslam_ref.datasets.intrinsics import Intrinsics
 
 
@@ -105,7 +105,8 @@ class RGBDSequence:
 
     def __getitem__(self, i: int) -> Frame:
         """Read frame ``i`` (negative indices count from the end).  ValueError naming the file for a
-        depth image of another size than the calibration's or with no valid depth at all."""
+        depth image of another size than the calibration's or with no valid depth at all, or a
+        colour image of another aspect ratio than the depth's (beyond 1 %)."""
         if not isinstance(i, (int, np.integer)):
             raise TypeError(f"sequence indices must be integers, got {type(i).__name__}")
         n = len(self)
@@ -119,7 +120,9 @@ class RGBDSequence:
                 f"{self.depth_paths[i]}: depth is {depth.shape[1]}x{depth.shape[0]}, expected "
                 f"{native.width}x{native.height} like the sequence's calibration"
             )
-        rgb = resize_rgb(read_rgb(self.rgb_paths[i]), native.width, native.height)  # (H0, W0, 3)
+        rgb = read_rgb(self.rgb_paths[i])  # (Hc, Wc, 3), any size of the depth's aspect ratio
+        check_colour_aspect(self.rgb_paths[i], (rgb.shape[1], rgb.shape[0]), (native.width, native.height))
+        rgb = resize_rgb(rgb, native.width, native.height)  # (H0, W0, 3)
         rgb, depth = crop(rgb, self.crop_edge), crop(depth, self.crop_edge)
         rgb = resize_rgb(rgb, self.intrinsics.width, self.intrinsics.height)  # (H, W, 3)
         depth = resize_depth(depth, self.intrinsics.width, self.intrinsics.height)  # (H, W)
@@ -139,7 +142,8 @@ class RGBDSequence:
         """Check every frame's two image files cheaply (header, size, mode, PNG checksums).
 
         Depth must be a single-channel 16-bit PNG of the calibration's size; colour an 8- or
-        16-bit RGB, RGBA or grey image (any size: it is resized to the depth's).  No pixel is
+        16-bit RGB, RGBA or grey image of any size with the depth's aspect ratio within 1 % (it is
+        resized to the depth's).  No pixel is
         decoded, so a 3000-frame sequence takes seconds.  Returns the number of files checked.
 
         Raises:
@@ -148,7 +152,8 @@ class RGBDSequence:
         native = self.native_intrinsics
         for rgb_path, depth_path in zip(self.rgb_paths, self.depth_paths):
             check_image(depth_path, "depth", (native.width, native.height))
-            check_image(rgb_path, "colour")
+            colour_size = check_image(rgb_path, "colour")
+            check_colour_aspect(rgb_path, colour_size, (native.width, native.height))
         return 2 * len(self)
 
     @property
