@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from test_data import _depth, _random_poses, _rgb
+from test_data import _depth, _folder_layout, _random_poses, _rgb
 from tsslam_ref import data
 
 
@@ -147,8 +147,6 @@ def test_poses_printed_with_a_few_digits_still_load(tmp_path, fmt):
 def test_groundtruth_quaternion_far_from_unit_norm_is_refused(tmp_path):
     """TUM-format ground truth (folder and tum layouts): a quaternion of norm 2 was normalised silently;
     columns in another order give such norms.  TUM's own 4-decimal quaternions still load."""
-    from test_data import _folder_layout
-
     folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])
     rows = ["1.0 0 0 0 0.0000 0.7071 0.0000 0.7071", "2.0 0 0 0 0 1.4142 0 1.4142"]
     (folder / "groundtruth.txt").write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
@@ -182,8 +180,6 @@ def test_scannet_colour_of_1296x968_for_640x480_depth_is_resized(tmp_path):
 
 @pytest.mark.parametrize("colour_size", [(32, 18), (33, 24)])  # 16:9 for 4:3 depth (33 % apart); 3.1 % apart
 def test_colour_of_another_aspect_ratio_than_the_depth_is_refused(tmp_path, colour_size):
-    from test_data import _folder_layout
-
     folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])  # 8x6 depth
     iio.imwrite(folder / "rgb/2.0.png", _rgb(*colour_size, 0))
     sequence = data.load_sequence(folder)
