@@ -20,7 +20,8 @@ from typing import List, Optional
 
 import numpy as np
 
-from tsslam_ref.datasets.images import check_colour_aspect, check_image, crop, output_size, read_depth, read_rgb, resize_depth, resize_rgb
+from tsslam_ref.datasets.images import (check_colour_aspect, check_image, crop, output_size, read_depth, read_rgb,
+                                        resize_depth, resize_rgb)
 from tsslam_ref.datasets.intrinsics import Intrinsics
 
 
