@@ -211,6 +211,7 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "runtime", "accuracy_m"):
         assert key in metrics
+    assert 0 < metrics["runtime"]["lba_init"]["iterations_per_call"] < config.tiny().local_ba.fit_iters  # LM stops early
     paths = metrics["environment"].pop("map_kernels")
     assert metrics["environment"] == {"torch": torch.__version__, "device": "cpu", "threads": torch.get_num_threads(),
                                       "cpu_capability": torch.backends.cpu.get_cpu_capability()}
@@ -431,3 +432,33 @@ def test_metrics_record_which_code_ran_the_map(monkeypatch):
     paths = run_outputs.map_kernels(SceneField(config.FieldConfig(), bound), cpu)
     assert paths["hash_grid"] == paths["oneblob"] == "pytorch"
     assert "TSSLAM_NO_COMPILED_KERNEL" in paths["kernel_error"]
+
+
+def test_parallel_ctrl_c_while_joining_waits_for_the_mapping_thread(synthetic_sequence, monkeypatch):
+    """Ctrl-C while the main thread waits for the mapping thread used to leave that thread running
+    inside PyTorch while Python exited (an abort, exit 134) or wrote the outputs.  Oracle: when the
+    KeyboardInterrupt reaches the caller, the mapping thread has ended."""
+    import threading
+    import time
+
+    cfg = small_config("tsslam")
+    cfg.parallel = True
+    sequence = data.load_sequence(synthetic_sequence, frame_stop=5)
+    after_tracking, join = slam.after_tracking, threading.Thread.join
+    interrupts = []
+
+    def slow_after_tracking(state, frame):
+        time.sleep(0.2)
+        return after_tracking(state, frame)
+
+    def join_interrupted_once(thread, timeout=None):
+        if thread.name == "tsslam-mapping" and not interrupts:
+            interrupts.append(thread)
+            raise KeyboardInterrupt  # the user's Ctrl-C arrives while waiting
+        return join(thread, timeout)
+
+    monkeypatch.setattr(slam, "after_tracking", slow_after_tracking)
+    monkeypatch.setattr(threading.Thread, "join", join_interrupted_once)
+    with pytest.raises(KeyboardInterrupt):
+        parallel.run_slam_in_two_threads(sequence, cfg, device=torch.device("cpu"))
+    assert interrupts and not interrupts[0].is_alive()

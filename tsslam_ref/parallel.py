@@ -34,6 +34,7 @@ import copy
 import dataclasses
 import math
 import queue
+import sys
 import threading
 import time
 from typing import Callable, Optional
@@ -122,11 +123,12 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
     jobs: "queue.Queue" = queue.Queue()
     snapshot = {"field": copy.deepcopy(state.field)}
     failures = []
+    stop = threading.Event()  # set when the main thread stops early: queued jobs are dropped
 
     def mapping_worker() -> None:
         while True:
             frame = jobs.get()
-            if frame is None:
+            if frame is None or stop.is_set():
                 return
             try:
                 with lock:
@@ -162,8 +164,32 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
             frame = frame_to_device(sequence[i], device, dtype)
             slam.track(state, frame, field_model=field_model, lock=lock)
             jobs.put(frame)
+    except BaseException:
+        stop.set()  # Ctrl-C or a failure: finish the job under way, skip the queued ones
+        raise
     finally:
         jobs.put(None)
-        worker.join()
+        join_through_interrupts(worker, stop)
     if failures:
         raise failures[0]
+
+
+def join_through_interrupts(worker: threading.Thread, stop: Optional[threading.Event] = None) -> None:
+    """Wait for ``worker`` to end even through Ctrl-C (which also sets ``stop``), then raise
+    KeyboardInterrupt if one came.
+
+    Python would otherwise go on to exit (or write the outputs) while the mapping thread is inside
+    PyTorch, and the process aborts (exit 134) or reads a state in the middle of a BA step.  The
+    wait is one mapping job (a few seconds at most)."""
+    interrupted = False
+    while worker.is_alive():
+        try:
+            worker.join()
+        except KeyboardInterrupt:
+            if stop is not None:
+                stop.set()
+            if not interrupted:
+                print("waiting for the mapping step under way to finish ...", file=sys.stderr)
+            interrupted = True
+    if interrupted:
+        raise KeyboardInterrupt
