@@ -239,8 +239,8 @@ def test_kit_runs_from_a_folder_outside_the_checkout(tmp_path):
     for path in VECTOR_PATHS:  # the user's own code
         data = load(tmp_path / "inputs" / path.name)
         (tmp_path / "mine" / path.name).write_text(json.dumps(as_candidate(data, spline_formulas.evaluate(data))))
-    result = kit("check-all", "mine")
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = kit("check-all", "mine", "--allow-missing")  # spline_formulas has no non-uniform knots
+    assert result.returncode == 0 and "PASS (partial, --allow-missing)" in result.stdout, result.stdout + result.stderr
     assert result.stdout.count("PASS") >= len(VECTOR_PATHS)
 
 

@@ -10,10 +10,11 @@ the reference (assets/spline_kit.md: conventions, formulas, golden values and th
     python -m tsslam_ref.spline_kit inputs FOLDER             # the shipped inputs, for your code
     python -m tsslam_ref.spline_kit evaluate INPUT.json -o OUTPUT.json [--force] [--jacobians]
     python -m tsslam_ref.spline_kit check REFERENCE CANDIDATE.json [--atol 1e-9] [--rtol 1e-7]
-    python -m tsslam_ref.spline_kit check-all FOLDER           # FOLDER/<vector name>.json
+    python -m tsslam_ref.spline_kit check-all FOLDER [--allow-missing]  # FOLDER/<vector name>.json
 
-Exit codes: 0 pass, 1 a check
-failed, 2 bad input (the message names the file, key and value), nothing overwritten.
+Exit codes: 0 pass, 1 a check failed (``check-all``: also a malformed candidate, or a shipped vector
+missing from FOLDER unless ``--allow-missing``), 2 bad input (the message names the file, key and
+value; ``check-all``: FOLDER holds none of the shipped names), nothing overwritten.
 
 Overwrite rule: files this kit wrote carry ``"written_by": "tsslam_ref.spline_kit"`` and are
 replaced on a re-run; any other existing file is kept unless ``--force`` is given.
@@ -104,6 +105,9 @@ def _build_parser() -> argparse.ArgumentParser:
             check.add_argument("candidate")
         else:
             check.add_argument("folder")
+            check.add_argument("--allow-missing", action="store_true",
+                               help="a deliberate partial check: exit 0 when every vector present passes (the "
+                                    "missing ones are still listed); by default a missing vector fails")
         check.add_argument("--atol", type=float, default=conformance.DEFAULT_ATOL,
                            help=f"absolute tolerance (default {conformance.DEFAULT_ATOL})")
         check.add_argument("--rtol", type=float, default=conformance.DEFAULT_RTOL,
@@ -188,7 +192,10 @@ def _check(reference_path: str, candidate_path: str, atol: float, rtol: float) -
     return report["ok"]
 
 
-def _check_all(folder: str, atol: float, rtol: float) -> int:
+def _check_all(folder: str, atol: float, rtol: float, allow_missing: bool = False) -> int:
+    """Check FOLDER/<name>.json against every shipped vector; print one block each, a summary and a
+    last line with the counts.  Returns 0 only when every shipped vector was there and passed (with
+    ``allow_missing``: every one that was there), 1 otherwise, 2 when FOLDER holds none of them."""
     conformance.check_tolerances(atol, rtol)
     results = {}
     for path in shipped_vectors():
@@ -204,11 +211,36 @@ def _check_all(folder: str, atol: float, rtol: float) -> int:
             results[path.stem] = "error"
     print("== summary")
     for name, result in results.items():
-        print(f"  {name:<28} {result}")
-    if all(result == "missing" for result in results.values()):
+        shown = f"missing (no {os.path.join(folder, name + '.json')})" if result == "missing" else result
+        print(f"  {name:<28} {shown}")
+    counts = {key: sum(result == key for result in results.values()) for key in ("PASS", "FAIL", "error", "missing")}
+    if counts["missing"] == len(results):
         print(f"error: {folder} holds none of the shipped names (see 'list')", file=sys.stderr)
         return 2
-    return 0 if all(result in ("PASS", "missing") for result in results.values()) else 1
+    _note_unknown_files(folder, results)
+    ok = counts["FAIL"] == counts["error"] == 0 and (allow_missing or counts["missing"] == 0)
+    print(_counts_line(counts, len(results), allow_missing, ok))
+    return 0 if ok else 1
+
+
+def _note_unknown_files(folder: str, results: dict) -> None:
+    """Name the .json files in FOLDER that are no shipped vector (a misspelt name reads as missing)."""
+    unknown = sorted(name for name in os.listdir(folder) if name.endswith(".json") and name[:-5] not in results)
+    if unknown:
+        shown = ", ".join(unknown[:5]) + (" ..." if len(unknown) > 5 else "")
+        print(f"note: {len(unknown)} file(s) in {folder} are no shipped name and were not checked: {shown}")
+
+
+def _counts_line(counts: dict, total: int, allow_missing: bool, ok: bool) -> str:
+    """The last line of check-all: the verdict and how many vectors passed, failed, were bad, missing."""
+    line = (f"{counts['PASS']} of {total} shipped vectors passed, {counts['FAIL']} failed, "
+            f"{counts['error']} malformed, {counts['missing']} missing")
+    if not counts["missing"]:
+        return f"{'PASS' if ok else 'FAIL'}: {line}"
+    if allow_missing:
+        return f"{'PASS (partial, --allow-missing)' if ok else 'FAIL'}: {line}"
+    return (f"FAIL: {line} (every shipped vector must be checked; write the missing ones, or pass "
+            f"--allow-missing for a deliberate partial check)")
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -233,7 +265,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.command == "check":
             conformance.check_tolerances(args.atol, args.rtol)
             return 0 if _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol) else 1
-        return _check_all(args.folder, args.atol, args.rtol)
+        return _check_all(args.folder, args.atol, args.rtol, args.allow_missing)
     except BrokenPipeError:  # the reader of our output went away: cli_args.interruptible ends quietly
         raise
     except (conformance.ConformanceError, ValueError, OSError) as error:  # OSError: FileExistsError, no such folder, ...
