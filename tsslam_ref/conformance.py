@@ -19,8 +19,8 @@ output keys together.
 
 Error definition (one, used everywhere): per quantity q, error = max over times and components of
 |cand − ref|; scale = max |ref| over the quantity; the quantity passes when
-error ≤ atol + rtol · scale (default atol 1e-9, rtol 1e-7; float64 implementations agree to
-~1e-14).  "scaled error" = error / scale.  :func:`diagnose` recognises common mistakes.
+error ≤ atol + rtol · scale (defaults :data:`DEFAULT_ATOL`, :data:`DEFAULT_RTOL`: between float64
+and float32 rounding).  "scaled error" = error / scale.  :func:`diagnose` recognises common mistakes.
 """
 
 import json
@@ -38,8 +38,12 @@ OPTIONAL_INPUT_KEYS = ("representation", "knots")
 REPRESENTATIONS = ("split", "se3")
 OUTPUT_KEYS = ("R", "p", "v", "a", "omega_body", "omegadot_body")
 OUTPUT_SHAPES = {"R": (3, 3), "p": (3,), "v": (3,), "a": (3,), "omega_body": (3,), "omegadot_body": (3,)}
-DEFAULT_ATOL = 1e-9
-DEFAULT_RTOL = 1e-7
+DEFAULT_ATOL = 1e-10
+DEFAULT_RTOL = 1e-10
+"""Default tolerances, far from both roundings (measured on the shipped vectors, docs/spline.md): correct
+float64 formulations differ from ours by at most 4e-14 of the scale; float32 arithmetic by 7e-8 to 9e-7
+and float64 values stored as float32 by 3e-8 to 6e-8 (rtol 1e-7 would pass the latter)."""
+FLOAT32_LEVEL = 1e-8  # a failing candidate's largest scaled error from here to 3e-5: float32-level, say so
 ROTATION_STEP_LIMIT = math.pi - 1e-6
 """Largest relative rotation (rad) between consecutive control points the kit accepts.  At π the
 principal Log is ambiguous (Log(R) and −Log(R) are both valid; two correct implementations then
@@ -297,11 +301,11 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
     Returns a report dict: ``rows`` (per quantity: quantity, error, scale, scaled, bound, ok and, at
     the worst time: index, time, segment, u, ref, cand), ``matched`` (candidate index -> reference
     index), ``missing`` (reference times the candidate left out), ``window`` (None, or the first
-    time whose ``J_first`` differs: index, time, ref, cand), ``notes`` (list of str: Jacobians
-    not checked and why), ``knots`` (the reference's knot vector, None when uniform or unknown),
-    ``hints`` (list of str, from :func:`diagnose`), ``ok``.  Times are the reference's at the
-    matched indices (equal to the candidate's up to :data:`TIME_MATCH`).  Raises ConformanceError
-    on malformed files or bad tolerances.
+    time whose ``J_first`` differs: index, time, ref, cand), ``notes`` (list of str: Jacobians not
+    checked and why), ``atol``, ``rtol``, ``knots`` (the reference's knot vector, None when uniform or
+    unknown), ``hints`` (list of str, from :func:`diagnose`), ``ok``.  Times are the reference's at the
+    matched indices (equal to the candidate's up to :data:`TIME_MATCH`).  Raises ConformanceError on
+    malformed files or bad tolerances.
     """
     check_tolerances(atol, rtol)
     ref_times = _array(reference, "times", (), reference_name)
@@ -346,7 +350,7 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
                      "u": None if u is None else float(u[worst]),
                      "ref": ref[worst].tolist(), "cand": cand[worst].tolist(), "per_time": per_time})
     report = {"rows": rows, "matched": index, "missing": missing, "times": times, "window": window,
-              "notes": notes, "knots": None if parsed is None else parsed["knots"],
+              "notes": notes, "atol": atol, "rtol": rtol, "knots": None if parsed is None else parsed["knots"],
               "ok": window is None and all(row["ok"] for row in rows)}
     report["hints"] = [] if report["ok"] else diagnose(report, refs, cands, parsed, atol, rtol)
     return report
@@ -416,15 +420,21 @@ def _time_scale_hints(failing: set, refs, cands, parsed: Optional[dict]) -> List
     return hints
 
 
-def _float32_hint(failing: set, rows: dict) -> List[str]:
-    """Every quantity off by float32 rounding."""
+def _precision_hint(failing: set, rows: dict) -> List[str]:
+    """Every quantity off by rounding-sized errors: float32 level, or between float64 and float32."""
     scaled = [row["scaled"] for row in rows.values()]
-    if failing and max(scaled) < 3e-5 and sum(value > 1e-9 for value in scaled) >= 4:
-        return [f"all quantities differ by 1e-9..3e-5 of their scale (largest {max(scaled):.1e}): the "
-                f"candidate looks like float32 arithmetic (about 1e-7 relative), or like float64 that loses "
-                f"digits to large absolute times (knots or t0 near 1e9 s keep about 1e-7 s: form t - t0 "
-                f"before anything else); compute in float64, or check with --rtol 1e-5 if float32 is intended"]
-    return []
+    largest = max(scaled)
+    if not failing or largest >= 3e-5 or sum(value > 1e-12 for value in scaled) < 4:
+        return []
+    if largest >= FLOAT32_LEVEL:
+        return [f"errors at the float32 level across the quantities (largest {largest:.1e} of the scale; float32 "
+                f"keeps about 6e-8, float64 1e-16): float32 arithmetic or float32 outputs?, or float64 that loses "
+                f"digits to large absolute times (knots or t0 near 1e9 s keep about 1e-7 s: form t - t0 before "
+                f"anything else); compute in float64, or check with --rtol 1e-5 if float32 is intended"]
+    return [f"errors between float64 rounding (1e-14 of the scale) and float32's (6e-8) across the quantities "
+            f"(largest {largest:.1e}): times rounded before evaluation (whole nanoseconds, as basalt-headers' "
+            f"int64 ns, give up to 2e-8 on the shipped vectors; check those with --rtol 1e-7)?, or a small-angle "
+            f"series (Exp, Log, J_r) used up to too large an angle?"]
 
 
 def _representation_hint(failing: set, cands, parsed: Optional[dict], times: np.ndarray) -> List[str]:
@@ -503,7 +513,7 @@ def diagnose(report: dict, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndar
     failing = {key for key, row in rows.items() if not row["ok"]}
     times = report["times"]
     hints = _frame_hints(failing, refs, cands) + _time_scale_hints(failing, refs, cands, parsed)
-    hints += _float32_hint(failing, rows) + _representation_hint(failing, cands, parsed, times)
+    hints += _precision_hint(failing, rows) + _representation_hint(failing, cands, parsed, times)
     if parsed is None:
         return hints
     hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)

@@ -9,12 +9,13 @@ the reference (assets/spline_kit.md: conventions, formulas, golden values and th
     python -m tsslam_ref.spline_kit docs
     python -m tsslam_ref.spline_kit inputs FOLDER             # the shipped inputs, for your code
     python -m tsslam_ref.spline_kit evaluate INPUT.json -o OUTPUT.json [--force] [--jacobians]
-    python -m tsslam_ref.spline_kit check REFERENCE CANDIDATE.json [--atol 1e-9] [--rtol 1e-7]
+    python -m tsslam_ref.spline_kit check REFERENCE CANDIDATE.json [--atol 1e-10] [--rtol 1e-10]
     python -m tsslam_ref.spline_kit check-all FOLDER [--allow-missing]  # FOLDER/<vector name>.json
 
 Exit codes: 0 pass, 1 a check failed (``check-all``: also a malformed candidate, or a shipped vector
 missing from FOLDER unless ``--allow-missing``), 2 bad input (the message names the file, key and
-value; ``check-all``: FOLDER holds none of the shipped names), nothing overwritten.
+value; ``check-all``: FOLDER holds none of the shipped names), nothing overwritten.  The default
+tolerances sit between float64 and float32 rounding (:data:`conformance.DEFAULT_RTOL`).
 
 Overwrite rule: files this kit wrote carry ``"written_by": "tsslam_ref.spline_kit"`` and are
 replaced on a re-run; any other existing file is kept unless ``--force`` is given.
@@ -111,7 +112,8 @@ def _build_parser() -> argparse.ArgumentParser:
         check.add_argument("--atol", type=float, default=conformance.DEFAULT_ATOL,
                            help=f"absolute tolerance (default {conformance.DEFAULT_ATOL})")
         check.add_argument("--rtol", type=float, default=conformance.DEFAULT_RTOL,
-                           help=f"relative tolerance times max|ref| per quantity (default {conformance.DEFAULT_RTOL})")
+                           help=f"relative tolerance times max|ref| per quantity (default {conformance.DEFAULT_RTOL}; "
+                                f"correct float64 code agrees to ~1e-14 of the scale, float32 code needs --rtol 1e-5)")
     return parser
 
 
@@ -143,7 +145,7 @@ def format_report(report: dict, reference_name: str = "reference", candidate_nam
     """Human-readable report: the error definition, one line per quantity, the worst time of each
     failing quantity, missing times and hints."""
     lines = ["error = max |cand - ref| over times and components; scale = max |ref|; "
-             "pass if error <= atol + rtol * scale",
+             f"pass if error <= atol + rtol * scale (atol {report['atol']:g}, rtol {report['rtol']:g})",
              f"{'quantity':<14} {'error':>10} {'scale':>10} {'error/scale':>11} {'bound':>10}  result"]
     for row in report["rows"]:
         lines.append(f"{row['quantity']:<14} {row['error']:10.3e} {row['scale']:10.3e} {row['scaled']:11.3e} "
