@@ -131,19 +131,7 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
             if frame is None or stop.is_set():
                 return
             try:
-                with lock:
-                    view = mapping_view(state, frame.index)
-                    map_updates = global_ba_calls(state)
-                slam.after_tracking(view, frame)  # the slow part, outside the lock
-                # A new snapshot only when this job optimised the map (most frames only keyframe).
-                field_copy = copy.deepcopy(state.field) if global_ba_calls(state) != map_updates else None
-                with lock:
-                    commit(state, view, frame.index)
-                    if field_copy is not None:
-                        snapshot["field"] = field_copy
-                    if on_frame is not None:
-                        on_frame(state)
-                    progress.notify_all()
+                map_one_frame(state, frame, progress, snapshot, on_frame)
             except BaseException as error:  # noqa: BLE001 - handed to the main thread
                 with lock:
                     failures.append(error)
@@ -172,6 +160,25 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
         join_through_interrupts(worker, stop)
     if failures:
         raise failures[0]
+
+
+def map_one_frame(state: "slam.SLAMState", frame, progress: threading.Condition, snapshot: dict,
+                  on_frame: Optional[Callable[["slam.SLAMState"], None]]) -> None:
+    """The mapping thread's job for one tracked frame: ``slam.after_tracking`` on a view of the
+    state, outside the lock; then, under ``progress``'s lock, the commit, a new map snapshot if the
+    job optimised the map (most frames only keyframe), ``on_frame`` and a notification."""
+    with progress:
+        view = mapping_view(state, frame.index)
+        map_updates = global_ba_calls(state)
+    slam.after_tracking(view, frame)  # the slow part, outside the lock
+    field_copy = copy.deepcopy(state.field) if global_ba_calls(state) != map_updates else None
+    with progress:
+        commit(state, view, frame.index)
+        if field_copy is not None:
+            snapshot["field"] = field_copy
+        if on_frame is not None:
+            on_frame(state)
+        progress.notify_all()
 
 
 def join_through_interrupts(worker: threading.Thread, stop: Optional[threading.Event] = None) -> None:
