@@ -123,7 +123,7 @@ def runtime_line(name: str, runtime: Dict[str, Dict[str, float]]) -> str:
         if stage not in runtime:
             return "-"
         entry = runtime[stage]
-        return f"{entry['ms_per_iteration']:.0f} x {entry['iterations_per_call']:.0f}"
+        return f"{entry['ms_per_iteration']:.0f} x {entry['iterations_per_call']:.3g}"  # LBA init: a mean count
 
     return (f"| {name} | {cell('tracking')} | {cell('lba_init')} | {cell('lba_others')} | {cell('global_ba')} "
             f"| {cell('map_update')} | {cell('first_frame_mapping')} |")

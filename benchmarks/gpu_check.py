@@ -128,7 +128,7 @@ def time_map_iteration(cfg: config.Config, device: torch.device, n_rays: int = 1
 
 def stage_cell(runtime: Dict[str, Dict[str, float]], stage: str) -> str:
     entry = runtime.get(stage)
-    return "-" if entry is None else f"{entry['ms_per_iteration']:.1f} x {entry['iterations_per_call']:.0f}"
+    return "-" if entry is None else f"{entry['ms_per_iteration']:.1f} x {entry['iterations_per_call']:.3g}"
 
 
 FLOAT32_TOLERANCE, FLOAT64_TOLERANCE = 1e-4, 1e-10

@@ -253,3 +253,27 @@ def test_curve_approximation_fits_a_stretch_held_in_time_with_uneven_knots():
     fitted = local_ba.curve_approximation(trajectory, times, poses, cfg.local_ba, free_controls=size)
     moved = (fitted.control_translations[:n_ctrl] - trajectory.control_translations).norm(dim=-1) > 0
     assert moved.nonzero().reshape(-1).tolist() == list(range(n_ctrl + 1 - size, n_ctrl)), size
+
+
+def test_curve_approximation_reports_the_levenberg_marquardt_iterations_it_ran(monkeypatch):
+    """The runtime table divides the curve approximation's time by the iterations that ran, and
+    Levenberg-Marquardt stops early.  Oracle: the Jacobians evaluated (one per iteration), counted
+    by wrapping ``torch.func.jacrev``."""
+    cfg = config.tiny()
+    poses = noisy_truth(0.001)
+    trajectory, _ = grow(poses, cfg, n_intervals=4)
+    jacobians = []
+    jacrev = torch.func.jacrev
+
+    def counting_jacrev(*args, **kwargs):
+        jacobians.append(1)
+        return jacrev(*args, **kwargs)
+
+    monkeypatch.setattr(torch.func, "jacrev", counting_jacrev)
+    start, end = local_ba.fit_time_range(trajectory, 4, cfg.local_ba)
+    inside = np.nonzero((TIMES >= start) & (TIMES < end))[0]
+    report = {}
+    local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba, report=report)
+    assert 0 < report["iterations"] == len(jacobians) < cfg.local_ba.fit_iters
+    local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba, fit=False, report=report)
+    assert report["iterations"] == 0

@@ -165,7 +165,7 @@ def line_at_control_points(trajectory: BSplineTrajectory, rate: torch.Tensor) ->
 
 def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses: torch.Tensor,
                         local_ba: LocalBAConfig, fit: bool = True,
-                        free_controls: Optional[int] = None) -> BSplineTrajectory:
+                        free_controls: Optional[int] = None, report: Optional[dict] = None) -> BSplineTrajectory:
     """Add the control point of the next interval, Eq. (11).
 
     First interval: the four points of :func:`constant_velocity_control_points`, and frame 0's
@@ -183,12 +183,16 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
         fit: False only extrapolates (the "w/o LBA" ablation).
         free_controls: how many newest points to fit (default ``local_ba.fit_controls``; the loop
             passes :func:`fit_size`).
+        report: a dict that receives ``"iterations"``, the Levenberg-Marquardt iterations run
+            (0 when nothing is fitted).
 
     Returns:
         A new trajectory with 4 control points (first interval) or one more, detached.
     """
     poses = poses.detach()
     start_pose = trajectory.start_pose
+    if report is not None:
+        report["iterations"] = 0
     if trajectory.n_ctrl == 0:
         if len(times) == 0:
             raise ValueError("the first spline interval holds no frame")
@@ -206,7 +210,7 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
                 np.asarray(times, dtype=np.float64), poses, trajectory.dt, trajectory.t0, rotations.shape[0],
                 init_rotations=rotations, init_translations=translations, fixed=fixed,
                 iters=local_ba.fit_iters, convention=trajectory.convention,
-                knots=None if trajectory.uniform else trajectory.knot_vector(rotations.shape[0]))
+                knots=None if trajectory.uniform else trajectory.knot_vector(rotations.shape[0]), report=report)
             rotations, translations = spline_fit.pin_first_control_point(rotations, translations, start_pose,
                                                                          trajectory.start_weights())
     return BSplineTrajectory(rotations.detach().to(poses.dtype), translations.detach().to(poses.dtype),

@@ -367,12 +367,15 @@ def add_control_point(state: SLAMState, frame: FrameTensors, n: int) -> BSplineT
     fitted to the stored poses of the frames in :func:`local_ba.fit_time_range`."""
     cfg = state.cfg
     times = state.timestamps[: frame.index + 1]
-    with state.timings.stage("lba_init", cfg.local_ba.fit_iters if cfg.local_ba.enabled else 0):
+    with state.timings.stage("lba_init") as record:
         fit_start, fit_end = local_ba.fit_time_range(state.trajectory, n, cfg.local_ba)
         fit_frames = np.nonzero((times >= fit_start) & (times < fit_end))[0]
+        report = {}
         trajectory = local_ba.curve_approximation(state.trajectory, times[fit_frames], state.frame_poses[fit_frames],
                                                   cfg.local_ba, fit=cfg.local_ba.enabled,
-                                                  free_controls=local_ba.fit_size(state.trajectory, n, cfg.local_ba.fit_controls))
+                                                  free_controls=local_ba.fit_size(state.trajectory, n, cfg.local_ba.fit_controls),
+                                                  report=report)
+        record.iterations = report["iterations"]  # Levenberg-Marquardt stops early: count what ran
     check_finite(trajectory, "the curve approximation", frame)
     return trajectory
 

@@ -71,15 +71,15 @@ def fit_control_points(
     convention: str = "paper",
     tolerance: float = 1e-12,
     knots: Optional[np.ndarray] = None,
+    report: Optional[dict] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Curve approximation, Eq. (11): control points whose spline best matches discrete poses.
 
     minimise Σ_k ‖Log(R_kᵀ R(t_k))‖² + ‖t_k − t(t_k)‖² over the free control points.
 
-    Method: Levenberg-Marquardt on a tangent increment per free control point, R_j ← Exp(δ_j) R_j
-    (left increment) and t_j ← t_j + τ_j, Jacobian by ``torch.func.jacrev``, in float64.  The
-    split spline decouples rotation and translation; the translation part is linear, so one step
-    solves it exactly.  A control point that no time touches stays at its initial value (the
+    Method: Levenberg-Marquardt (float64, Jacobian by ``torch.func.jacrev``) on a tangent increment
+    per free control point, R_j ← Exp(δ_j) R_j (left) and t_j ← t_j + τ_j; the translation part is
+    linear, so one step solves it.  A point that no time touches keeps its initial value (the
     damping keeps it).  Stops after ``iters`` steps or when the step norm is below ``tolerance``.
 
     Initialisation (when no init is given): :func:`initial_control_points_from_poses`, i.e. each
@@ -93,15 +93,13 @@ def fit_control_points(
         init_rotations, init_translations: (N, 3, 3), (N, 3) starting values (required for
             fixed points); missing ones come from the poses.
         fixed: (N,) bool mask of control points kept at their initial value.
-        iters: maximum LM iterations.
-        knots: (N + 2,) knot vector of a non-uniform spline (:mod:`tsslam_ref.knots`); it replaces
-            dt, t0 and convention as the layout.
+        iters: maximum LM iterations; ``report``, a dict, receives ``"iterations"``: those run.
+        knots: (N + 2,) knot vector of a non-uniform spline (:mod:`tsslam_ref.knots`), for dt, t0, convention.
 
     Returns:
         rotations (N, 3, 3), translations (N, 3) in target_poses' dtype and device (detached).
 
-    Differs from: Eq. (11) sums unsquared norms; we use squared norms (smooth least squares with
-    the same minimiser for exact data; less robust to outliers).
+    Differs from: Eq. (11) sums unsquared norms; we square them (same minimiser for exact data, less robust).
     """
     times = np.asarray(times, dtype=np.float64).reshape(-1)
     if target_poses.shape != (times.shape[0], 4, 4):
@@ -109,13 +107,16 @@ def fit_control_points(
     out_dtype, device = target_poses.dtype, target_poses.device
     first, weights = _segment_weights(times, n_ctrl, dt, t0, convention, knots, device)  # raises off the domain
     fixed = _fixed_mask(fixed, n_ctrl, device)
-    rotations, translations = _starting_control_points(
-        times, target_poses, dt, t0, n_ctrl, convention, init_rotations, init_translations, fixed, knots
-    )
+    rotations, translations = _starting_control_points(times, target_poses, dt, t0, n_ctrl, convention,
+                                                       init_rotations, init_translations, fixed, knots)
     free = (~fixed).nonzero().reshape(-1)  # (F,)
+    iterations = 0
     if free.shape[0] > 0:
         residuals = _pose_residuals(target_poses, free, first, weights)
-        rotations, translations = _levenberg_marquardt(residuals, rotations, translations, free, iters, tolerance)
+        rotations, translations, iterations = _levenberg_marquardt(residuals, rotations, translations, free, iters,
+                                                                   tolerance)
+    if report is not None:
+        report["iterations"] = iterations
     return rotations.to(out_dtype), translations.to(out_dtype)
 
 
@@ -181,12 +182,13 @@ def _pose_residuals(target_poses: torch.Tensor, free: torch.Tensor, first: torch
 
 
 def _levenberg_marquardt(residual_fn, rotations: torch.Tensor, translations: torch.Tensor, free: torch.Tensor,
-                         iters: int, tolerance: float) -> Tuple[torch.Tensor, torch.Tensor]:
+                         iters: int, tolerance: float) -> Tuple[torch.Tensor, torch.Tensor, int]:
     """Levenberg-Marquardt over the free control points' increments, left increments on SO(3).
 
     ``residual_fn(rotations, translations, increments (F, 6))`` -> (K*6,).  Damping starts at 1e-6
     (times diag(JᵀJ) + 1e-9 I), x10 on a rejected step, /10 on an accepted one; stops after
     ``iters`` steps, when no step lowers the cost, or when the step norm is below ``tolerance``.
+    Returns the control points and the iterations run (Jacobians evaluated).
     """
     work, device, n_free = rotations.dtype, rotations.device, free.shape[0]
 
@@ -195,7 +197,8 @@ def _levenberg_marquardt(residual_fn, rotations: torch.Tensor, translations: tor
 
     damping = 1e-6
     zero = torch.zeros(n_free, 6, dtype=work, device=device)
-    for _ in range(iters):
+    iterations = 0
+    for iterations in range(1, iters + 1):
         r = residuals(zero)
         J = torch.func.jacrev(residuals)(zero).reshape(r.shape[0], -1)  # (K*6, F*6)
         JtJ, Jtr = J.T @ J, J.T @ r
@@ -214,7 +217,7 @@ def _levenberg_marquardt(residual_fn, rotations: torch.Tensor, translations: tor
         translations = translations.index_copy(0, free, translations[free] + step[:, 3:])
         if float(torch.linalg.vector_norm(step)) < tolerance:
             break
-    return rotations, translations
+    return rotations, translations, iterations
 
 
 def fit_trajectory(
