@@ -230,6 +230,12 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
     # resume from the checkpoint written after frame 6 reproduces the uninterrupted run
     state = run.load_checkpoint(out / "checkpoint.pt")
     assert state.done == 12
+    # interrupted while writing the outputs: --resume has no frame left and must not report 0 frames/s
+    (out / "metrics.json").unlink()
+    capsys.readouterr()
+    assert run.main(arguments + ["--resume"]) == 0
+    assert "12 frames, all from the checkpoint" in capsys.readouterr().out
+    assert json.loads((out / "metrics.json").read_text())["frames_per_second"] is None
 
 
 def test_the_recorded_cpu_kernels_are_the_ones_pytorch_runs():
@@ -254,6 +260,7 @@ def test_resume_from_a_checkpoint_gives_the_same_trajectory(synthetic_sequence, 
     assert state.done == 5
     resumed = slam.run_slam(sequence, cfg, device=torch.device("cpu"), state=state)
     assert np.allclose(resumed.poses, full.poses, atol=1e-6)
+    assert (full.frames_processed, resumed.frames_processed) == (10, 5) and resumed.frames_per_second > 0
 
 
 def test_run_cli_rejects_bad_arguments(tmp_path, capsys):

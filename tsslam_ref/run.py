@@ -9,8 +9,9 @@ Outputs in ``--out`` (default ``runs/<sequence>-<method>``):
 * ``trajectory.txt`` - TUM format (timestamp tx ty tz qx qy qz qw), camera-to-world, OpenCV axes,
   one line per input frame at the frame's own timestamp;
 * ``metrics.json`` - ate_rmse_m, rpe_trans_rmse_m, rpe_rot_rmse_deg, n_matched (when ground truth is
-  known), frames, frames_per_second, the runtime table, the reconstruction metrics when a
-  ground-truth mesh is next to the data (``gt_mesh.ply``, written by the synthetic generator),
+  known), frames, frames_per_second (of the frames this process ran; null when a resume had none left),
+  the runtime table, the reconstruction metrics when a ground-truth mesh is next to the data
+  (``gt_mesh.ply``, written by the synthetic generator),
   ``environment`` (:func:`tsslam_ref.device.compute_environment`: what besides the seed fixes the
   numbers) and the peak memory (``peak_rss_mib``; ``peak_gpu_allocated_mib`` on CUDA);
 * ``mesh.ply`` - the final map's mesh (marching cubes at ``mesh.voxel_final``);

@@ -172,7 +172,7 @@ def write_outputs(plan, result) -> None:
     if checkpoint_path.exists() and not args.checkpoint_every:
         checkpoint_path.unlink()
     summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
-    parts = [f"done: {len(sequence)} frames at {result.frames_per_second:.2f} frames/s", summary or _why_no_metrics(sequence)]
+    parts = [f"done: {_frames_done(len(sequence), result)}", summary or _why_no_metrics(sequence)]
     if "peak_rss_mib" in metrics:
         parts.append(f"peak RSS {metrics['peak_rss_mib']:.0f} MiB")
     print("; ".join(parts + [f"outputs in {out}"]))
@@ -189,3 +189,13 @@ def _jsonable(value):
     if isinstance(value, (np.floating, np.integer)):
         return value.item()
     return value
+
+
+def _frames_done(n_frames: int, result) -> str:
+    """'100 frames at 0.95 frames/s', or what a resumed run processed itself."""
+    if result.frames_per_second is None:
+        return f"{n_frames} frames, all from the checkpoint (none left to process)"
+    if result.frames_processed < n_frames:
+        return (f"{n_frames} frames, {result.frames_processed} of them after the checkpoint at "
+                f"{result.frames_per_second:.2f} frames/s")
+    return f"{n_frames} frames at {result.frames_per_second:.2f} frames/s"

@@ -96,7 +96,8 @@ class SLAMResult:
     poses: np.ndarray  # (N, 4, 4) float64 camera-to-world, OpenCV axes: the method's output
     frame_poses: np.ndarray  # (N, 4, 4) the per-frame poses of the state (tracking, BA, spline)
     state: SLAMState
-    frames_per_second: float
+    frames_per_second: Optional[float]  # over the frames this call processed; None when it processed none
+    frames_processed: int = 0  # frames this call processed (fewer than N after a resume)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -160,7 +161,8 @@ def finish_run(sequence, state: SLAMState, device: torch.device, dtype: torch.dt
         poses=estimated_trajectory(state).detach().cpu().double().numpy(),
         frame_poses=state.frame_poses.detach().cpu().double().numpy(),
         state=state,
-        frames_per_second=(len(sequence) - first_new) / max(elapsed, 1e-9),
+        frames_per_second=(len(sequence) - first_new) / max(elapsed, 1e-9) if len(sequence) > first_new else None,
+        frames_processed=len(sequence) - first_new,
     )
 
 
