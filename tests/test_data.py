@@ -659,3 +659,11 @@ def test_frames_closer_than_a_microsecond_are_refused(tum_folder):
     (folder / "rgb.txt").write_text("\n".join(lines).replace(f"{stamp} ", f"{close} ", 1) + "\n")
     with pytest.raises(ValueError, match=r"frames 0 and 1 are [0-9.e-]+ s apart .* at least 1 µs apart"):
         data.load_sequence(folder)
+
+
+def test_timing_summary_states_the_duration_and_the_median_rate():
+    """The run's first line carries it, so frame times read in the wrong unit (file stems 0, 10, 20
+    taken as milliseconds for frames 1/3 s apart) show as 100 Hz at once."""
+    assert data.timing_summary(np.arange(100) / 30.0) == "3.3 s at 30 Hz"
+    assert data.timing_summary(np.array([0.0, 0.01, 0.02, 0.5])) == "0.5 s at 100 Hz"  # the median step
+    assert data.timing_summary(np.array([7.0])) == "one frame"

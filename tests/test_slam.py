@@ -224,6 +224,8 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
     exported = np.loadtxt(out / "trajectory_50hz.txt")
     assert exported.shape[1] == 14 and np.allclose(np.diff(exported[:, 0]), 0.02)
     before = (out / "trajectory.txt").read_text()
+    first_line = capsys.readouterr().out.splitlines()[0]
+    assert f"12 frames of {sequence.name} (" in first_line and data.timing_summary(sequence.timestamps) in first_line
     assert run.main(arguments) == 2  # refuses to overwrite
     assert "not empty" in capsys.readouterr().err
     assert (out / "trajectory.txt").read_text() == before

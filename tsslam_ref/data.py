@@ -266,6 +266,14 @@ def load_from_config(data_cfg) -> RGBDSequence:
     )
 
 
+def timing_summary(timestamps: np.ndarray) -> str:
+    """'3.3 s at 30 Hz' (duration, and the rate of the median step) for (N,) float64 seconds: a
+    run prints it first, so that frame times read in the wrong unit show at once."""
+    if len(timestamps) < 2:
+        return "one frame"
+    return f"{timestamps[-1] - timestamps[0]:.3g} s at {1.0 / np.median(np.diff(timestamps)):.3g} Hz"
+
+
 def sequence_info(sequence: RGBDSequence, depth_samples: int = 5) -> dict:
     """Summary of a sequence (the ``info`` command): size, intrinsics, duration, depth coverage.
 

@@ -457,8 +457,9 @@ def execute(plan: Plan) -> int:
     on_frame = _frame_callback(plan, progress, reached)
     environment = device_module.compute_environment(plan.device)
     kernels = environment.get("gpu") or f"{environment['cpu_capability']} kernels, {environment['threads']} threads"
-    print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}), preset {cfg.name}, "
-          f"device {plan.device} ({kernels}), output {out}")
+    print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}, "
+          f"{data_module.timing_summary(sequence.timestamps)}), preset {cfg.name}, device {plan.device} ({kernels}), "
+          f"output {out}")
     try:
         run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
         result = run_loop(sequence, cfg, device=plan.device, state=state, on_frame=on_frame)
