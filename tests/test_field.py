@@ -500,3 +500,22 @@ def test_an_empty_batch_gives_empty_outputs_on_every_path(compiled, request):
     field = SceneField(cfg, torch.tensor([[0.0, 1.0]] * 3), generator=torch.Generator().manual_seed(0))
     rgb, sdf = field(torch.zeros(0, 3))
     assert rgb.shape == (0, 3) and sdf.shape == (0,)
+
+
+def test_ninja_of_the_virtual_environment_is_found_without_activating_it(tmp_path):
+    """environment.txt installs ninja into the venv's scripts folder, which is not on PATH when
+    .venv/bin/python runs unactivated; torch looks for ninja on PATH only.  Oracle: shutil.which
+    on the returned PATH, with a stand-in ninja executable."""
+    import shutil
+
+    scripts, system = tmp_path / "venv_bin", tmp_path / "usr_bin"
+    scripts.mkdir()
+    system.mkdir()
+    assert shutil.which("ninja", path=hash_kernel.ninja_search_path(str(system), str(scripts))) is None  # none anywhere
+    (scripts / "ninja").write_text("#!/bin/sh\n")
+    (scripts / "ninja").chmod(0o755)
+    found = shutil.which("ninja", path=hash_kernel.ninja_search_path(str(system), str(scripts)))
+    assert found == str(scripts / "ninja")
+    (system / "ninja").write_text("#!/bin/sh\n")
+    (system / "ninja").chmod(0o755)
+    assert hash_kernel.ninja_search_path(str(system), str(scripts)) == str(system)  # the system's wins, PATH unchanged

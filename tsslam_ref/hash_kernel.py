@@ -8,9 +8,9 @@ per point in one pass and recomputes the rows in the backward instead of storing
 formulas, same corner order; the values agree with the PyTorch paths to rounding
 (tests/test_field.py).
 
-Built with ``torch.utils.cpp_extension`` (a C++ compiler with OpenMP and ninja are needed, all on
-the project's machines; no ``-march=native``, so a cached build runs on any x86-64: the OneBlob
-loops carry an AVX2 copy that is chosen at run time, with the same numbers) into
+Built with ``torch.utils.cpp_extension`` (a C++ compiler with OpenMP, from the system, and ninja,
+from environment.txt, are needed; no ``-march=native``, so a cached build runs on any x86-64: the
+OneBlob loops carry an AVX2 copy that is chosen at run time, with the same numbers) into
 ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) the first time a process asks
 for it: about 30 s once, then a cached load.  Each build has its own folder there,
 ``tsslam_hash_grid_<digest>`` (:func:`build_name`: the sources, the flags, the checkout and the
@@ -24,6 +24,8 @@ Layer 1 (map): imports torch only.
 
 import hashlib
 import os
+import shutil
+import sysconfig
 import threading
 import time
 import warnings
@@ -96,9 +98,22 @@ def stale_lock_message(build_directory, now: Optional[float] = None) -> Optional
             "gone. If no other process is building the kernel, a killed build left it: delete the file.")
 
 
+def ninja_search_path(path: str, scripts: Optional[str] = None) -> str:
+    """``path`` (a PATH value) with the Python environment's scripts folder appended when ``ninja``
+    is not on ``path`` but is there: ``pip install -r environment.txt`` puts it in ``.venv/bin``,
+    which is not on PATH when the venv's python is run without activating the venv, and
+    ``torch.utils.cpp_extension`` looks for ``ninja`` on PATH only."""
+    scripts = sysconfig.get_path("scripts") if scripts is None else scripts
+    if shutil.which("ninja", path=path) is None and shutil.which("ninja", path=scripts) is not None:
+        return os.pathsep.join(part for part in (path, scripts) if part)
+    return path
+
+
 def _build() -> bool:
     try:
         from torch.utils import cpp_extension
+
+        os.environ["PATH"] = ninja_search_path(os.environ.get("PATH", ""))
 
         name = build_name()
         try:  # a stale lock makes cpp_extension.load wait forever without a word: say so first
