@@ -228,3 +228,16 @@ def test_synthesize_cli_start_offset(tmp_path, shared_data, capsys):
     message = capsys.readouterr().err
     assert "--start 2 s: tum_vi_room1.txt covers 15.000 to 24.000 s" in message and "[15.000, 23.767]" in message, message
     assert not (tmp_path / "z").exists()
+
+
+def test_seeds_are_limited_to_what_the_generator_keeps():
+    """PyTorch's CPU generator keeps 32 bits of a seed, so 3 and 2**32 + 3 gave the same run while
+    config.json recorded two seeds.  Oracle: torch's own draws, and the refusals of both commands."""
+    from tsslam_ref import config
+
+    same = [torch.rand(4, generator=torch.Generator().manual_seed(s)) for s in (3, 2**32 + 3)]
+    assert torch.equal(*same)  # why the range stops at 2**32 - 1
+    with pytest.raises(ValueError, match="seed"):
+        config.apply_overrides(config.tiny(), [f"seed={2**32}"])
+    config.apply_overrides(config.tiny(), [f"seed={2**32 - 1}"])
+    assert data.main(["synthesize", "--out", "unused", "--seed", str(2**32)]) == 2

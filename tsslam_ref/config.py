@@ -319,7 +319,7 @@ class Config:
     """Preset name this config started from."""
     method: str = ranged("tsslam", "in", ('tsslam', 'coslam'))
     """tsslam (B-spline trajectory) or coslam (one pose per frame, the baseline)."""
-    seed: int = ranged(0, "[]", (0, 2**63 - 1))
+    seed: int = ranged(0, "[]", (0, 2**32 - 1))  # PyTorch's CPU generator keeps 32 bits of a seed
     """Seed for every random draw (torch, numpy)."""
     device: str = "auto"
     """cpu | cuda | auto."""

@@ -344,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--frames", type=number_in("--frames", 1, 100_000, integer=True), default=60,
                        help="number of frames, 1 to 100000")
     synth.add_argument("--size", type=_parse_size, default=(160, 120), help="WxH, each 8 to 4096 pixels")
-    synth.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
+    synth.add_argument("--seed", type=number_in("--seed", 0, 2**32 - 1, integer=True), default=0)  # 32 bits count
     synth.add_argument("--fps", type=number_in("--fps", 0, 1000, low_open=True), default=30.0, help="(0, 1000]")
     synth.add_argument("--start", type=float, default=0.0,
                        help="seconds after the trajectory's first pose at which frame 0 is taken (default 0); "

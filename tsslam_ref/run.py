@@ -97,7 +97,7 @@ def parse_frames(text: Optional[str]):
     return start, stop, step
 
 
-_seed = number_in("--seed", 0, 2**63 - 1, integer=True, interval="[0, 2**63 - 1]")
+_seed = number_in("--seed", 0, 2**32 - 1, integer=True, interval="[0, 2**32 - 1]")  # the generator keeps 32 bits
 _export_rate = number_in("--export-rate", 0, MAX_EXPORT_RATE, low_open=True,
                          hint="samples per second; leave the option out for no export")
 _checkpoint_every = number_in("--checkpoint-every", 0, 10**9, integer=True, hint="frames; 0 for no checkpoint")
@@ -115,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--config", default=None, help="preset name (%s) or a config.json; default tum-cpu" % ", ".join(config_module.PRESETS))
     parser.add_argument("--method", default=None, choices=["tsslam", "coslam"], help="trajectory representation (default tsslam)")
     parser.add_argument("--out", default=None, help="output folder (default runs/<sequence>-<method>)")
-    parser.add_argument("--seed", type=_seed, default=None, help="random seed, an integer in [0, 2**63 - 1] (default from the config: 0)")
+    parser.add_argument("--seed", type=_seed, default=None, help="random seed, an integer in [0, 2**32 - 1] (default from the config: 0)")
     parser.add_argument("--device", default=None, choices=["cpu", "cuda", "auto"], help="compute device (default auto)")
     parser.add_argument("--frames", default=None, help="START:STOP[:STEP] frame selection, 0 <= START < STOP")
     parser.add_argument("--parallel", action="store_true",
