@@ -631,17 +631,38 @@ def test_depth_mostly_beyond_the_map_range_is_warned_about_before_the_run(tmp_pa
 
 
 def test_resume_with_a_frame_removed_names_where_the_frames_differ(runs, tmp_path):
-    root = runs["root"]
-    shutil.copytree(root / "room", tmp_path / "room")
-    shutil.copytree(runs["stopped"], tmp_path / "stopped")
+    """The same folder (its frame list edited in place: a copy of the folder would be another
+    folder, refused as such) with the third frame gone."""
+    shutil.copytree(runs["root"] / "room", tmp_path / "room")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    stopped = subprocess.run([sys.executable, "-c", INTERRUPT_AFTER_FRAME_4, "--data", "room", "--out", "stopped",
+                              *CHEAP], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert stopped.returncode == 130, stopped.stderr
     lines = (tmp_path / "room" / "rgb.txt").read_text().splitlines()
     data_lines = [i for i, line in enumerate(lines) if line and not line.startswith("#")]
     del lines[data_lines[2]]  # the third frame
     (tmp_path / "room" / "rgb.txt").write_text("\n".join(lines) + "\n")
     before = snapshot(tmp_path / "stopped")
-    refused(cli("run", *CHEAP, "--data", "room", "--out", "stopped", "--resume", cwd=tmp_path),  # the run's own paths
+    refused(cli("run", *CHEAP, "--data", "room", "--out", "stopped", "--resume", cwd=tmp_path),
             "--resume refused", "differ from those in", "the first difference at frame 2")
     assert snapshot(tmp_path / "stopped") == before
+
+
+def test_resume_compares_the_data_folder_itself_not_the_path_as_typed(runs, tmp_path, monkeypatch):
+    """A relative --data was stored as typed and resolved against the resuming command's folder:
+    the same data given from elsewhere was refused, and another folder with the same time stamps
+    (a copy, re-rendered, ...) was accepted and mixed into the trajectory.  prepare() checks and
+    writes nothing, so the refusals and acceptances are seen without running."""
+    root = runs["root"]
+    shutil.copytree(runs["stopped"], tmp_path / "stopped")
+    resume = [*CHEAP, "--out", str(tmp_path / "stopped"), "--resume"]
+    monkeypatch.chdir(root.parent)
+    plan = run.prepare(run.build_parser().parse_args(resume + ["--data", f"{root.name}/room"]))  # the same folder
+    assert plan.finished or plan.state.done == 4  # accepted (another test may have finished the stopped run)
+    shutil.copytree(root / "room", tmp_path / "room")  # the same frames and stamps, another folder
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(run.BadInput, match="--resume refused.*data.path was"):
+        run.prepare(run.build_parser().parse_args(resume + ["--data", "room"]))
 
 
 def test_ctrl_c_while_the_outputs_are_written_gives_advice_that_works(runs, tmp_path, monkeypatch, capsys):

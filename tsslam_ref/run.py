@@ -169,7 +169,10 @@ def resolve_config(args) -> config_module.Config:
     frames = parse_frames(args.frames)
     if frames is not None:
         cfg.data.frame_start, cfg.data.frame_stop, cfg.data.frame_step = frames
-    return config_module.apply_overrides(cfg, args.overrides)
+    cfg = config_module.apply_overrides(cfg, args.overrides)
+    if cfg.data.path:  # the folder itself, not a path from where this command ran: --resume compares it
+        cfg.data.path = str(Path(cfg.data.path).expanduser().resolve())
+    return cfg
 
 
 def _checked_sequence(cfg, frames: Optional[str]):
