@@ -22,7 +22,7 @@ import pytest
 import torch
 from PIL import Image
 
-from tsslam_ref import data, files, run, spline_kit
+from tsslam_ref import checkpoint, data, files, run, spline_kit
 from tsslam_ref import eval as evaluation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -689,3 +689,28 @@ def test_starting_a_run_does_not_import_trimesh():
     result = subprocess.run([sys.executable, "-c", check], env=dict(os.environ, PYTHONPATH=str(ROOT)),
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and result.stdout.split() == ["False", "False"], (result.stdout, result.stderr)
+
+
+def test_resume_in_another_environment_warns_and_metrics_record_both(runs, tmp_path, monkeypatch, capsys):
+    """The checkpoint records the environment the run started in (PyTorch, device, CPU kernels,
+    threads, map kernels); a resume elsewhere used to go on without a word, and metrics.json then
+    described only the finishing process.  Another PyTorch is stood in for by patching what
+    device.compute_environment reports."""
+    from tsslam_ref import device as device_module
+
+    shutil.copytree(runs["root"] / "room", tmp_path / "room")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    stopped = subprocess.run([sys.executable, "-c", INTERRUPT_AFTER_FRAME_4, "--data", "room", "--out", "stopped",
+                              *CHEAP], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert stopped.returncode == 130, stopped.stderr
+    started_in = checkpoint.read(tmp_path / "stopped" / "checkpoint.pt")["environment"]
+    assert started_in["torch"] == torch.__version__ and started_in["map_kernels"]["hash_grid"] in ("compiled", "pytorch")
+    real = device_module.compute_environment
+    monkeypatch.setattr(device_module, "compute_environment", lambda where: {**real(where), "torch": "0.0-other"})
+    monkeypatch.chdir(tmp_path)
+    assert run.main([*CHEAP, "--data", "room", "--out", "stopped", "--resume"]) == 0
+    warning = capsys.readouterr().err
+    assert f"torch was '{torch.__version__}' when the run started, now '0.0-other'" in warning
+    assert "frames from 4 on will not match" in warning
+    metrics = json.loads((tmp_path / "stopped" / "metrics.json").read_text())
+    assert metrics["environment"]["torch"] == "0.0-other" and metrics["environment_at_start"] == started_in

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import config, data, eval as evaluation, hash_kernel, parallel, run, run_outputs, slam, synthetic
+from tsslam_ref import config, data, device, eval as evaluation, hash_kernel, parallel, run, slam, synthetic
 from tsslam_ref.field import SceneField
 
 
@@ -435,10 +435,10 @@ def test_metrics_record_which_code_ran_the_map(monkeypatch):
     bound = torch.tensor([[-1.0, 1.0]] * 3)
     cpu = torch.device("cpu")
     switched_off = config.FieldConfig(compiled_kernel=False, compiled_oneblob=False)
-    assert run_outputs.map_kernels(SceneField(switched_off, bound), cpu) == {"hash_grid": "pytorch", "oneblob": "pytorch"}
+    assert device.map_kernels(SceneField(switched_off, bound), cpu) == {"hash_grid": "pytorch", "oneblob": "pytorch"}
     monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
     monkeypatch.setenv("TSSLAM_NO_COMPILED_KERNEL", "1")
-    paths = run_outputs.map_kernels(SceneField(config.FieldConfig(), bound), cpu)
+    paths = device.map_kernels(SceneField(config.FieldConfig(), bound), cpu)
     assert paths["hash_grid"] == paths["oneblob"] == "pytorch"
     assert "TSSLAM_NO_COMPILED_KERNEL" in paths["kernel_error"]
 

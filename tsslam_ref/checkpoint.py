@@ -15,12 +15,13 @@ Layer 4 (system): used by ``run.py``; knows the state of ``slam.py``.
 import json
 import zipfile
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, List, Optional
 
 import numpy as np
 import torch
 
 from . import config as config_module
+from .data import default_sequence_path
 from .files import atomic_path
 
 FORMAT = "tsslam_ref-checkpoint"
@@ -139,11 +140,54 @@ def from_plain(values: Dict[str, Any], device=None):
     )
 
 
-def save(state, path) -> Path:
-    """Write the loop state to ``path`` atomically (a new file, the user's normal mode)."""
+def save(state, path, environment: Optional[Dict[str, Any]] = None) -> Path:
+    """Write the loop state to ``path`` atomically (a new file, the user's normal mode), with the
+    ``environment`` the run started in (``device.run_environment``), which ``--resume`` compares."""
+    plain = to_plain(state)
+    if environment is not None:
+        plain["environment"] = json.loads(json.dumps(environment))  # plain str (torch.__version__ is not)
     with atomic_path(path) as temporary:
-        torch.save(to_plain(state), temporary)
+        torch.save(plain, temporary)
     return Path(path)
+
+
+def _flatten(values: Dict[str, Any], prefix: str = "") -> Dict[str, Any]:
+    flat = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def _data_folder(path: str) -> str:
+    """The data folder a config names, absolute ('' is the bundled sequence)."""
+    return str(Path(path).resolve()) if path else str(default_sequence_path())
+
+
+def config_differences(saved: Dict[str, Any], cfg: config_module.Config) -> List[str]:
+    """'key: saved -> now' for every config value that differs from the checkpoint's config."""
+    old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))
+    changes = []
+    for key in sorted(set(old) | set(new)):
+        before, after = old.get(key, "<absent>"), new.get(key, "<absent>")
+        if key == "data.path" and isinstance(before, str) and isinstance(after, str):
+            same = _data_folder(before) == _data_folder(after)
+        else:
+            same = json.dumps(before) == json.dumps(after)
+        if not same:
+            changes.append(f"{key} was {json.dumps(before)} in the checkpoint, this command gives {json.dumps(after)}")
+    return changes
+
+
+def environment_changes(saved: Optional[Dict[str, Any]], now: Dict[str, Any]) -> List[str]:
+    """'key was X when the run started, now Y' for each entry of ``device.run_environment`` that
+    differs (PyTorch, device, CPU kernels, threads, map kernels); none for a checkpoint without one."""
+    if not isinstance(saved, dict):
+        return []
+    return [f"{key} was {saved.get(key)!r} when the run started, now {now.get(key)!r}"
+            for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
 
 
 def _check_crc(path: Path) -> None:
@@ -232,4 +276,5 @@ def config_of(values: Dict[str, Any]) -> Dict[str, Any]:
     return json.loads(values["config"])
 
 
-__all__ = ["FORMAT", "VERSION", "CheckpointError", "save", "read", "load", "config_of", "to_plain", "from_plain"]
+__all__ = ["FORMAT", "VERSION", "CheckpointError", "save", "read", "load", "config_of", "config_differences",
+           "environment_changes", "to_plain", "from_plain"]

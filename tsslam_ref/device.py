@@ -1,6 +1,7 @@
 """The compute device: choosing it, the CPU allocator setting, and frames as tensors on it.
 
-Layer 4 (system support): imports ``render`` only; used by ``slam``, ``parallel`` and ``run``.
+Layer 4 (system support): imports ``render`` and ``hash_kernel`` (which code encoded the map); used
+by ``slam``, ``parallel``, ``run`` and ``checkpoint``.
 """
 
 import ctypes
@@ -10,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from . import hash_kernel
 from .render import RayBatch, frame_rays, sample_pixels
 
 
@@ -40,6 +42,24 @@ def compute_environment(device: torch.device) -> dict:
     if device.type == "cuda":
         environment["gpu"] = torch.cuda.get_device_name(device)
     return environment
+
+
+def map_kernels(field, device: torch.device) -> dict:
+    """Which code ran the map's encodings: ``{"hash_grid": "compiled" | "pytorch", "oneblob": ...}``,
+    with ``"kernel_error"`` when the compiled kernel was asked for and did not load.  The two paths
+    agree to rounding, not bit for bit, so a seed's numbers depend on it too."""
+    probe = torch.zeros(1, 3, dtype=field.grid.table.dtype, device=device)
+    paths = {"hash_grid": "compiled" if field.grid.uses_compiled_kernel(probe) else "pytorch",
+             "oneblob": "compiled" if field.oneblob.uses_compiled_kernel(probe) else "pytorch"}
+    if hash_kernel.load_error() is not None and (field.grid.compiled or field.oneblob.compiled):
+        paths["kernel_error"] = hash_kernel.load_error()
+    return paths
+
+
+def run_environment(device: torch.device, field) -> dict:
+    """:func:`compute_environment` with ``map_kernels`` (:func:`map_kernels` of ``field``): what
+    metrics.json and a checkpoint record, and what ``--resume`` compares."""
+    return {**compute_environment(device), "map_kernels": map_kernels(field, device)}
 
 
 def peak_memory(device: torch.device) -> dict:

@@ -233,35 +233,6 @@ def _check_output_folder(out: Path, overwrite: bool, resume: bool) -> None:
             raise BadInput(f"{entry} is a folder; a run writes a file of that name, so move it away first")
 
 
-def _flatten(values: Dict[str, Any], prefix: str = "") -> Dict[str, Any]:
-    flat = {}
-    for key, value in values.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[prefix + key] = value
-    return flat
-
-
-def _data_folder(path: str) -> str:
-    return str(Path(path).resolve()) if path else str(data_module.default_sequence_path())
-
-
-def resume_differences(saved: Dict[str, Any], cfg: config_module.Config) -> List[str]:
-    """'key: saved -> now' for every config value that differs from the checkpoint's config."""
-    old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))
-    changes = []
-    for key in sorted(set(old) | set(new)):
-        before, after = old.get(key, "<absent>"), new.get(key, "<absent>")
-        if key == "data.path" and isinstance(before, str) and isinstance(after, str):
-            same = _data_folder(before) == _data_folder(after)
-        else:
-            same = json.dumps(before) == json.dumps(after)
-        if not same:
-            changes.append(f"{key} was {json.dumps(before)} in the checkpoint, this command gives {json.dumps(after)}")
-    return changes
-
-
 @dataclass
 class Plan:
     """What :func:`prepare` checked and loaded; :func:`execute` runs it."""
@@ -274,6 +245,7 @@ class Plan:
     state: Any = None  # the resumed loop state, or None
     finished: bool = False  # --resume of a run that already finished
     gt_mesh: Any = None  # the ground-truth mesh beside the data (gt_mesh.ply), read before the run
+    environment: Optional[dict] = None  # device.run_environment when the run started (resumed: the checkpoint's)
 
 
 def _read_gt_mesh(path: Path):
@@ -335,7 +307,7 @@ def prepare(args: argparse.Namespace) -> Plan:
             raise BadInput(f"--resume given but {path} does not exist (no checkpoint was written: the run stopped "
                            f"before its first checkpoint, or ran with --checkpoint-every 0)")
         values = checkpoint_module.read(path)
-        changes = resume_differences(checkpoint_module.config_of(values), cfg)
+        changes = checkpoint_module.config_differences(checkpoint_module.config_of(values), cfg)
         if changes:
             raise BadInput(f"--resume refused, {path} was made with other settings: {changes[0]}"
                            + (f" (and {len(changes) - 1} more)" if len(changes) > 1 else "")
@@ -353,7 +325,20 @@ def prepare(args: argparse.Namespace) -> Plan:
                 plan.state = checkpoint_module.from_plain(values, device)
             except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as error:
                 raise checkpoint_module.CheckpointError(f"{path}: the checkpoint's content does not fit ({error})") from None
+            plan.environment = _resume_environment(values.get("environment"), plan)
     return plan
+
+
+def _resume_environment(saved: Optional[dict], plan: Plan) -> dict:
+    """The environment the run started in, warning (one line) when this process differs from it:
+    the rest of the run then cannot match an uninterrupted one bit for bit."""
+    now = device_module.run_environment(plan.device, plan.state.field)
+    changes = checkpoint_module.environment_changes(saved, now)
+    if changes:
+        print(f"warning: resuming in another environment than the run started in ({'; '.join(changes)}); the "
+              f"frames from {plan.state.done} on will not match an uninterrupted run bit for bit, and metrics.json "
+              f"records both (environment_at_start)", file=sys.stderr)
+    return saved if isinstance(saved, dict) else now
 
 
 def remove_previous_outputs(out: Path) -> List[Path]:
@@ -367,9 +352,9 @@ def remove_previous_outputs(out: Path) -> List[Path]:
     return removed
 
 
-def save_checkpoint(state, path: Path) -> None:
-    """The whole loop state as plain data (``checkpoint.py``), atomically."""
-    checkpoint_module.save(state, path)
+def save_checkpoint(state, path: Path, environment: Optional[dict] = None) -> None:
+    """The whole loop state as plain data (``checkpoint.py``), atomically, with the run's environment."""
+    checkpoint_module.save(state, path, environment)
 
 
 def load_checkpoint(path: Path, device=None):
@@ -409,7 +394,9 @@ def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
         if progress is not None:
             progress.update(1)
         if every and current.done % every == 0:  # the checkpoint first: trajectory.txt never gets ahead of it
-            save_checkpoint(current, out / "checkpoint.pt")
+            if plan.environment is None:
+                plan.environment = device_module.run_environment(plan.device, current.field)
+            save_checkpoint(current, out / "checkpoint.pt", plan.environment)
             reached["checkpoint"] = current.done
             write_partial_trajectory(current, out)
 

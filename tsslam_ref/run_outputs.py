@@ -13,12 +13,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from . import data as data_module
-from . import hash_kernel
 from . import trajectory_metrics as trajectory_metrics_module
-from .device import compute_environment, peak_memory
+from .device import peak_memory, run_environment
 from .files import atomic_path, atomic_write_text
 
 
@@ -28,18 +26,6 @@ def write_partial_trajectory(state, out: Path) -> None:
 
     poses = estimated_trajectory(state).detach().cpu().double().numpy()
     data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
-
-
-def map_kernels(field, device: torch.device) -> dict:
-    """Which code ran the map's encodings: ``{"hash_grid": "compiled" | "pytorch", "oneblob": ...}``,
-    with ``"kernel_error"`` when the compiled kernel was asked for and did not load.  The two paths
-    agree to rounding, not bit for bit, so a seed's numbers depend on it too."""
-    probe = torch.zeros(1, 3, dtype=field.grid.table.dtype, device=device)
-    paths = {"hash_grid": "compiled" if field.grid.uses_compiled_kernel(probe) else "pytorch",
-             "oneblob": "compiled" if field.oneblob.uses_compiled_kernel(probe) else "pytorch"}
-    if hash_kernel.load_error() is not None and (field.grid.compiled or field.oneblob.compiled):
-        paths["kernel_error"] = hash_kernel.load_error()
-    return paths
 
 
 def ground_truth_known(sequence):
@@ -159,8 +145,9 @@ def write_outputs(plan, result) -> None:
                "frames_per_second": result.frames_per_second}
     metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
     metrics["runtime"] = result.state.timings.table()
-    metrics["environment"] = compute_environment(plan.device)
-    metrics["environment"]["map_kernels"] = map_kernels(result.state.field, plan.device)
+    metrics["environment"] = run_environment(plan.device, result.state.field)
+    if plan.environment is not None and plan.environment != metrics["environment"]:  # resumed elsewhere
+        metrics["environment_at_start"] = plan.environment
     if not args.no_mesh:
         metrics.update(mesh_outputs(plan, result.state.field))
     if args.export_rate is not None:
