@@ -33,8 +33,9 @@ def test_export_of_a_spline_at_timestamp_size_writes_every_sample(tmp_path, rate
     trajectory = BSplineTrajectory(torch.eye(3, dtype=torch.float64).repeat(6, 1, 1),
                                    torch.zeros(6, 3, dtype=torch.float64), 0.3, STAMP - 0.6)
     start, end = trajectory.domain()
-    frames_past_the_end = SimpleNamespace(trajectory=trajectory, timestamps=np.array([start, end + 1.0]), done=2)
-    rows = export_continuous(frames_past_the_end, rate, tmp_path / "export.txt")
+    last_frame = np.nextafter(end, -np.inf)  # the latest a frame of a finished state can be
+    frames_to_the_end = SimpleNamespace(trajectory=trajectory, timestamps=np.array([start, last_frame]), done=2)
+    rows = export_continuous(frames_to_the_end, rate, tmp_path / "export.txt")
     assert rows[0, 0] == start and rows[-1, 0] < end and len(rows) == len(export_times(start, end, rate))
     assert np.loadtxt(tmp_path / "export.txt").shape == rows.shape
 
@@ -50,3 +51,42 @@ def test_the_export_stops_at_the_last_frame_not_at_the_end_of_the_last_interval(
     assert np.allclose(rows[:, 0], 100.0 + np.arange(6) / 10.0, rtol=0, atol=1e-12)  # 100.0 .. 100.5, frame 2's time
     state.done = 4
     assert export_continuous(state, 10.0, tmp_path / "export.txt")[-1, 0] == pytest.approx(100.7)
+
+
+def test_a_state_whose_spline_stops_before_its_last_frame_is_refused(tmp_path):
+    """A checkpoint's state has frames past its spline (its last interval is fitted only when the
+    run finishes); the export used to stop at the spline's end without a word."""
+    trajectory = BSplineTrajectory(torch.eye(3, dtype=torch.float64).repeat(6, 1, 1),
+                                   torch.zeros(6, 3, dtype=torch.float64), 0.25, 100.0 - 0.5)  # [100.0, 100.75)
+    state = SimpleNamespace(trajectory=trajectory, timestamps=np.array([100.0, 100.5, 100.8]), done=3)
+    with pytest.raises(ValueError, match="last processed frame is at 100.800000 s.*finish"):
+        export_continuous(state, 10.0, tmp_path / "export.txt")
+    assert not (tmp_path / "export.txt").exists()
+
+
+def test_quaternions_of_a_turn_through_180_degrees_stay_in_one_hemisphere(tmp_path):
+    """A yaw from 150 to 210 degrees crosses qw = 0; forcing qw >= 0 wrote q then about -q on
+    neighbouring rows (their linear midpoint was no rotation at all).  Oracles: the rotation each
+    row stands for (scipy), and the sign of neighbouring rows' dot products."""
+    from scipy.spatial.transform import Rotation
+
+    from tsslam_ref import data
+    from tsslam_ref.geometry import make_pose
+
+    angles = np.radians(np.linspace(150.0, 210.0, 31))
+    rotations = Rotation.from_euler("y", angles[:, None]).as_matrix()
+    poses = make_pose(torch.as_tensor(rotations), torch.zeros(31, 3, dtype=torch.float64)).numpy()
+    data.write_tum_trajectory(tmp_path / "turn.txt", 1.5e9 + np.arange(31) / 30.0, poses)
+    rows = np.loadtxt(tmp_path / "turn.txt")
+    quaternions = rows[:, 4:8]
+    assert np.all(np.sum(quaternions[1:] * quaternions[:-1], axis=1) > 0.99)
+    assert quaternions[0, 3] >= 0
+    assert np.allclose(Rotation.from_quat(quaternions).as_matrix(), rotations, atol=1e-8)
+    controls = torch.as_tensor(Rotation.from_euler("y", np.radians(np.linspace(140.0, 220.0, 8))[:, None]).as_matrix())
+    trajectory = BSplineTrajectory(controls, torch.zeros(8, 3, dtype=torch.float64), 0.25, 100.0 - 0.5)
+    start, end = trajectory.domain()
+    state = SimpleNamespace(trajectory=trajectory, timestamps=np.array([start, end - 0.01]), done=2)
+    exported = export_continuous(state, 100.0, tmp_path / "export.txt")[:, 4:8]
+    assert np.all(np.sum(exported[1:] * exported[:-1], axis=1) > 0.99) and exported[0, 3] >= 0
+    assert np.allclose(Rotation.from_quat(exported).as_matrix(),
+                       trajectory.evaluate(np.loadtxt(tmp_path / "export.txt")[:, 0]).rotation.numpy(), atol=1e-8)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import config, data, device, eval as evaluation, hash_kernel, parallel, run, slam, synthetic
+from tsslam_ref import config, data, device, eval as evaluation, hash_kernel, parallel, run, run_outputs, slam, synthetic
 from tsslam_ref.field import SceneField
 
 
@@ -238,6 +238,14 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
     assert run.main(arguments + ["--resume"]) == 0
     assert "12 frames, all from the checkpoint" in capsys.readouterr().out
     assert json.loads((out / "metrics.json").read_text())["frames_per_second"] is None
+    assert run.main(arguments + ["--resume"]) == 0  # finished now: an --export-rate given here writes nothing
+    assert "--export-rate and --no-mesh do not change a finished run's files" in capsys.readouterr().out
+
+
+def test_export_file_names_keep_every_digit_of_the_rate_and_are_ours_to_overwrite():
+    names = [run_outputs.export_file_name(rate) for rate in (50.0, 33.33333, 33.33334, 0.5)]
+    assert names[0] == "trajectory_50hz.txt" and names[3] == "trajectory_0.5hz.txt" and len(set(names)) == 4
+    assert all(run.is_output_name(name) for name in names)
 
 
 def test_the_recorded_cpu_kernels_are_the_ones_pytorch_runs():

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .files import atomic_path
-from .geometry import make_pose, pose_to_tum
+from .geometry import continuous_quaternions, make_pose, pose_to_tum
 
 
 def spline_output_poses(state) -> torch.Tensor:
@@ -65,17 +65,26 @@ def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     there by no frame (an extrapolation that can run metres off): that part is not written.  Each
     time is computed from its index: accumulating steps, as ``np.arange`` does, drifts at the
     magnitude of real timestamps (1e9 s) and could put the last time past the end.
+    So the last row is the last grid time at or before the last frame (up to 1 / rate_hz before it).
     Columns: t tx ty tz qx qy qz qw vx vy vz wx wy wz, with v the world-frame linear velocity
-    (m/s) and w the body-frame angular velocity (rad/s).  Replaces ``path`` atomically (``files.atomic_path``;
+    (m/s) and w the body-frame angular velocity (rad/s); quaternions as in ``trajectory.txt``
+    (hemisphere-continuous).  A state whose spline does not reach its last frame yet (a
+    checkpoint's, before ``slam.finish_run`` fitted the last interval) is refused.  Replaces ``path`` atomically (``files.atomic_path``;
     the caller owns the folder).  Returns the (T, 14) float64 rows."""
     if rate_hz <= 0:
         raise ValueError(f"--export-rate must be positive, got {rate_hz}")
     start, end = state.trajectory.domain()
     last_frame = float(state.timestamps[state.done - 1])
+    if end <= last_frame:
+        raise ValueError(f"the spline covers [{start:.6f}, {end:.6f}) s but the last processed frame is at "
+                         f"{last_frame:.6f} s: its last interval is not fitted yet (a checkpoint's state); finish "
+                         f"the state first, e.g. slam.run_slam(sequence, cfg, state=state)")
     times = export_times(start, min(end, float(np.nextafter(last_frame, np.inf))), rate_hz)
     sample = state.trajectory.evaluate(times, derivatives=1)
     poses = make_pose(sample.rotation, sample.translation).detach().cpu().double().numpy()
-    rows = np.concatenate([times[:, None], pose_to_tum(poses), sample.velocity_world.detach().cpu().double().numpy(),
+    values = pose_to_tum(poses)
+    values[:, 3:] = continuous_quaternions(values[:, 3:])  # no q -> -q jump between neighbouring rows
+    rows = np.concatenate([times[:, None], values, sample.velocity_world.detach().cpu().double().numpy(),
                            sample.omega_body.detach().cpu().double().numpy()], axis=1)
     with atomic_path(path) as temporary, open(temporary, "w") as stream:
         stream.write("# t tx ty tz qx qy qz qw vx vy vz wx wy wz (camera-to-world, OpenCV axes; v world m/s, w body rad/s)\n")

@@ -209,6 +209,19 @@ def pose_to_tum(pose: np.ndarray) -> np.ndarray:
     return np.concatenate([pose[..., :3, 3], matrix_to_quaternion_xyzw(pose[..., :3, :3])], axis=-1)
 
 
+def continuous_quaternions(quaternions: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions in time order -> the same rotations, each row's sign chosen so that it
+    lies in the hemisphere of the row before (q and -q are one rotation).  Written this way, rows
+    of a smooth motion never jump from q to about -q, and linear interpolation or differences of
+    neighbouring rows stay meaningful.  The first row keeps its sign."""
+    quaternions = np.asarray(quaternions, dtype=np.float64)
+    if len(quaternions) < 2:
+        return quaternions.copy()
+    agree = np.where(np.sum(quaternions[1:] * quaternions[:-1], axis=-1) < 0, -1.0, 1.0)  # (N - 1,)
+    signs = np.concatenate([[1.0], np.cumprod(agree)])
+    return quaternions * signs[:, None]
+
+
 def opengl_to_opencv_pose(pose_gl: np.ndarray) -> np.ndarray:
     """Camera-to-world pose with OpenGL camera axes -> the same camera with OpenCV axes.
 

@@ -434,7 +434,8 @@ def execute(plan: Plan) -> int:
     """Run the prepared command and write its outputs; returns the exit status."""
     cfg, sequence, out, state = plan.cfg, plan.sequence, plan.out, plan.state
     if plan.finished:
-        print(f"{out} holds a finished run (metrics.json); nothing to resume. Use --overwrite to run it again.")
+        skipped = " (--export-rate and --no-mesh do not change a finished run's files)" if plan.args.export_rate else ""
+        print(f"{out} holds a finished run (metrics.json); nothing to resume{skipped}. Use --overwrite to run it again.")
         return EXIT_OK
     from . import parallel, slam
 

@@ -28,6 +28,12 @@ def write_partial_trajectory(state, out: Path) -> None:
     data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
 
 
+def export_file_name(rate_hz: float) -> str:
+    """``trajectory_<rate>hz.txt`` with every digit of the rate as given (33.33333 and 33.33334 Hz
+    are two files, not one that the second run replaces)."""
+    return f"trajectory_{rate_hz:.15g}hz.txt"
+
+
 def ground_truth_known(sequence):
     """(gt (N, 4, 4) float64 camera-to-world, known (N,) bool: a finite GT pose), or None when the
     sequence has no ground truth."""
@@ -151,7 +157,7 @@ def write_outputs(plan, result) -> None:
     if not args.no_mesh:
         metrics.update(mesh_outputs(plan, result.state.field))
     if args.export_rate is not None:
-        export_continuous(result.state, args.export_rate, out / f"trajectory_{args.export_rate:g}hz.txt")
+        export_continuous(result.state, args.export_rate, out / export_file_name(args.export_rate))
     metrics.update(peak_memory(plan.device))  # after the mesh: the run's and the mesh's peak
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))  # last: it marks a finished run
