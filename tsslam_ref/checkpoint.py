@@ -145,7 +145,7 @@ def save(state, path, environment: Optional[Dict[str, Any]] = None) -> Path:
     ``environment`` the run started in (``device.run_environment``), which ``--resume`` compares."""
     plain = to_plain(state)
     if environment is not None:
-        plain["environment"] = json.loads(json.dumps(environment))  # plain str (torch.__version__ is not)
+        plain["environment"] = environment
     with atomic_path(path) as temporary:
         torch.save(plain, temporary)
     return Path(path)
@@ -255,11 +255,12 @@ def _check_rows(path: Path, values: Dict[str, Any]) -> None:
     frame_numbers = {"keyframes/frame_indices": list(keyframes["frame_indices"])}
     for key in ("tracking_output", "keyframe_of_frame", "relative_to_keyframe", "window_rays"):
         frame_numbers[key] = list(values[key])
+    limit = max(values["done"], 1)  # frame 0 is mapped before it counts as done
     for key, numbers in frame_numbers.items():
-        outside = [number for number in numbers if not 0 <= int(number) < max(values["done"], 1)]
+        outside = [number for number in numbers if not 0 <= int(number) < limit]
         if outside:
             raise CheckpointError(f"{path}: checkpoint entry '{key}' names frame {outside[0]}, outside the "
-                                  f"{values['done']} frames done (0-{max(values['done'], 1) - 1})")
+                                  f"{values['done']} frames done (0-{limit - 1})")
 
 
 def load(path, device=None):

@@ -37,7 +37,7 @@ def compute_environment(device: torch.device) -> dict:
     with the same capability and thread count.  Setting the environment variable
     ``ATEN_CPU_CAPABILITY=avx2`` before Python starts makes an AVX-512 machine use the AVX2 kernels.
     """
-    environment = {"torch": torch.__version__, "device": str(device),
+    environment = {"torch": str(torch.__version__), "device": str(device),
                    "cpu_capability": torch.backends.cpu.get_cpu_capability(), "threads": torch.get_num_threads()}
     if device.type == "cuda":
         environment["gpu"] = torch.cuda.get_device_name(device)

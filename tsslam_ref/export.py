@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .files import atomic_path
-from .geometry import continuous_quaternions, make_pose, pose_to_tum
+from .geometry import make_pose, trajectory_to_tum
 
 
 def spline_output_poses(state) -> torch.Tensor:
@@ -64,13 +64,14 @@ def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     half-open end.  The spline goes on past the last frame to the end of its last interval, held
     there by no frame (an extrapolation that can run metres off): that part is not written.  Each
     time is computed from its index: accumulating steps, as ``np.arange`` does, drifts at the
-    magnitude of real timestamps (1e9 s) and could put the last time past the end.
-    So the last row is the last grid time at or before the last frame (up to 1 / rate_hz before it).
+    magnitude of real timestamps (1e9 s) and could put the last time past the end.  The last row is
+    the last grid time at or before the last frame (up to 1 / rate_hz before it).  A state whose
+    spline does not reach its last frame yet (a checkpoint's, before ``slam.finish_run`` fitted the
+    last interval) is refused.
     Columns: t tx ty tz qx qy qz qw vx vy vz wx wy wz, with v the world-frame linear velocity
     (m/s) and w the body-frame angular velocity (rad/s); quaternions as in ``trajectory.txt``
-    (hemisphere-continuous).  A state whose spline does not reach its last frame yet (a
-    checkpoint's, before ``slam.finish_run`` fitted the last interval) is refused.  Replaces ``path`` atomically (``files.atomic_path``;
-    the caller owns the folder).  Returns the (T, 14) float64 rows."""
+    (:func:`geometry.trajectory_to_tum`).  Replaces ``path`` atomically (``files.atomic_path``; the
+    caller owns the folder).  Returns the (T, 14) float64 rows."""
     if rate_hz <= 0:
         raise ValueError(f"--export-rate must be positive, got {rate_hz}")
     start, end = state.trajectory.domain()
@@ -82,9 +83,7 @@ def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     times = export_times(start, min(end, float(np.nextafter(last_frame, np.inf))), rate_hz)
     sample = state.trajectory.evaluate(times, derivatives=1)
     poses = make_pose(sample.rotation, sample.translation).detach().cpu().double().numpy()
-    values = pose_to_tum(poses)
-    values[:, 3:] = continuous_quaternions(values[:, 3:])  # no q -> -q jump between neighbouring rows
-    rows = np.concatenate([times[:, None], values, sample.velocity_world.detach().cpu().double().numpy(),
+    rows = np.concatenate([times[:, None], trajectory_to_tum(poses), sample.velocity_world.detach().cpu().double().numpy(),
                            sample.omega_body.detach().cpu().double().numpy()], axis=1)
     with atomic_path(path) as temporary, open(temporary, "w") as stream:
         stream.write("# t tx ty tz qx qy qz qw vx vy vz wx wy wz (camera-to-world, OpenCV axes; v world m/s, w body rad/s)\n")

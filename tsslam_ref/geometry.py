@@ -222,6 +222,15 @@ def continuous_quaternions(quaternions: np.ndarray) -> np.ndarray:
     return quaternions * signs[:, None]
 
 
+def trajectory_to_tum(poses: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) poses in time order -> (N, 7) TUM rows (tx, ty, tz, qx, qy, qz, qw) whose
+    quaternions are :func:`continuous_quaternions` (the first with qw >= 0): what a trajectory file
+    writes."""
+    values = pose_to_tum(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4))
+    values[:, 3:] = continuous_quaternions(values[:, 3:])
+    return values
+
+
 def opengl_to_opencv_pose(pose_gl: np.ndarray) -> np.ndarray:
     """Camera-to-world pose with OpenGL camera axes -> the same camera with OpenCV axes.
 

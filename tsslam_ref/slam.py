@@ -97,7 +97,7 @@ class SLAMResult:
     frame_poses: np.ndarray  # (N, 4, 4) the per-frame poses of the state (tracking, BA, spline)
     state: SLAMState
     frames_per_second: Optional[float]  # over the frames this call processed; None when it processed none
-    frames_processed: int = 0  # frames this call processed (fewer than N after a resume)
+    frames_processed: int  # frames this call processed (fewer than N after a resume)
 
 
 # ------------------------------------------------------------------------------------------------

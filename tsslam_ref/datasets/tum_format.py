@@ -19,8 +19,7 @@ from typing import List, Tuple
 import numpy as np
 
 from tsslam_ref.files import atomic_write_text
-from tsslam_ref.geometry import (continuous_quaternions, matrix_to_quaternion_xyzw, pose_to_tum,
-                                 quaternion_xyzw_to_matrix, tum_to_pose)
+from tsslam_ref.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix, trajectory_to_tum, tum_to_pose
 
 TUM_MAX_TIME_DIFF = 0.02
 """Association tolerance (s) of TUM's associate.py."""
@@ -132,7 +131,7 @@ def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Pa
 
     Stamps are written with ``%.6f`` (microseconds), positions and quaternions with ``%.9f``; the
     first quaternion has qw >= 0, each next one lies in the hemisphere of the one before
-    (:func:`geometry.continuous_quaternions`).  Rows whose pose holds NaN are skipped (unknown
+    (:func:`geometry.trajectory_to_tum`).  Rows whose pose holds NaN are skipped (unknown
     ground truth).
 
     Args:
@@ -149,8 +148,7 @@ def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Pa
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
     known = np.isfinite(poses).all(axis=(1, 2))
-    values = pose_to_tum(poses[known]) if known.any() else np.zeros((0, 7))
-    values[:, 3:] = continuous_quaternions(values[:, 3:])  # no q -> -q jump between neighbouring lines
+    values = trajectory_to_tum(poses[known])  # no q -> -q jump between neighbouring lines
     lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes)"]
     for stamp, row in zip(timestamps[known], values):
         lines.append(f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in row))
