@@ -190,3 +190,32 @@ def test_benchmarks_refuse_bad_arguments_in_one_line(tmp_path, script, arguments
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert needle in result.stderr.strip().splitlines()[-1], result.stderr
+
+
+def test_tracking_floor_scores_a_shortened_path_by_its_scale_and_lag():
+    """benchmarks/tracking_floor.py's row figures on a path whose error is known by construction:
+    the ground truth itself scores 0 cm and scale 1; the same path shrunk about frame 0 by 1/1.25
+    (a tracker that stops short) scores a Sim(3) scale of 1.25 and a negative along-path error of
+    the mean shortfall, (1 - 1/1.25) x the mean distance travelled."""
+    import numpy as np
+    from types import SimpleNamespace
+
+    spec = importlib.util.spec_from_file_location("tracking_floor", ROOT / "benchmarks" / "tracking_floor.py")
+    tracking_floor = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tracking_floor)
+    times = np.arange(30) / 30.0
+    truth = np.tile(np.eye(4), (30, 1, 1))
+    truth[:, :3, 3] = np.outer(times, [0.6, -0.2, 0.1]) + np.outer(np.sin(4 * times), [0.0, 0.1, 0.05])
+    sequence = SimpleNamespace(timestamps=times)
+
+    def figures(poses):
+        return [float(value) for value in tracking_floor.scores(sequence, truth, poses).split("|")]
+
+    ate, rpe_cm, rpe_deg, scale, along = figures(truth)
+    assert ate < 1e-9 and rpe_cm < 1e-9 and rpe_deg < 1e-9 and abs(scale - 1.0) < 1e-9 and abs(along) < 1e-9
+    short = truth.copy()
+    short[:, :3, 3] = truth[0, :3, 3] + (truth[:, :3, 3] - truth[0, :3, 3]) / 1.25
+    ate, _, _, scale, along = figures(short)
+    travelled = np.linalg.norm(truth[1:, :3, 3] - truth[0, :3, 3], axis=1)
+    assert abs(scale - 1.25) < 1e-6 and ate > 0.5
+    assert abs(along - 100 * -(1 - 1 / 1.25) * travelled.mean()) <= 0.005 + 1e-9  # cm, printed to 0.01
