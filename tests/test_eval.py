@@ -2,7 +2,8 @@
 
 Oracles: planted truth (known SE(3)/Sim(3), known noise, known jumps), evo (APE/RPE, an independent
 implementation), scipy's Rotation.align_vectors, analytic distances between parallel planes and
-concentric spheres (with the Poisson nearest-neighbour correction), analytic depth of planes.
+concentric spheres, a half-covered plane and a far extra plane (with the Poisson nearest-neighbour
+correction), analytic depth of planes.
 """
 
 import json
@@ -362,6 +363,48 @@ def test_mesh_metrics_concentric_spheres_and_ratio_threshold():
         assert result["completion_ratio"] == ratio
     assert ev.mesh_metrics(rec, gt, n_points=n_points) == result  # deterministic for a seed
     assert ev.mesh_metrics(rec, gt, n_points=n_points, seed=1) != result
+
+
+def test_mesh_metrics_half_covered_plane_separates_accuracy_from_completion():
+    """Accuracy is rec -> GT, Completion is GT -> rec (docs/evaluation.md); a one-sided scene tells them apart.
+
+    GT = square [-1, 1]^2 at z = 0 (area 4, n samples: density n/4); rec = its half x >= 0 (area 2,
+    density n/2).  Every rec sample lies on the GT plane, so Accuracy = Poisson nearest-neighbour
+    distance at the GT density, E = expected_nn_distance(0, n/4) (about 3 mm).  Half of the GT
+    samples (x >= 0) have a rec sample at the rec density, expected_nn_distance(0, n/2); the other
+    half (x uniform on [-1, 0)) are |x| from the rec edge x = 0, mean 1/2, so
+    Completion = 1/2 * 1/2 + 1/2 * expected_nn_distance(0, n/2).  Completion Ratio (5 cm): the
+    covered half plus the strip -0.05 < x < 0 (share 0.05 / 2) = 0.525.
+    """
+    n_points = 100_000
+    gt = plane_patch(1.0, 0.0)
+    rec = trimesh.Trimesh([[0, -1, 0], [1, -1, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+    result = ev.mesh_metrics(rec, gt, n_points=n_points, threshold=0.05, seed=0)
+    assert result["accuracy_m"] == pytest.approx(expected_nn_distance(0.0, n_points / 4.0), rel=0.03)
+    expected_completion = 0.25 + 0.5 * expected_nn_distance(0.0, n_points / 2.0)
+    assert result["completion_m"] == pytest.approx(expected_completion, rel=0.02)
+    assert result["completion_ratio"] == pytest.approx(0.525, abs=0.01)  # binomial sd 0.0016
+
+
+def test_mesh_metrics_extra_far_surface_raises_accuracy_only():
+    """Reconstructed surface away from the GT costs Accuracy, never Completion.
+
+    GT = square [-1, 1]^2 at z = 0; rec = that square plus a copy at z = 1 (area 8, density n/8 on
+    each).  Half the rec samples lie on the GT (Poisson distance at GT density n/4), the other half
+    sit 1 m straight above it: sqrt(1 + r^2), i.e. expected_nn_distance(1, n/4).  So
+    Accuracy = (expected_nn_distance(0, n/4) + expected_nn_distance(1, n/4)) / 2, about 0.5 m.
+    Every GT sample has the z = 0 copy at density n/8: Completion = expected_nn_distance(0, n/8)
+    (about 4.5 mm) and Completion Ratio = 1.
+    """
+    n_points = 100_000
+    gt = plane_patch(1.0, 0.0)
+    rec = trimesh.util.concatenate([plane_patch(1.0, 0.0), plane_patch(1.0, 1.0)])
+    result = ev.mesh_metrics(rec, gt, n_points=n_points, threshold=0.05, seed=0)
+    density_gt = n_points / 4.0
+    expected_accuracy = 0.5 * (expected_nn_distance(0.0, density_gt) + expected_nn_distance(1.0, density_gt))
+    assert result["accuracy_m"] == pytest.approx(expected_accuracy, rel=0.01)  # binomial sd of the split 0.3 %
+    assert result["completion_m"] == pytest.approx(expected_nn_distance(0.0, n_points / 8.0), rel=0.02)
+    assert result["completion_ratio"] == 1.0
 
 
 def test_depth_l1():
