@@ -12,8 +12,19 @@ RADIUS = 0.45
 TRUNCATION = 0.1
 
 
+RAMP_OFFSET = torch.tensor([0.3, 0.6, 0.2], dtype=torch.float64)
+"""Colour ramp rgb = clip(world xyz + RAMP_OFFSET, 0, 1): 0.05..0.95 per channel on the sphere below."""
+
+
+def colour_ramp(points):
+    """(N, 3) world points in metres -> (N, 3) rgb in 0..1, a different linear ramp per channel."""
+    return torch.clamp(points + RAMP_OFFSET.to(points), 0.0, 1.0)
+
+
 class AnalyticField:
-    """A lambda wrapped as a field: normalised SDF of a sphere (metric / tr) and a colour ramp."""
+    """A lambda wrapped as a field: normalised SDF of a sphere (metric / tr) and a colour ramp of
+    world position; the bound's minimum (-0.5, -0.8, -0.4) is not the origin, so colours looked up
+    at grid-local instead of world coordinates come out 0.4..0.8 off."""
 
     def __init__(self, sdf_metric):
         self.sdf_metric = sdf_metric
@@ -23,8 +34,7 @@ class AnalyticField:
         return self.sdf_metric(points) / TRUNCATION
 
     def __call__(self, points):
-        rgb = torch.stack([points[:, 0] * 0 + 0.25, points[:, 1] * 0 + 0.5, points[:, 2] * 0 + 0.75], dim=-1)
-        return rgb, self.sdf(points)
+        return colour_ramp(points), self.sdf(points)
 
 
 def sphere(points):
@@ -40,8 +50,14 @@ def test_sphere_mesh_has_the_right_radius_and_outward_normals():
     assert mesh.volume == pytest.approx(4 / 3 * np.pi * RADIUS**3, rel=0.03)
     outward = np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles_center - CENTRE.numpy())
     assert (outward > 0).all()
-    assert mesh.visual.vertex_colors.shape == (len(mesh.vertices), 4)
-    assert np.allclose(mesh.visual.vertex_colors[:, :3], [64, 127, 191], atol=1)
+    # each vertex carries the ramp at its own world position, stored as uint8 (0..255 levels):
+    # within one level of 255 * ramp (truncation or rounding), alpha opaque
+    colours = np.asarray(mesh.visual.vertex_colors)
+    assert colours.shape == (len(mesh.vertices), 4) and colours.dtype == np.uint8
+    expected_levels = 255 * np.clip(mesh.vertices + RAMP_OFFSET.numpy(), 0, 1)  # (V, 3), by hand
+    assert np.abs(colours[:, :3] - expected_levels).max() <= 1 + 1e-3
+    assert (colours[:, 3] == 255).all()
+    assert np.ptp(colours[:, :3], axis=0).min() > 200  # a real ramp: every channel spans most levels
 
 
 def test_cells_far_from_any_surface_are_skipped():
