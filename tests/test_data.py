@@ -210,16 +210,43 @@ def test_crop_and_resize_update_intrinsics(tmp_path):
 
 
 def test_depth_resize_never_mixes_surfaces(tmp_path):
-    """Resized depth holds only values of the original (an edge 1 m | 3 m and holes stay exact)."""
+    """Resized depth holds only values of the original (an edge 1 m | 3 m and holes stay exact), each
+    at its place, and the resized colour stays on the depth's pixels.
+
+    64x48 -> 20x15 is a scale of s = 3.2 on both axes.  Edges onto edges (module docstring): output
+    pixel j's centre falls at (j + 0.5) s in input edge coordinates, and nearest neighbour takes the
+    input pixel containing it, floor((j + 0.5) s): columns 0..19 -> 1, 4, 8, 11, 14, 17, 20, 24, 27,
+    30, ...  The edge between input columns 28 (1 m) and 29 (3 m) lands between output columns 8
+    (input 27) and 9 (input 30).  The hole at input rows 10..19, columns 5..8 is hit by output rows
+    3, 4, 5 (inputs 11, 14, 17) and output column 2 (input 8 or 7: (2 + 0.5) s = 8 is on a pixel
+    border, both holes); rows 2 and 6 read inputs 8 and 20, columns 1 and 3 read 4 and 11: no hole.
+    The colour image is red left of the edge and blue right of it; bilinear with antialiasing
+    averages over +-s input pixels around (j + 0.5) s, so output columns 0..7 (reaching up to
+    input 26.8) are pure red, 10..19 (from 30.4) pure blue, and 8, 9 a mix.
+    """
     stamps = 10.0 + np.arange(1) / 30
     folder = make_tum(tmp_path / "t", stamps, stamps, stamps, _random_poses(1), size=(64, 48))
     depth = np.full((48, 64), 5000, np.uint16)
     depth[:, 29:] = 15000
     depth[10:20, 5:9] = 0
     iio.imwrite(folder / f"depth/{stamps[0]:.6f}.png", depth)
-    resized = data.load_sequence(folder, resize_width=20)[0].depth
-    assert resized.shape == (15, 20)
+    colour = np.zeros((48, 64, 3), np.uint8)
+    colour[:, :29, 0] = 255
+    colour[:, 29:, 2] = 255
+    iio.imwrite(folder / f"rgb/{stamps[0]:.6f}.png", colour)
+    frame = data.load_sequence(folder, resize_width=20)[0]
+    resized = frame.depth
+    assert resized.shape == (15, 20) and frame.rgb.shape == (15, 20, 3)
     assert set(np.unique(resized).round(6)) <= {0.0, 1.0, 3.0} and (resized == 0).any()
+    expected = np.full((15, 20), 1.0, np.float32)
+    expected[:, 9:] = 3.0  # 1 m on the left of the edge, as in the input
+    expected[3:6, 2] = 0.0  # the hole, at its scaled rows and column
+    np.testing.assert_allclose(resized, expected, atol=1e-6)
+    red, blue = frame.rgb[..., 0], frame.rgb[..., 2]
+    np.testing.assert_allclose(red[:, :8], 1.0, atol=1e-6)  # pure red where the depth is 1 m
+    np.testing.assert_allclose(blue[:, 10:], 1.0, atol=1e-6)  # pure blue where it is 3 m
+    assert np.all(blue[:, :8] < 1e-6) and np.all(red[:, 10:] < 1e-6)
+    assert np.all((0.05 < red[:, 8:10]) & (red[:, 8:10] < 0.95))  # the mixed columns straddle the depth edge
 
 
 def test_depth_is_not_truncated(tmp_path):
