@@ -596,3 +596,28 @@ def test_cull_mesh_keeps_the_cap_a_camera_sees_on_a_sphere():
     kept = _kept(sphere, culled)
     assert kept[(vertex_z > 0.45).all(1)].all()  # well inside the cap: kept
     assert not kept[(vertex_z < 0.25).all(1)].any()  # beyond the limb or on the back: removed
+
+
+def test_errors_over_time_stamp_each_rpe_error_at_the_later_frame_of_its_pair():
+    """trajectory_errors_over_time's time axes, by construction: the camera moves 1 m/s along x;
+    the estimate (stamps 3 ms late, frame 4 missing) jumps 5 cm sideways from frame 7 on.  With
+    delta = 1 the matched frames are 0-3, 5-9 and the only RPE error (5 cm) is the pair (6, 7),
+    stamped at frame 7's estimate time; with delta = 2 the pairs (5, 7) and (6, 8) carry it.  The
+    pair (3, 5) across the gap has none (both move 0.2 m)."""
+    gt_times = np.arange(10) * 0.1
+    gt_poses = np.tile(np.eye(4), (10, 1, 1))
+    gt_poses[:, 0, 3] = gt_times
+    kept = np.array([0, 1, 2, 3, 5, 6, 7, 8, 9])
+    est_times = gt_times[kept] + 0.003
+    est_poses = gt_poses[kept].copy()
+    est_poses[kept >= 7, 1, 3] += 0.05
+    one = ev.trajectory_errors_over_time(gt_times, gt_poses, est_times, est_poses, max_diff=0.01)
+    np.testing.assert_array_equal(one["times_s"], est_times)
+    np.testing.assert_array_equal(one["rpe_times_s"], est_times[1:])
+    assert one["trans_errors_m"].shape == one["rpe_times_s"].shape
+    jumps = one["rpe_times_s"][one["trans_errors_m"] > 1e-9]
+    np.testing.assert_allclose(jumps, [0.703], atol=1e-12)
+    np.testing.assert_allclose(one["trans_errors_m"].max(), 0.05, atol=1e-12)
+    two = ev.trajectory_errors_over_time(gt_times, gt_poses, est_times, est_poses, max_diff=0.01, delta=2)
+    np.testing.assert_array_equal(two["rpe_times_s"], est_times[2:])
+    np.testing.assert_allclose(two["rpe_times_s"][two["trans_errors_m"] > 1e-9], [0.703, 0.803], atol=1e-12)

@@ -137,7 +137,7 @@ TUM_DISTORTION = {
     "freiburg3": (0.0, 0.0, 0.0, 0.0, 0.0),
 }
 REPLICA_INTRINSICS = Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
-NEURAL_RGBD_FOCAL = 554.2562584220408
+NEURAL_RGBD_FOCAL = 554.2562584220408  # 320 / tan(30 deg): 640 px renders with a 60 deg field of view
 
 
 def _checked_calibration(values: dict, where) -> dict:
