@@ -13,9 +13,11 @@ import torch
 
 from tsslam_ref import config, spline
 from tsslam_ref.analytic import AnalyticField
-from tsslam_ref.bundle import DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, joint_optimization
+from tsslam_ref.bundle import (DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, dynamics_term, iteration_loss,
+                               joint_optimization)
+from tsslam_ref.dynamics import trajectory_dynamics_loss
 from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
-from tsslam_ref.render import frame_rays, sample_pixels
+from tsslam_ref.render import RayBatch, frame_rays, sample_pixels
 from tsslam_ref.trajectory import BSplineTrajectory
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
 from tsslam_ref.losses import RenderLossSettings, render_loss
@@ -149,6 +151,57 @@ def test_joint_optimization_moves_free_poses_only_and_accumulates(scene_setup):
     before, _ = _pose_error(initial[1], truth[1])
     after, _ = _pose_error(result[1], truth[1])
     assert after < 0.6 * before, (before, after)  # Adam at lr 3e-3 with sample jitter settles near 1 cm
+
+
+def test_the_dynamics_term_is_added_to_the_ba_loss_and_its_gradients(scene_setup):
+    """Eq. (10) = L_NeRF + L_DR.  A zig-zag spline (accelerations of several m/s^2 against a_max =
+    5 m/s^2) near the frame's pose, two slots rendered with it; the same ray draws and depth jitter
+    with and without the term.  Oracle: trajectory_dynamics_loss of a separate copy of the starting
+    trajectory at the same sample times; its value and its gradient in the free control
+    translations must be exactly the difference (loss and gradient) the term makes."""
+    scene, intrinsics, pose, rgb, depth, cfg = scene_setup
+    field = AnalyticField(scene, cfg.render.truncation)
+    n_ctrl, dt, t0, free = 6, 0.25, 0.0, [2, 3, 4, 5]
+    zigzag = torch.tensor([[0.0, 0.0, 0.0], [0.06, -0.04, 0.0], [0.0, 0.0, 0.03]] * 2, dtype=torch.float64)
+    rotations = torch.as_tensor(pose[:3, :3]).expand(n_ctrl, 3, 3)
+    rotations = so3_exp(0.04 * zigzag.roll(1, dims=-1)) @ rotations
+    translations = torch.as_tensor(pose[:3, 3]) + zigzag
+    slot_times, time_range = np.array([0.6, 1.1]), (0.5, 1.25)  # the domain is [0.5, 1.25]
+    pool = RayBatch.cat([_rays(rgb, depth, intrinsics, 64, seed=7, frame_id=slot) for slot in (0, 1)])
+    settings, sources = RenderLossSettings.from_config(cfg), [(pool, 96)]
+
+    def spline_model():
+        trajectory = BSplineTrajectory(rotations.clone(), translations.clone(), dt, t0)
+        return SplinePoses(trajectory, free=free, slot_times=slot_times, fallback_poses=torch.eye(4).repeat(2, 1, 1),
+                           lr_rot=1e-2, lr_trans=1e-2)
+
+    def dynamics_of(model):
+        return dynamics_term(model, time_range, cfg.dynamics, torch.Generator().manual_seed(11))
+
+    control_translations = translations.clone().requires_grad_(True)
+    oracle = trajectory_dynamics_loss(BSplineTrajectory(rotations, control_translations, dt, t0), *time_range,
+                                      cfg.dynamics, torch.Generator().manual_seed(11))
+    oracle_gradient = torch.autograd.grad(oracle, control_translations)[0]
+    oracle, expected_gradient = float(oracle.detach()), torch.zeros_like(oracle_gradient)
+    expected_gradient[free] = oracle_gradient[free]  # the fixed points have no parameter
+    assert oracle > 0.5 and float(expected_gradient.abs().max()) > 0.1  # not a vanishing term
+    with_model, without_model = spline_model(), spline_model()
+    with_dynamics, terms = iteration_loss(field, sources, with_model, settings, torch.Generator().manual_seed(5),
+                                          dynamics_of(with_model), smoothness=False)
+    without, _ = iteration_loss(field, sources, without_model, settings, torch.Generator().manual_seed(5), None,
+                                smoothness=False)
+    assert float(with_dynamics.detach()) == pytest.approx(float(without.detach()) + oracle, rel=1e-6)
+    assert terms["dynamics"] == pytest.approx(oracle, rel=1e-9)
+    gradient_with = torch.autograd.grad(with_dynamics, with_model.translation_delta)[0]
+    gradient_without = torch.autograd.grad(without, without_model.translation_delta)[0]
+    assert torch.allclose(gradient_with - gradient_without, expected_gradient, rtol=1e-5, atol=1e-6)
+    runs = {}
+    for name, use_dynamics in (("with", True), ("without", False)):  # the loop BA runs adds it too
+        model = spline_model()
+        runs[name] = joint_optimization(field, None, sources, model, settings, iters=1,
+                                        generator=torch.Generator().manual_seed(5), optimise_map=False,
+                                        extra_loss=dynamics_of(model) if use_dynamics else None)
+    assert runs["with"].losses[0] == pytest.approx(runs["without"].losses[0] + oracle, rel=1e-6)
 
 
 def test_keyframe_database_relabels_slots():
