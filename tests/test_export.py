@@ -90,3 +90,44 @@ def test_quaternions_of_a_turn_through_180_degrees_stay_in_one_hemisphere(tmp_pa
     assert np.all(np.sum(exported[1:] * exported[:-1], axis=1) > 0.99) and exported[0, 3] >= 0
     assert np.allclose(Rotation.from_quat(exported).as_matrix(),
                        trajectory.evaluate(np.loadtxt(tmp_path / "export.txt")[:, 0]).rotation.numpy(), atol=1e-8)
+
+
+def test_exported_columns_follow_a_moving_spline(tmp_path):
+    """A spline that moves and turns on every axis, exported at 400 Hz.  The columns are t, the
+    camera-to-world position (world, m), its quaternion (x, y, z, w), the world-frame velocity
+    (m/s) and the body-frame angular velocity (rad/s) (docs/cli.md).  Oracles: the spline evaluated
+    at the written times (columns 1-7, quaternions read with scipy), and central differences of the
+    written poses themselves, h = 1 / 400 s: v_world = (p_{i+1} - p_{i-1}) / 2h and w_body =
+    Log(R_{i-1}^T R_{i+1}) / 2h (scipy's rotation vector).  Both are second order in h: the
+    position's error is at most h^2 / 6 max|p'''|, p''' = (P_{k+3} - 3 P_{k+2} + 3 P_{k+1} - P_k) /
+    dt^3 of the control points (1.2e-5 m/s here), the rotation's is of the same order, and the
+    file's 1e-9 rounding adds 1e-9 / h = 4e-7; the tolerance 1e-4 is eight times that.  Swapping two
+    position columns (x and y differ by about 1 m) or the v and w blocks (|v| exceeds |w| by 0.3 and
+    more on every row) misses by far more."""
+    from scipy.spatial.transform import Rotation
+
+    dt, n_ctrl, rate = 0.25, 8, 400.0
+    k = torch.arange(n_ctrl, dtype=torch.float64)[:, None]
+    offset = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
+    translations = offset + torch.cat([0.3 * k, -0.2 * k + 0.05 * k**2, 0.1 * torch.sin(1.3 * k)], dim=1)
+    rotvecs = torch.cat([0.15 * k, 0.1 * torch.cos(k), -0.08 * k + 0.02 * k**2], dim=1)
+    trajectory = BSplineTrajectory(torch.as_tensor(Rotation.from_rotvec(rotvecs.numpy()).as_matrix()), translations, dt,
+                                   100.0 - 0.5)
+    start, end = trajectory.domain()
+    state = SimpleNamespace(trajectory=trajectory, timestamps=np.array([start, end - 0.01]), done=2)
+    export_continuous(state, rate, tmp_path / "export.txt")
+    rows = np.loadtxt(tmp_path / "export.txt")
+    times, positions, rotations = rows[:, 0], rows[:, 1:4], Rotation.from_quat(rows[:, 4:8])
+    evaluated = trajectory.evaluate(times)
+    assert np.allclose(positions, evaluated.translation.numpy(), rtol=0, atol=2e-9)
+    assert np.allclose(rotations.as_matrix(), evaluated.rotation.numpy(), atol=1e-8)
+    jerk = (translations[3:] - 3 * translations[2:-1] + 3 * translations[1:-2] - translations[:-3]) / dt**3
+    step = 1.0 / rate
+    assert np.allclose(np.diff(times), step, rtol=0, atol=1e-9)
+    assert step**2 / 6 * float(jerk.norm(dim=-1).max()) < 1.25e-5  # the bound of the position's difference
+    velocity = (positions[2:] - positions[:-2]) / (2 * step)
+    omega = (rotations[:-2].inv() * rotations[2:]).as_rotvec() / (2 * step)
+    speed_gap = np.linalg.norm(velocity, axis=1) - np.linalg.norm(omega, axis=1)
+    assert np.linalg.norm(omega, axis=1).min() > 0.6 and speed_gap.min() > 0.3, speed_gap.min()  # turns; v, w unlike
+    assert np.abs(rows[1:-1, 8:11] - velocity).max() < 1e-4
+    assert np.abs(rows[1:-1, 11:14] - omega).max() < 1e-4
