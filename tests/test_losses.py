@@ -10,7 +10,7 @@ from tsslam_ref.config import FieldConfig
 from tsslam_ref.field import SceneField
 from tsslam_ref.geometry import make_pose, so3_exp
 from tsslam_ref.losses import RenderLossSettings, reconstruction_losses, render_loss, smoothness_lattice, smoothness_loss
-from tsslam_ref.render import RayBatch, pixel_directions, sample_pixels
+from tsslam_ref.render import RayBatch, pixel_directions, rays_to_world, render_rays, sample_pixels
 
 TR = 0.1
 
@@ -109,18 +109,34 @@ def test_render_loss_pose_gradient_matches_central_differences():
 
 
 def test_render_loss_is_the_weighted_sum_of_the_terms():
+    """Every returned term is its weight times the unweighted term, and the total their sum.
+    Oracle: render_rays, reconstruction_losses and smoothness_loss called here on the same rays and
+    the same generator state, weighted with distinct weights set here (a weight read for the wrong
+    term, or left out, changes a term by a factor 3 or more)."""
     field, cfg = _small_field(torch.float32)
+    weights = {"rgb": 3.0, "depth": 0.3, "sdf": 170.0, "fs": 23.0, "smooth": 0.1}  # pairwise ratios >= 3, none near 1
+    cfg.loss = dataclasses.replace(cfg.loss, **{f"{name}_weight": weight for name, weight in weights.items()})
     rows, cols = sample_pixels(48, 64, 32, generator=torch.Generator().manual_seed(0))
     rays = RayBatch(pixel_directions(rows, cols, (40.0, 40.0, 31.5, 23.5)), torch.rand(32, 3), 1 + torch.rand(32),
                     torch.zeros(32, dtype=torch.long))
     pose = torch.eye(4, dtype=torch.float64)
-    total, terms = render_loss(field, rays, pose, RenderLossSettings.from_config(cfg), torch.Generator().manual_seed(0))
-    assert set(terms) == {"rgb", "depth", "sdf", "fs"}
-    assert total.item() == pytest.approx(sum(terms.values()), rel=1e-5)
-    total_s, terms_s = render_loss(field, rays, pose, RenderLossSettings.from_config(cfg), torch.Generator().manual_seed(0),
-                                   smoothness=True)
-    assert terms_s["smooth"] > 0
-    assert total_s.item() == pytest.approx(sum(terms_s.values()), rel=1e-5)
+    settings = RenderLossSettings.from_config(cfg)
+    for smoothness in (False, True):
+        total, terms = render_loss(field, rays, pose, settings, torch.Generator().manual_seed(0), smoothness=smoothness)
+        generator = torch.Generator().manual_seed(0)
+        with torch.no_grad():
+            origins, directions = rays_to_world(rays.directions_cam, pose)
+            rendered = render_rays(field, origins, directions, rays.depth, cfg.render, generator)
+            unweighted = {name: float(value) for name, value in reconstruction_losses(
+                rendered, rays.rgb, rays.depth, cfg.loss, cfg.render.truncation, cfg.data.depth_trunc).items()}
+            if smoothness:
+                unweighted["smooth"] = float(smoothness_loss(field, cfg.loss, generator))
+        assert set(terms) == set(unweighted) == {"rgb", "depth", "sdf", "fs"} | ({"smooth"} if smoothness else set())
+        for name, value in unweighted.items():
+            assert value > 0, name  # a zero term would hide its weight
+            assert terms[name] == pytest.approx(weights[name] * value, rel=1e-5), name
+        assert total.item() == pytest.approx(sum(weights[name] * value for name, value in unweighted.items()), rel=1e-5)
+    assert terms["smooth"] > 0.1 * total.item()  # the smoothness term shows in the total
 
 
 def _linear_feature_field():
