@@ -2,6 +2,9 @@
 
 Oracles: the ground-truth path of the synthetic generator and exact constant-velocity motions
 (spline.md 3.2: affine control points reproduce them exactly).
+
+Global BA's tests live here too (global_ba.py: which poses and control points are free, the
+current frame's slot and ray share), with Co-SLAM's rules worked by hand as the oracle.
 """
 
 import copy
@@ -9,8 +12,11 @@ import copy
 import numpy as np
 import torch
 
-from tsslam_ref import config, knots, local_ba, spline
+from tsslam_ref import config, global_ba, knots, local_ba, spline
+from tsslam_ref.bundle import BAStats, KeyframeDatabase
 from tsslam_ref.geometry import make_pose, so3_exp
+from tsslam_ref.losses import RenderLossSettings
+from tsslam_ref.render import RayBatch
 from tsslam_ref.synthetic import builtin_trajectory
 from tsslam_ref.trajectory import BSplineTrajectory
 
@@ -277,3 +283,63 @@ def test_curve_approximation_reports_the_levenberg_marquardt_iterations_it_ran(m
     assert 0 < report["iterations"] == len(jacobians) < cfg.local_ba.fit_iters
     local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba, fit=False, report=report)
     assert report["iterations"] == 0
+
+
+def captured_global_ba(monkeypatch):
+    """Replace global_ba's optimiser by a recorder: global BA's choices (which poses move, which
+    rays feed which slot) are then read off its arguments without running a field."""
+    calls = []
+
+    def record(field_model, map_optimizer, ray_sources, poses, *args, **kwargs):
+        calls.append((ray_sources, poses))
+        return BAStats()
+
+    monkeypatch.setattr(global_ba, "joint_optimization", record)
+    return calls
+
+
+def keyframe_rays(n_keyframes: int, n_rays: int, n_current: int):
+    """A database of ``n_keyframes`` keyframes at 0.1 s, 0.2 s, ... with ``n_rays`` rays each, and
+    the current frame's ``n_current`` rays (frame ids 77: relabelled by global BA)."""
+    generator = torch.Generator().manual_seed(n_keyframes)
+
+    def rays(count):
+        return RayBatch(torch.randn(count, 3, generator=generator), torch.rand(count, 3, generator=generator),
+                        torch.rand(count, generator=generator), torch.full((count,), 77))
+
+    database = KeyframeDatabase()
+    for slot in range(n_keyframes):
+        database.add(5 * slot, 0.1 * (slot + 1), rays(n_rays))
+    return database, rays(n_current)
+
+
+def test_global_ba_frees_every_keyframe_but_the_first_and_gives_the_current_frame_its_share(monkeypatch):
+    """(Global BA, kept in this file.)  Oracle: Co-SLAM's rules worked by hand for n_rays = 100,
+    min_pixels_cur = 10: keyframe 0 fixed, the others free, the current frame (slot K) free iff
+    optim_cur; its rays drawn as slot K, max(100 // K, 10) of them, at most those it has."""
+    calls = captured_global_ba(monkeypatch)
+    mapping = copy.deepcopy(config.tiny().mapping)
+    mapping.n_rays, mapping.min_pixels_cur = 100, 10
+    settings = RenderLossSettings.from_config(config.tiny())
+    for n_keyframes, optim_cur, n_current, share, fixed in (
+            (3, False, 500, 33, [True, False, False, True]),
+            (3, True, 500, 33, [True, False, False, False]),
+            (20, False, 500, 10, [True] + [False] * 19 + [True]),
+            (4, True, 12, 12, [True, False, False, False, False]),
+            (1, True, 500, 100, [True, True])):  # one keyframe: only the map moves
+        mapping.optim_cur = optim_cur
+        database, current_rays = keyframe_rays(n_keyframes, 6, n_current)
+        generator = torch.Generator().manual_seed(n_keyframes)
+        poses = make_pose(so3_exp(0.1 * torch.randn(n_keyframes + 1, 3, generator=generator)),
+                          torch.randn(n_keyframes + 1, 3, generator=generator))
+        current = global_ba.CurrentFrame(current_rays, 0.1 * (n_keyframes + 1), poses[-1])
+        global_ba.coslam_global_ba(None, None, database, poses[:-1], current, mapping, settings)
+        sources, pose_model = calls.pop()
+        assert pose_model.fixed.tolist() == fixed, (n_keyframes, optim_cur)
+        assert torch.allclose(pose_model.poses(), poses, atol=1e-6)  # the given poses, slot by slot
+        (keyframe_pool, keyframe_draw), (current_pool, current_draw) = sources
+        assert keyframe_draw == 100 and current_draw == share, (n_keyframes, current_draw)
+        assert keyframe_pool.frame_ids.tolist() == [slot for slot in range(n_keyframes) for _ in range(6)]
+        assert current_pool.frame_ids.tolist() == [n_keyframes] * n_current
+        assert torch.equal(current_pool.directions_cam, current_rays.directions_cam)
+
