@@ -343,3 +343,30 @@ def test_global_ba_frees_every_keyframe_but_the_first_and_gives_the_current_fram
         assert current_pool.frame_ids.tolist() == [n_keyframes] * n_current
         assert torch.equal(current_pool.directions_cam, current_rays.directions_cam)
 
+
+def test_tsslam_global_ba_moves_only_the_given_control_points_and_renders_the_current_frame_on_the_spline(monkeypatch):
+    """(Global BA, kept in this file.)  Oracle: the spline evaluated by hand at each slot's time;
+    slots past the domain keep the given pose; the current frame is slot K at its own time."""
+    calls = captured_global_ba(monkeypatch)
+    generator = torch.Generator().manual_seed(4)
+    n_ctrl, dt = 8, 0.1
+    rotations = so3_exp(0.3 * torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64))
+    translations = torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64)
+    trajectory = BSplineTrajectory(rotations, translations, dt, 0.0)  # domain [0.2, 0.7)
+    database, current_rays = keyframe_rays(7, 4, 50)  # keyframes at 0.1 .. 0.7 s
+    given = make_pose(so3_exp(0.1 * torch.randn(8, 3, generator=generator, dtype=torch.float64)),
+                      torch.randn(8, 3, generator=generator, dtype=torch.float64))
+    current = global_ba.CurrentFrame(current_rays, 0.45, given[-1])
+    cfg = config.tiny()
+    global_ba.tsslam_global_ba(None, None, database, given[:-1], trajectory, [2, 3], current, cfg.mapping,
+                               cfg.dynamics, RenderLossSettings.from_config(cfg))
+    sources, pose_model = calls.pop()
+    assert pose_model.free_mask.tolist() == [k in (2, 3) for k in range(n_ctrl)]
+    slot_times = np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.45])
+    assert np.allclose(pose_model.slot_times, slot_times)
+    rendered = pose_model.poses()
+    inside = (slot_times >= 0.2 - 1e-12) & (slot_times < 0.7 - 1e-12)
+    for slot, time in enumerate(slot_times):
+        expected = trajectory.poses(np.array([time]))[0] if inside[slot] else given[slot]
+        assert torch.allclose(rendered[slot], expected, atol=1e-12), slot
+    assert sources[1][0].frame_ids.tolist() == [7] * 50
