@@ -370,3 +370,17 @@ def test_tsslam_global_ba_moves_only_the_given_control_points_and_renders_the_cu
         expected = trajectory.poses(np.array([time]))[0] if inside[slot] else given[slot]
         assert torch.allclose(rendered[slot], expected, atol=1e-12), slot
     assert sources[1][0].frame_ids.tolist() == [7] * 50
+
+
+def test_extrapolated_control_point_keeps_the_body_rate_of_a_turned_polygon():
+    """Oracle: points R_k = R_base Exp(k w) with R_base and w about different axes (rotations
+    that do not commute) continue at R_3 = R_base Exp(3 w); a product taken in the wrong order
+    agrees only when every rotation shares one axis."""
+    base = so3_exp(torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64))
+    rate = torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+    k = torch.arange(3, dtype=torch.float64)[:, None]
+    translations = torch.tensor([[0.0, 0.0, 0.0], [0.4, -0.1, 0.2], [0.7, 0.1, 0.5]], dtype=torch.float64)
+    trajectory = BSplineTrajectory(base @ so3_exp(k * rate), translations, 0.2, 0.0)
+    rotation, translation = local_ba.extrapolate_control_point(trajectory)
+    assert torch.allclose(rotation, base @ so3_exp(3 * rate), atol=1e-12)
+    assert torch.allclose(translation, torch.tensor([1.0, 0.3, 0.8], dtype=torch.float64), atol=1e-12)
