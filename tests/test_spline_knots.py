@@ -212,3 +212,43 @@ def test_start_pose_gauge_on_uneven_knots():
     uneven = BSplineTrajectory(rotations, translations, 0.3, float(knot_vector[0]), knots=knot_vector)
     assert np.allclose(uneven.start_weights(), weights, atol=1e-12, rtol=0)
     assert BSplineTrajectory(rotations, translations, 0.3, 0.0).start_weights() is None
+
+
+@pytest.mark.parametrize("layout", ["paper", "basalt", "knots"])
+def test_fit_starts_each_control_point_at_the_pose_of_the_time_it_dominates(layout):
+    """Eq. (11)'s starting guess, on shuffled frames of a line (constant velocity and body rate).
+    Oracle, by hand: the time control point k dominates is t0 + (k + 1) dt (paper), t0 + (k - 1) dt
+    (basalt), (κ_k + κ_{k+1} + κ_{k+2}) / 3 (a knot vector); the line's pose there is the start,
+    and that start already reproduces the line's positions (the uniform spline, or scipy's BSpline on the knots)."""
+    dt, t0, n_ctrl = 0.25, 2.0, 7
+    knot_vector = 1.5 + np.cumsum(np.r_[0.0, 0.3, 0.1, 0.25, 0.2, 0.15, 0.35, 0.3, 0.2]) if layout == "knots" else None
+    if layout == "knots":
+        dominant = (knot_vector[:-2] + knot_vector[1:-1] + knot_vector[2:]) / 3.0
+    else:
+        dominant = t0 + dt * (np.arange(n_ctrl) + (1.0 if layout == "paper" else -1.0))
+    times = np.unique(np.r_[dominant, np.linspace(dominant[0], dominant[-1], 41)])
+    times = times[np.random.default_rng(3).permutation(len(times))]  # the guess must not assume sorted frames
+    base = so3_exp(torch.tensor([0.4, -0.9, 1.7], dtype=F64))
+    rate, velocity = torch.tensor([0.3, -0.5, 0.2], dtype=F64), torch.tensor([1.0, -0.4, 0.25], dtype=F64)
+
+    def line(t):
+        elapsed = torch.as_tensor(t - 2.0)[:, None]
+        return base @ so3_exp(elapsed * rate), 0.5 + elapsed * velocity
+
+    poses = make_pose(*line(times))
+    convention = "paper" if layout == "knots" else layout
+    rotations, translations = spline_fit.initial_control_points_from_poses(times, poses, dt, t0, n_ctrl, convention,
+                                                                           knot_vector)
+    expected_R, expected_P = line(dominant)
+    assert torch.allclose(translations, expected_P, atol=1e-12)
+    assert torch.allclose(rotations, expected_R, atol=1e-12)
+    if layout == "knots":
+        inside = interior_times(knot_vector, 30)
+        padded = np.r_[knot_vector[0] - 1.0, knot_vector, knot_vector[-1] + 1.0]
+        curve = BSpline(padded, translations.numpy(), 3)(inside)
+        assert np.allclose(curve, line(inside)[1].numpy(), atol=1e-12, rtol=0)
+    else:
+        t_min, t_max = spline.valid_time_range(n_ctrl, dt, t0, convention)
+        inside = np.linspace(t_min, t_max, 30)
+        curve = spline.evaluate(rotations, translations, inside, dt, t0, convention).translation
+        assert torch.allclose(curve, line(inside)[1], atol=1e-12)
