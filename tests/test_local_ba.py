@@ -384,3 +384,19 @@ def test_extrapolated_control_point_keeps_the_body_rate_of_a_turned_polygon():
     rotation, translation = local_ba.extrapolate_control_point(trajectory)
     assert torch.allclose(rotation, base @ so3_exp(3 * rate), atol=1e-12)
     assert torch.allclose(translation, torch.tensor([1.0, 0.3, 0.8], dtype=torch.float64), atol=1e-12)
+
+
+def test_curve_approximation_on_uneven_knots_keeps_the_curve_starting_at_frame_0():
+    """The gauge with a short second interval: every later fit re-pins control point 0, and with
+    uneven knots it must use their start weights.  Oracle: frame 0's own (noisy) pose, which the
+    curve evaluates to at the domain start after every interval."""
+    cfg = config.tiny()
+    poses = noisy_truth(0.01, seed=5)
+    trajectory = BSplineTrajectory.empty(float(TIMES[0]), cfg.spline.dt, poses)
+    for n, length in enumerate((0.12, 0.3, 0.15)):
+        trajectory.plan_interval_end(n + 1, trajectory.interval(n)[1] + length)
+        start, end = local_ba.fit_time_range(trajectory, n, cfg.local_ba)
+        inside = np.nonzero((TIMES >= start) & (TIMES < end))[0]
+        trajectory = local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba)
+        assert not trajectory.uniform
+        assert torch.allclose(trajectory.poses(TIMES[:1])[0], poses[0], atol=1e-9), n
