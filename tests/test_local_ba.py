@@ -10,6 +10,7 @@ current frame's slot and ray share), with Co-SLAM's rules worked by hand as the 
 import copy
 
 import numpy as np
+import pytest
 import torch
 
 from tsslam_ref import config, global_ba, knots, local_ba, spline
@@ -400,3 +401,47 @@ def test_curve_approximation_on_uneven_knots_keeps_the_curve_starting_at_frame_0
         trajectory = local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba)
         assert not trajectory.uniform
         assert torch.allclose(trajectory.poses(TIMES[:1])[0], poses[0], atol=1e-9), n
+
+
+def captured_local_ba(monkeypatch):
+    """Replace local BA's optimiser and L_DR by recorders: which control points move, which rays
+    and slot times it renders, and where L_DR is sampled, read off their arguments."""
+    calls = []
+
+    def record_dynamics(poses, time_range, dynamics, generator):
+        return None if time_range is None else ("L_DR over", time_range)  # None: no regulariser
+
+    def record(field_model, map_optimizer, ray_sources, poses, *args, **kwargs):
+        calls.append((ray_sources, poses, kwargs))
+        return BAStats()
+
+    monkeypatch.setattr(local_ba, "dynamics_term", record_dynamics)
+    monkeypatch.setattr(local_ba, "joint_optimization", record)
+    return calls
+
+
+def ten_point_window():
+    """A random 10-point uniform trajectory (dt = 0.1 s, t0 = 0) and tiny settings with M = 4."""
+    generator = torch.Generator().manual_seed(2)
+    trajectory = BSplineTrajectory(so3_exp(0.2 * torch.randn(10, 3, generator=generator, dtype=torch.float64)),
+                                   torch.randn(10, 3, generator=generator, dtype=torch.float64), 0.1, 0.0)
+    cfg = copy.deepcopy(config.tiny())
+    cfg.local_ba.window, cfg.local_ba.joint_iters = 4, 3
+    return trajectory, cfg, RenderLossSettings.from_config(cfg)
+
+
+def test_local_ba_refines_the_window_points_with_dynamics_over_the_window(monkeypatch):
+    """Oracle by hand: 10 points, dt = 0.1 s, t0 = 0, M = 4: points 6..9 free, the map frozen,
+    L_DR over the window's times [t_5, t_9) = [0.5, 0.9) s, none with use_dynamics off."""
+    calls = captured_local_ba(monkeypatch)
+    trajectory, cfg, settings = ten_point_window()
+    _, frame_rays = keyframe_rays(1, 4, 5)
+    for use_dynamics, dynamics in ((True, ("L_DR over", pytest.approx((0.5, 0.9)))), (False, None)):
+        cfg.local_ba.use_dynamics = use_dynamics
+        local_ba.refine_window(None, trajectory, np.array([0.6, 0.8]), [frame_rays, frame_rays], cfg.local_ba,
+                               cfg.dynamics, settings)
+        _, poses, options = calls.pop()
+        assert poses.free_mask.tolist() == [False] * 6 + [True] * 4
+        assert options["extra_loss"] == dynamics, use_dynamics
+        assert options["optimise_map"] is False
+
