@@ -445,3 +445,18 @@ def test_local_ba_refines_the_window_points_with_dynamics_over_the_window(monkey
         assert options["extra_loss"] == dynamics, use_dynamics
         assert options["optimise_map"] is False
 
+
+def test_local_ba_joint_stage_takes_the_keyframes_inside_the_window_range(monkeypatch):
+    """Oracle by hand (the layout above): the window's range is [0.5, 0.9) s, so stage 3 takes the
+    keyframes at 0.5 s (the start, included) and 0.7 s, not 0.4 s nor 0.9 s (the end)."""
+    calls = captured_local_ba(monkeypatch)
+    trajectory, cfg, settings = ten_point_window()
+    keyframes = KeyframeDatabase()
+    for index, time in enumerate((0.4, 0.5, 0.7, 0.9)):
+        keyframes.add(index, time, RayBatch(torch.zeros(2, 3), torch.zeros(2, 3), torch.zeros(2), torch.zeros(2)))
+    cfg.local_ba.use_dynamics = True
+    local_ba.joint_window(None, None, trajectory, keyframes, cfg.local_ba, cfg.dynamics, settings)
+    sources, poses, options = calls.pop()
+    assert np.allclose(poses.slot_times, [0.5, 0.7]) and len(sources[0][0]) == 4
+    assert poses.free_mask.tolist() == [False] * 6 + [True] * 4
+    assert options["extra_loss"] == ("L_DR over", pytest.approx((0.5, 0.9)))
