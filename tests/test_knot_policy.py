@@ -155,3 +155,15 @@ def test_frames_further_apart_than_the_uniform_knot_spacing_are_refused():
         section = other if key == "method" else other.local_ba if key == "use_spline" else other.spline
         setattr(section, key, value)
         knot_schedule.check_frame_spacing(other, times)
+
+
+def test_unevenly_spaced_samples_recover_a_known_acceleration():
+    """interval_scale_samples picks first, middle and last of an even count of frames, so the two
+    steps differ (4 and 5 frame spacings for 10 frames).  For x = a t²/2 the second difference over
+    the mean of the two steps is exact: hand-derived a = 2 m/s² and 4 rad/s², h = sqrt(6 ε / 4)."""
+    times = np.array([0.0, 0.1, 0.35])
+    rotations = Rotation.from_rotvec(np.stack([[0.0, 2.0 * t * t, 0.0] for t in times])).as_matrix()
+    positions = np.stack([[0.0, 0.0, t * t] for t in times])
+    angular, linear = knot_policy.tracked_accelerations(times, rotations, positions)
+    assert angular == pytest.approx(4.0, rel=1e-9) and linear == pytest.approx(2.0, rel=1e-9)
+    assert knot_policy.next_interval(times, rotations, positions, **ARGS) == pytest.approx(np.sqrt(6 * 0.005 / 4.0), rel=1e-9)
