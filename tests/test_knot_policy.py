@@ -167,3 +167,13 @@ def test_unevenly_spaced_samples_recover_a_known_acceleration():
     angular, linear = knot_policy.tracked_accelerations(times, rotations, positions)
     assert angular == pytest.approx(4.0, rel=1e-9) and linear == pytest.approx(2.0, rel=1e-9)
     assert knot_policy.next_interval(times, rotations, positions, **ARGS) == pytest.approx(np.sqrt(6 * 0.005 / 4.0), rel=1e-9)
+
+
+def test_snap_never_ends_an_interval_before_its_first_predicted_frame():
+    """An end within a quarter frame after the last frame (the first interval's end is not snapped):
+    frames at k/30 s, end 0.27 s, last frame before it 8/30 s.  The next predicted frame is 9/30 s,
+    so the earliest knot is 9/30 + 1/120 s; 8/30 + 1/120 = 0.275 s would leave [0.27, 0.275) without a frame."""
+    times = np.arange(10) / 30.0
+    for target in (0.28, 0.3, 0.31):
+        assert knot_policy.snap_after_frame(times, 0.27, target) == pytest.approx(9 / 30 + 0.25 / 30, abs=1e-12)
+    assert knot_policy.snap_after_frame(times, 0.27, 0.36) == pytest.approx(11 / 30 + 0.25 / 30, abs=1e-12)
