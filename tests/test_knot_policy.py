@@ -177,3 +177,17 @@ def test_snap_never_ends_an_interval_before_its_first_predicted_frame():
     for target in (0.28, 0.3, 0.31):
         assert knot_policy.snap_after_frame(times, 0.27, target) == pytest.approx(9 / 30 + 0.25 / 30, abs=1e-12)
     assert knot_policy.snap_after_frame(times, 0.27, 0.36) == pytest.approx(11 / 30 + 0.25 / 30, abs=1e-12)
+
+
+def test_adaptive_frame_spacing_check_uses_the_first_interval_when_it_is_the_shortest():
+    """Adaptive knots start with an interval of spline.dt: with dt = 0.2 s below dt_min = 0.3 s, a
+    0.25 s gap can leave that first interval without a frame, so it is refused naming 0.2 s."""
+    cfg = config.tiny()
+    cfg.method, cfg.spline.knots = "tsslam", "adaptive"
+    cfg.spline.dt, cfg.spline.dt_min, cfg.spline.dt_max = 0.2, 0.3, 0.4
+    times = 1341841873.0 + np.array([0.0, 0.1, 0.35, 0.45])
+    with pytest.raises(ValueError, match=r"frames 1 and 2 .* 0\.250 s apart, more than the shortest adaptive interval, "
+                                         r"min\(spline\.dt, spline\.dt_min\) = 0\.2 s"):
+        knot_schedule.check_frame_spacing(cfg, times)
+    cfg.spline.dt = 0.26
+    knot_schedule.check_frame_spacing(cfg, times)
