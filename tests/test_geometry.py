@@ -155,3 +155,14 @@ def test_pixel_to_ray_is_the_inverse_intrinsic_matrix_for_numpy_and_torch():
     rays = geometry.pixel_to_ray(torch.as_tensor(u), torch.as_tensor(v), fx, fy, cx, cy)
     assert isinstance(rays, torch.Tensor) and rays.shape == (50, 3)
     np.testing.assert_allclose(rays.numpy(), expected, rtol=1e-12, atol=1e-15)
+
+
+def test_orthonormalize_of_a_reflected_matrix_is_the_rotation_not_the_reflection():
+    """M = R diag(1, 1, -0.5) has det < 0: its SVD's U V^T is the reflection R diag(1, 1, -1); the
+    nearest rotation (flip the smallest singular direction back) is R itself, derived by hand."""
+    rotations = torch.as_tensor(Rotation.random(4, random_state=5).as_matrix())
+    reflected = rotations @ torch.diag(torch.tensor([1.0, 1.0, -0.5], dtype=F64))
+    projected = geometry.orthonormalize(reflected)
+    assert torch.allclose(projected, rotations, atol=1e-12)
+    assert torch.allclose(torch.linalg.det(projected), torch.ones(4, dtype=F64), atol=1e-12)
+
