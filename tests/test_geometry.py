@@ -166,3 +166,13 @@ def test_orthonormalize_of_a_reflected_matrix_is_the_rotation_not_the_reflection
     assert torch.allclose(projected, rotations, atol=1e-12)
     assert torch.allclose(torch.linalg.det(projected), torch.ones(4, dtype=F64), atol=1e-12)
 
+
+def test_continuous_quaternions_follow_the_previous_row_through_several_sign_flips():
+    """Rows q0, -q1, q2, -q3 of a smooth motion (written by hand): the result is q0, q1, q2, q3,
+    each row's sign set by the row before it, not only by its own dot product."""
+    angles = np.array([0.1, 0.2, 0.3, 0.4])
+    smooth = np.stack([[np.sin(a / 2), 0.0, 0.0, np.cos(a / 2)] for a in angles])
+    written = smooth * np.array([1.0, -1.0, 1.0, -1.0])[:, None]
+    np.testing.assert_allclose(geometry.continuous_quaternions(written), smooth, atol=1e-15)
+    np.testing.assert_allclose(geometry.continuous_quaternions(-written), -smooth, atol=1e-15)  # the first keeps its sign
+
