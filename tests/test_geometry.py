@@ -176,3 +176,16 @@ def test_continuous_quaternions_follow_the_previous_row_through_several_sign_fli
     np.testing.assert_allclose(geometry.continuous_quaternions(written), smooth, atol=1e-15)
     np.testing.assert_allclose(geometry.continuous_quaternions(-written), -smooth, atol=1e-15)  # the first keeps its sign
 
+
+def test_trajectory_rows_stay_continuous_through_half_turns():
+    """A camera turning about z by θ = 0.5 .. 7 rad while moving: the rows are (t, 0, 0, sin(θ/2),
+    cos(θ/2)) by hand, continuous in θ, although each pose alone would be written with qw >= 0
+    (a jump from q to -q at θ = π and back at 3π)."""
+    angles = np.arange(0.5, 7.0, 0.5)
+    translations = np.stack([angles, -2.0 * angles, np.full_like(angles, 0.5)], axis=1)
+    poses = np.zeros((len(angles), 4, 4))
+    poses[:, :3, :3] = Rotation.from_rotvec(angles[:, None] * np.array([0.0, 0.0, 1.0])).as_matrix()
+    poses[:, :3, 3], poses[:, 3, 3] = translations, 1.0
+    expected = np.concatenate([translations, np.zeros((len(angles), 2)), np.sin(angles / 2)[:, None],
+                               np.cos(angles / 2)[:, None]], axis=1)
+    np.testing.assert_allclose(geometry.trajectory_to_tum(poses), expected, atol=1e-12)
