@@ -111,3 +111,20 @@ def test_mapping_with_gt_poses_reconstructs_the_synthetic_room(synthetic_views):
     ground_truth = cull_mesh(scene.mesh(0.04), all_poses, camera, depths)
     metrics = mesh_metrics(reconstruction, ground_truth, n_points=20_000, threshold=0.05, seed=0)
     assert metrics["accuracy_m"] < 0.08 and metrics["completion_m"] < 0.08
+
+
+def test_frame_pixels_use_each_frames_own_intrinsics():
+    """Frames with different intrinsics (a zoomed and a shifted camera): each ray's direction is
+    ((col - cx) / fx, (row - cy) / fy, 1) with its own frame's values, the pixel read back from the
+    colours (red: column, green: row, blue: frame)."""
+    frames = [_plane_frame(fill=0.1 * k) for k in range(3)]
+    frames[1].intrinsics = (35.0, 31.0, 17.0, 12.0)
+    frames[2].intrinsics = (12.0, 14.0, 22.5, 16.5)
+    rays = FramePixels(frames, "cpu", torch.float64).sample(600, torch.Generator().manual_seed(1))
+    frame = torch.round(rays.rgb[:, 2] / 0.1).long()
+    assert torch.equal(frame, rays.frame_ids) and set(frame.tolist()) == {0, 1, 2}
+    cols, rows = torch.round(rays.rgb[:, 0] * 40), torch.round(rays.rgb[:, 1] * 30)  # float32 colours: exact after rounding
+    fx, fy, cx, cy = torch.tensor([frames[k].intrinsics for k in frame.tolist()], dtype=torch.float64).unbind(-1)
+    expected = torch.stack([(cols - cx) / fx, (rows - cy) / fy, torch.ones_like(cols)], dim=-1)
+    assert torch.allclose(rays.directions_cam, expected, atol=1e-12)
+
