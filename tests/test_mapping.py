@@ -5,12 +5,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from tsslam_ref import config
 from tsslam_ref.eval import cull_mesh, mesh_metrics
 from tsslam_ref.field import SceneField
 from tsslam_ref.losses import RenderLossSettings
-from tsslam_ref.mapping import FramePixels, estimate_bound, fit_map, make_map_optimizer
+from tsslam_ref.mapping import FramePixels, backproject_depth, estimate_bound, fit_map, make_map_optimizer
 from tsslam_ref.mesh import extract_mesh
 from tsslam_ref.render import render_image
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
@@ -127,4 +128,25 @@ def test_frame_pixels_use_each_frames_own_intrinsics():
     fx, fy, cx, cy = torch.tensor([frames[k].intrinsics for k in frame.tolist()], dtype=torch.float64).unbind(-1)
     expected = torch.stack([(cols - cx) / fx, (rows - cy) / fy, torch.ones_like(cols)], dim=-1)
     assert torch.allclose(rays.directions_cam, expected, atol=1e-12)
+
+
+def test_backproject_depth_with_stride_and_a_rotated_moving_camera():
+    """Depth varying per pixel, every second pixel, a camera turned 0.7 rad about (1, 2, 2)/3 and moved:
+    each point is R (z ((c - cx) / fx, (r - cy) / fy, 1)) + t at the full-resolution pixel (r, c),
+    r and c even; a pixel with zero depth gives no point."""
+    frame = _plane_frame()
+    frame.intrinsics = (20.0, 24.0, 19.5, 14.5)
+    rows, cols = np.mgrid[0:30, 0:40]
+    frame.depth = (1.0 + 0.05 * cols + 0.02 * rows).astype(np.float32)
+    frame.depth[4, 6] = 0.0
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(0.7 * np.array([1.0, 2.0, 2.0]) / 3.0).as_matrix()
+    pose[:3, 3] = [0.4, -1.3, 2.2]
+    points = backproject_depth(frame, pose, stride=2)
+    keep = (rows % 2 == 0) & (cols % 2 == 0) & (frame.depth > 0)
+    z = frame.depth[keep].astype(np.float64)
+    camera = np.stack([(cols[keep] - 19.5) / 20.0 * z, (rows[keep] - 14.5) / 24.0 * z, z], axis=1)
+    expected = np.einsum("ij,nj->ni", pose[:3, :3], camera) + pose[:3, 3]
+    assert points.shape == (15 * 20 - 1, 3)
+    np.testing.assert_allclose(points, expected, atol=1e-6)
 
