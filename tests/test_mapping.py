@@ -150,3 +150,16 @@ def test_backproject_depth_with_stride_and_a_rotated_moving_camera():
     assert points.shape == (15 * 20 - 1, 3)
     np.testing.assert_allclose(points, expected, atol=1e-6)
 
+
+def test_estimate_bound_ignores_flying_pixels_and_depth_at_the_limit():
+    """Two flying pixels at 50 m (under 0.5 % of 1200) leave the 0.5/99.5 percentile box of the
+    2 m plane unchanged: x +-1.95, y +-1.45, z 0..2 (hand-derived, camera centre included); depth
+    exactly at max_depth is ignored."""
+    frame = _plane_frame(depth_value=2.0)
+    frame.depth[20, 25] = frame.depth[3, 5] = 50.0  # x, y = +13.75 and -36.25, -28.75 at 50 m
+    bound = estimate_bound([frame], np.eye(4)[None], margin=0.1, stride=1)
+    expected = np.array([[-1.95, 1.95], [-1.45, 1.45], [0.0, 2.0]]) + np.array([-0.1, 0.1])
+    np.testing.assert_allclose(bound, expected, atol=1e-6)
+    frame.depth[:, 20:] = 5.0
+    limited = estimate_bound([frame], np.eye(4)[None], 0.1, 0.0, 1, max_depth=5.0)
+    assert limited[2, 1] == pytest.approx(2.1) and limited[0, 1] == pytest.approx(0.1)  # the 5 m half is gone
