@@ -1,5 +1,6 @@
 """checkpoint.py: plain data only (a planted pickle never runs), exact round trip, clear refusals."""
 
+import copy
 import os
 import pickle
 
@@ -37,7 +38,8 @@ def cheap_config(method: str) -> config.Config:
 
 
 @pytest.fixture(scope="module")
-def state(tmp_path_factory):
+def recorded(tmp_path_factory):
+    """(state rebuilt by checkpoint.from_plain, values read straight from the running loop's state)."""
     folder = tmp_path_factory.mktemp("synthetic") / "room"
     synthetic.synthesize(folder, n_frames=6, width=48, height=36, fps=30.0, seed=0, clean_depth=True, mesh_voxel=0.2)
     sequence = data.load_sequence(folder)
@@ -45,10 +47,24 @@ def state(tmp_path_factory):
 
     def keep(current):
         if current.done == 5:  # after a spline interval: spline, frame rays, keyframes all filled
-            kept["state"] = checkpoint.from_plain(checkpoint.to_plain(current))
+            # deep copy: to_plain shares tensors (frame_poses) that the loop keeps writing into
+            kept["state"] = checkpoint.from_plain(copy.deepcopy(checkpoint.to_plain(current)))
+            kept["live"] = {  # the oracle: copied from the loop's own objects, not through checkpoint.py
+                "done": current.done, "intervals_done": current.intervals_done,
+                "generator_state": current.generator.get_state().clone(),
+                "frame_poses": current.frame_poses.detach().clone(), "timestamps": np.array(current.timestamps),
+                "log": [dict(entry) for entry in current.log], "seconds": dict(current.timings.seconds),
+                "keyframe_indices": list(current.keyframes.frame_indices),
+                "tracked_frames": sorted(current.tracking_output), "window_frames": sorted(current.window_rays),
+                "control_translations": current.trajectory.control_translations.detach().clone()}
 
     slam.run_slam(sequence, cheap_config("tsslam"), device=torch.device("cpu"), on_frame=keep)
-    return kept["state"]
+    return kept["state"], kept["live"]
+
+
+@pytest.fixture(scope="module")
+def state(recorded):
+    return recorded[0]
 
 
 def _flat(value, prefix=""):
@@ -175,3 +191,23 @@ def test_entries_that_disagree_with_the_frame_count_are_refused_naming_the_entry
             checkpoint.load(tmp_path / f"{name}.pt")
     checkpoint.save(state, tmp_path / "good.pt")
     assert checkpoint.load(tmp_path / "good.pt").done == done  # the real state passes every check
+
+
+def test_a_loaded_checkpoint_holds_the_running_loops_values(recorded, tmp_path):
+    """The round-trip test above compares two states that both went through from_plain, so a value
+    from_plain forgets (reset to its default) is forgotten on both sides; here the oracle is the
+    running loop's own state, copied when the checkpoint was taken."""
+    state, live = recorded
+    assert live["intervals_done"] >= 1 and live["log"] and live["done"] == 5  # a run with something to restore
+    checkpoint.save(state, tmp_path / "checkpoint.pt")
+    back = checkpoint.load(tmp_path / "checkpoint.pt")
+    assert back.done == live["done"] and back.intervals_done == live["intervals_done"]
+    assert torch.equal(back.generator.get_state(), live["generator_state"])
+    assert not torch.equal(torch.Generator().get_state(), live["generator_state"])  # a fresh generator differs
+    assert torch.equal(back.frame_poses, live["frame_poses"]) and np.array_equal(back.timestamps, live["timestamps"])
+    assert back.log == live["log"] and back.timings.seconds == live["seconds"]
+    assert list(back.keyframes.frame_indices) == live["keyframe_indices"]
+    assert sorted(back.tracking_output) == live["tracked_frames"] and sorted(back.window_rays) == live["window_frames"]
+    assert torch.equal(back.trajectory.control_translations, live["control_translations"])
+
+
