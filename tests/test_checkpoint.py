@@ -219,3 +219,16 @@ def test_a_checkpoint_after_the_last_frame_loads(state, tmp_path):
     torch.save(plain, tmp_path / "finished.pt")
     assert checkpoint.load(tmp_path / "finished.pt").done == len(plain["timestamps"])
 
+
+def test_knot_times_that_start_before_knot_zero_survive_a_checkpoint(state, tmp_path):
+    """Knot times stored from before knot 0 (knot_offset -1, as a curve fit from poses stores them)
+    come back as written (hand-chosen times)."""
+    spline = state.trajectory
+    knots = spline.t0 + np.array([-0.07, 0.0, 0.09, 0.21, 0.3, 0.42, 0.5, 0.61, 0.73, 0.8])[: spline.n_ctrl + 3]
+    uneven = type(spline)(spline.control_rotations, spline.control_translations, spline.dt, spline.t0,
+                          spline.convention, spline.start_pose, knots=knots, knot_offset=-1)
+    with_knots = checkpoint.from_plain(checkpoint.to_plain(state))
+    with_knots.trajectory = uneven
+    checkpoint.save(with_knots, tmp_path / "knots.pt")
+    timing = checkpoint.load(tmp_path / "knots.pt").trajectory.timing()
+    assert timing["knot_offset"] == -1 and np.array_equal(timing["knots"], knots)
