@@ -191,3 +191,11 @@ def test_adaptive_frame_spacing_check_uses_the_first_interval_when_it_is_the_sho
         knot_schedule.check_frame_spacing(cfg, times)
     cfg.spline.dt = 0.26
     knot_schedule.check_frame_spacing(cfg, times)
+
+
+def test_snap_uses_the_median_frame_spacing_across_a_dropped_frame():
+    """Frames at k/30 s with frame 5 dropped: the spacing is still 1/30 s (median; the mean would be
+    0.0375 s), so the knot nearest 0.4 s after an end at 0.3 s is 8/30 + 4.25/30 s, by hand."""
+    times = np.delete(np.arange(10) / 30.0, 5)
+    assert knot_policy.snap_after_frame(times, 0.3, 0.4) == pytest.approx(8 / 30 + 4.25 / 30, abs=1e-12)
+
