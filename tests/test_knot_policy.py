@@ -199,3 +199,12 @@ def test_snap_uses_the_median_frame_spacing_across_a_dropped_frame():
     times = np.delete(np.arange(10) / 30.0, 5)
     assert knot_policy.snap_after_frame(times, 0.3, 0.4) == pytest.approx(8 / 30 + 4.25 / 30, abs=1e-12)
 
+
+def test_frame_spacing_check_finds_a_gap_after_the_first_frame():
+    """The largest gap can be the very first one (a slow start): frames 0 and 1, 0.4 s apart, are
+    refused with spline.dt = 0.3 s."""
+    cfg = config.tiny()
+    cfg.method, cfg.spline.dt = "tsslam", 0.3
+    times = 1341841873.0 + np.array([0.0, 0.4, 0.5, 0.6, 0.7])
+    with pytest.raises(ValueError, match=r"frames 0 and 1 .* 0\.400 s apart, more than spline\.dt = 0\.3 s"):
+        knot_schedule.check_frame_spacing(cfg, times)
