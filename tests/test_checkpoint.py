@@ -56,7 +56,8 @@ def recorded(tmp_path_factory):
                 "log": [dict(entry) for entry in current.log], "seconds": dict(current.timings.seconds),
                 "keyframe_indices": list(current.keyframes.frame_indices),
                 "tracked_frames": sorted(current.tracking_output), "window_frames": sorted(current.window_rays),
-                "control_translations": current.trajectory.control_translations.detach().clone()}
+                "control_translations": current.trajectory.control_translations.detach().clone(),
+                "optimizer_state": copy.deepcopy(current.map_optimizer.state_dict()["state"])}
 
     slam.run_slam(sequence, cheap_config("tsslam"), device=torch.device("cpu"), on_frame=keep)
     return kept["state"], kept["live"]
@@ -232,3 +233,17 @@ def test_knot_times_that_start_before_knot_zero_survive_a_checkpoint(state, tmp_
     checkpoint.save(with_knots, tmp_path / "knots.pt")
     timing = checkpoint.load(tmp_path / "knots.pt").trajectory.timing()
     assert timing["knot_offset"] == -1 and np.array_equal(timing["knots"], knots)
+
+
+def test_a_loaded_checkpoint_keeps_the_map_optimizers_moments(recorded, tmp_path):
+    """Co-SLAM keeps one Adam for the whole run: a resumed run must continue with its step counts and
+    moment estimates, copied from the running loop's optimizer (a fresh Adam has none)."""
+    state, live = recorded
+    assert live["optimizer_state"]  # the map was optimised before the checkpoint
+    checkpoint.save(state, tmp_path / "checkpoint.pt")
+    restored = checkpoint.load(tmp_path / "checkpoint.pt").map_optimizer.state_dict()["state"]
+    assert restored.keys() == live["optimizer_state"].keys()
+    for index, values in live["optimizer_state"].items():
+        assert restored[index].keys() == values.keys()
+        for name, value in values.items():
+            assert torch.equal(torch.as_tensor(restored[index][name]), torch.as_tensor(value)), (index, name)
