@@ -1,7 +1,10 @@
 """Knot policy: interval lengths from tracked motion, checked against hand-derived expectations."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from tsslam_ref import config, knot_policy, knot_schedule
@@ -208,3 +211,28 @@ def test_frame_spacing_check_finds_a_gap_after_the_first_frame():
     times = 1341841873.0 + np.array([0.0, 0.4, 0.5, 0.6, 0.7])
     with pytest.raises(ValueError, match=r"frames 0 and 1 .* 0\.400 s apart, more than spline\.dt = 0\.3 s"):
         knot_schedule.check_frame_spacing(cfg, times)
+
+
+
+def test_plan_next_interval_reads_the_stored_poses_of_the_last_two_intervals():
+    """The loop's planning step on a hand-made state: frames at k/30 s, intervals 0 = [0, 0.3) and
+    1 = [0.3, 0.6), frame 18 (t = 0.6 s) completes interval 1; the camera rests, then moves as
+    x = (t - 0.3)².  By hand, from frames 0, 8, 17 (first, middle, last of both intervals):
+    x = 0, 0, (8/30)², a = ((8/30)² / (9/30)) / (17/60) = 0.8366 m/s², h = sqrt(6 · 0.004 / a) = 0.1694 s;
+    the target 0.7694 s snaps to 17/30 + 1.25/30 + 5/30 = 23.25/30 s.  Reading interval 1 alone
+    (a = 2: 21.25/30 s) or dropping frame 0 (a = 1: 22.25/30 s) gives another knot."""
+    cfg = config.tiny()
+    cfg.spline.dt_min, cfg.spline.dt_max, cfg.spline.position_tolerance = 0.1, 0.4, 0.004
+    times = np.arange(30) / 30.0
+    poses = torch.eye(4, dtype=torch.float64).repeat(30, 1, 1)
+    poses[:, 0, 3] = torch.as_tensor(np.maximum(times - 0.3, 0.0) ** 2)
+    poses[19:, :3, 3] = 50.0  # frames after frame 18 are not tracked yet: they must not be read
+    planned = []
+    ends = [0.0, 0.3, 0.6]
+    trajectory = SimpleNamespace(interval=lambda n: (ends[n], ends[n + 1]),
+                                 plan_interval_end=lambda n, end, assumed_spacing: planned.append((n, end, assumed_spacing)))
+    state = SimpleNamespace(cfg=cfg, trajectory=trajectory, timestamps=times, frame_poses=poses)
+    knot_schedule.plan_next_interval(state, 18, 1)
+    assert len(planned) == 1 and planned[0][0] == 2
+    assert planned[0][1] == pytest.approx(23.25 / 30, abs=1e-9)
+    assert planned[0][2] == pytest.approx(23.25 / 30 - 0.6, abs=1e-9)
