@@ -1,11 +1,11 @@
 """Tracking alone against a map fitted with ground-truth poses: what the tracker itself resolves.
 
-The numbers behind docs/system.md, "Most of teddy's ATE is scale".  A SLAM run mixes two error
-sources, the map built from estimated poses and the tracker's own convergence.  This script takes
-the first out: on the bundled TUM teddy slice (or ``--data``) it fits the map to every
-``--map-every``-th frame of the first ``--frames`` frames at their ground-truth poses
-(``--map-iters`` iterations of ``--map-rays`` rays), freezes it, and tracks every frame with the
-package's ``tracking.track_frame``, twice:
+The numbers behind docs/system.md, "Tracking alone, against a map fitted at the true poses".  A
+SLAM run mixes two error sources, the map built from estimated poses and the tracker's own
+convergence.  This script takes the first out: on the bundled TUM teddy slice (or ``--data``) it
+fits the map to every ``--map-every``-th frame of the first ``--frames`` frames at their
+ground-truth poses (``--map-iters`` iterations of ``--map-rays`` rays), freezes it, and tracks every
+frame with the package's ``tracking.track_frame``, twice:
 
 * **from the ground truth**: each frame starts at its true pose, so what remains is where the
   tracking loss's minimum (as Adam finds it in the preset's iterations) lies;
