@@ -67,16 +67,23 @@ def track_all(state, cfg: config.Config, frames: List, ground_truth: torch.Tenso
             "seconds": float(np.median(seconds))}
 
 
-def scores(sequence, ground_truth: np.ndarray, poses: np.ndarray) -> str:
-    """One table row's figures: ATE, RPE, Sim(3) scale and the mean along-path error."""
+def scores(sequence, ground_truth: np.ndarray, poses: np.ndarray) -> Dict[str, float]:
+    """One table row's figures for (N, 4, 4) poses against the (N, 4, 4) ground truth: ATE and RPE
+    (cm, degrees), the Sim(3) scale and the mean error along the direction travelled since frame 0 (cm)."""
     times = sequence.timestamps[: len(poses)]
     rigid = evaluate_trajectory(times, ground_truth, times, poses)
     similar = evaluate_trajectory(times, ground_truth, times, poses, with_scale=True)
     travelled = ground_truth[1:, :3, 3] - ground_truth[:1, :3, 3]
     error = poses[1:, :3, 3] - ground_truth[1:, :3, 3]
     along = np.sum(travelled * error, axis=1) / np.maximum(np.linalg.norm(travelled, axis=1), 1e-9)
-    return (f"{100 * rigid['ate_rmse_m']:6.2f} | {100 * rigid['rpe_trans_rmse_m']:6.2f} | "
-            f"{rigid['rpe_rot_rmse_deg']:6.3f} | {similar['scale']:6.4f} | {100 * along.mean():+6.2f}")
+    return {"ate_cm": 100 * rigid["ate_rmse_m"], "rpe_cm": 100 * rigid["rpe_trans_rmse_m"],
+            "rpe_deg": rigid["rpe_rot_rmse_deg"], "scale": similar["scale"], "along_cm": 100 * float(along.mean())}
+
+
+def table_cells(figures: Dict[str, float]) -> str:
+    """:func:`scores` as the table's cells."""
+    return (f"{figures['ate_cm']:6.2f} | {figures['rpe_cm']:6.2f} | {figures['rpe_deg']:6.3f} | "
+            f"{figures['scale']:6.4f} | {figures['along_cm']:+6.2f}")
 
 
 def main() -> None:
@@ -117,7 +124,7 @@ def main() -> None:
         for start_name in ("ground truth", "constant velocity"):
             poses = tracked[start_name].detach().double().numpy()
             shown = f"{1000 * tracked['seconds']:.0f}" if start_name == "constant velocity" else ""
-            print(f"| {name} | {start_name} | {scores(sequence, truth, poses)} | {shown} |", flush=True)
+            print(f"| {name} | {start_name} | {table_cells(scores(sequence, truth, poses))} | {shown} |", flush=True)
 
 
 if __name__ == "__main__":

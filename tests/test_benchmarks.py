@@ -208,14 +208,13 @@ def test_tracking_floor_scores_a_shortened_path_by_its_scale_and_lag():
     truth[:, :3, 3] = np.outer(times, [0.6, -0.2, 0.1]) + np.outer(np.sin(4 * times), [0.0, 0.1, 0.05])
     sequence = SimpleNamespace(timestamps=times)
 
-    def figures(poses):
-        return [float(value) for value in tracking_floor.scores(sequence, truth, poses).split("|")]
-
-    ate, rpe_cm, rpe_deg, scale, along = figures(truth)
-    assert ate < 1e-9 and rpe_cm < 1e-9 and rpe_deg < 1e-9 and abs(scale - 1.0) < 1e-9 and abs(along) < 1e-9
+    exact = tracking_floor.scores(sequence, truth, truth)
+    assert max(exact["ate_cm"], exact["rpe_cm"], exact["rpe_deg"], abs(exact["along_cm"])) < 1e-9
+    assert abs(exact["scale"] - 1.0) < 1e-9
     short = truth.copy()
     short[:, :3, 3] = truth[0, :3, 3] + (truth[:, :3, 3] - truth[0, :3, 3]) / 1.25
-    ate, _, _, scale, along = figures(short)
+    shortened = tracking_floor.scores(sequence, truth, short)
     travelled = np.linalg.norm(truth[1:, :3, 3] - truth[0, :3, 3], axis=1)
-    assert abs(scale - 1.25) < 1e-6 and ate > 0.5
-    assert abs(along - 100 * -(1 - 1 / 1.25) * travelled.mean()) <= 0.005 + 1e-9  # cm, printed to 0.01
+    assert abs(shortened["scale"] - 1.25) < 1e-6 and shortened["ate_cm"] > 0.5
+    assert abs(shortened["along_cm"] - 100 * -(1 - 1 / 1.25) * travelled.mean()) < 1e-9
+    assert tracking_floor.table_cells(shortened).count("|") == 4  # five cells of the printed row

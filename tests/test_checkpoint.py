@@ -212,7 +212,6 @@ def test_a_loaded_checkpoint_holds_the_running_loops_values(recorded, tmp_path):
     assert torch.equal(back.trajectory.control_translations, live["control_translations"])
 
 
-
 def test_a_checkpoint_after_the_last_frame_loads(state, tmp_path):
     """A checkpoint taken after the last frame (done = number of frames) is valid."""
     plain = checkpoint.to_plain(state)

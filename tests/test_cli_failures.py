@@ -630,14 +630,20 @@ def test_depth_mostly_beyond_the_map_range_is_warned_about_before_the_run(tmp_pa
     assert not (tmp_path / "out").exists()
 
 
-def test_resume_with_a_frame_removed_names_where_the_frames_differ(runs, tmp_path):
-    """The same folder (its frame list edited in place: a copy of the folder would be another
-    folder, refused as such) with the third frame gone."""
+def _interrupted_beside_its_data(runs, tmp_path) -> None:
+    """tmp_path/room (a copy of the synthetic sequence) and tmp_path/stopped, a run of it stopped by
+    Ctrl-C after frame 4 (exit 130), made from tmp_path with the relative --data room."""
     shutil.copytree(runs["root"] / "room", tmp_path / "room")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     stopped = subprocess.run([sys.executable, "-c", INTERRUPT_AFTER_FRAME_4, "--data", "room", "--out", "stopped",
                               *CHEAP], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert stopped.returncode == 130, stopped.stderr
+
+
+def test_resume_with_a_frame_removed_names_where_the_frames_differ(runs, tmp_path):
+    """The same folder (its frame list edited in place: a copy of the folder would be another
+    folder, refused as such) with the third frame gone."""
+    _interrupted_beside_its_data(runs, tmp_path)
     lines = (tmp_path / "room" / "rgb.txt").read_text().splitlines()
     data_lines = [i for i, line in enumerate(lines) if line and not line.startswith("#")]
     del lines[data_lines[2]]  # the third frame
@@ -698,11 +704,7 @@ def test_resume_in_another_environment_warns_and_metrics_record_both(runs, tmp_p
     device.compute_environment reports."""
     from tsslam_ref import device as device_module
 
-    shutil.copytree(runs["root"] / "room", tmp_path / "room")
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    stopped = subprocess.run([sys.executable, "-c", INTERRUPT_AFTER_FRAME_4, "--data", "room", "--out", "stopped",
-                              *CHEAP], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
-    assert stopped.returncode == 130, stopped.stderr
+    _interrupted_beside_its_data(runs, tmp_path)
     started_in = checkpoint.read(tmp_path / "stopped" / "checkpoint.pt")["environment"]
     assert started_in["torch"] == torch.__version__ and started_in["map_kernels"]["hash_grid"] in ("compiled", "pytorch")
     real = device_module.compute_environment

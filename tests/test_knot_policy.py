@@ -213,7 +213,6 @@ def test_frame_spacing_check_finds_a_gap_after_the_first_frame():
         knot_schedule.check_frame_spacing(cfg, times)
 
 
-
 def test_plan_next_interval_reads_the_stored_poses_of_the_last_two_intervals():
     """The loop's planning step on a hand-made state: frames at k/30 s, intervals 0 = [0, 0.3) and
     1 = [0.3, 0.6), frame 18 (t = 0.6 s) completes interval 1; the camera rests, then moves as

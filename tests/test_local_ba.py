@@ -286,16 +286,17 @@ def test_curve_approximation_reports_the_levenberg_marquardt_iterations_it_ran(m
     assert report["iterations"] == 0
 
 
-def captured_global_ba(monkeypatch):
-    """Replace global_ba's optimiser by a recorder: global BA's choices (which poses move, which
-    rays feed which slot) are then read off its arguments without running a field."""
+def captured_optimiser(monkeypatch, module):
+    """Replace ``module``'s optimiser (``joint_optimization``) by a recorder: the stage's choices
+    (which poses move, which rays feed which slot, its options) are then read off the
+    (ray_sources, poses, keyword options) it was handed, without running a field."""
     calls = []
 
     def record(field_model, map_optimizer, ray_sources, poses, *args, **kwargs):
-        calls.append((ray_sources, poses))
+        calls.append((ray_sources, poses, kwargs))
         return BAStats()
 
-    monkeypatch.setattr(global_ba, "joint_optimization", record)
+    monkeypatch.setattr(module, "joint_optimization", record)
     return calls
 
 
@@ -318,7 +319,7 @@ def test_global_ba_frees_every_keyframe_but_the_first_and_gives_the_current_fram
     """(Global BA, kept in this file.)  Oracle: Co-SLAM's rules worked by hand for n_rays = 100,
     min_pixels_cur = 10: keyframe 0 fixed, the others free, the current frame (slot K) free iff
     optim_cur; its rays drawn as slot K, max(100 // K, 10) of them, at most those it has."""
-    calls = captured_global_ba(monkeypatch)
+    calls = captured_optimiser(monkeypatch, global_ba)
     mapping = copy.deepcopy(config.tiny().mapping)
     mapping.n_rays, mapping.min_pixels_cur = 100, 10
     settings = RenderLossSettings.from_config(config.tiny())
@@ -335,7 +336,7 @@ def test_global_ba_frees_every_keyframe_but_the_first_and_gives_the_current_fram
                           torch.randn(n_keyframes + 1, 3, generator=generator))
         current = global_ba.CurrentFrame(current_rays, 0.1 * (n_keyframes + 1), poses[-1])
         global_ba.coslam_global_ba(None, None, database, poses[:-1], current, mapping, settings)
-        sources, pose_model = calls.pop()
+        sources, pose_model, _ = calls.pop()
         assert pose_model.fixed.tolist() == fixed, (n_keyframes, optim_cur)
         assert torch.allclose(pose_model.poses(), poses, atol=1e-6)  # the given poses, slot by slot
         (keyframe_pool, keyframe_draw), (current_pool, current_draw) = sources
@@ -346,9 +347,11 @@ def test_global_ba_frees_every_keyframe_but_the_first_and_gives_the_current_fram
 
 
 def test_tsslam_global_ba_moves_only_the_given_control_points_and_renders_the_current_frame_on_the_spline(monkeypatch):
-    """(Global BA, kept in this file.)  Oracle: the spline evaluated by hand at each slot's time;
-    slots past the domain keep the given pose; the current frame is slot K at its own time."""
-    calls = captured_global_ba(monkeypatch)
+    """(Global BA, kept in this file.)  Oracle: the trajectory's own pose at each slot's time (the
+    spline itself is checked in tests/test_spline.py), with the slot times, the domain [0.2, 0.7)
+    and the free points worked by hand; slots outside the domain keep the given pose; the current
+    frame is slot K at its own time."""
+    calls = captured_optimiser(monkeypatch, global_ba)
     generator = torch.Generator().manual_seed(4)
     n_ctrl, dt = 8, 0.1
     rotations = so3_exp(0.3 * torch.randn(n_ctrl, 3, generator=generator, dtype=torch.float64))
@@ -361,7 +364,7 @@ def test_tsslam_global_ba_moves_only_the_given_control_points_and_renders_the_cu
     cfg = config.tiny()
     global_ba.tsslam_global_ba(None, None, database, given[:-1], trajectory, [2, 3], current, cfg.mapping,
                                cfg.dynamics, RenderLossSettings.from_config(cfg))
-    sources, pose_model = calls.pop()
+    sources, pose_model, _ = calls.pop()
     assert pose_model.free_mask.tolist() == [k in (2, 3) for k in range(n_ctrl)]
     slot_times = np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.45])
     assert np.allclose(pose_model.slot_times, slot_times)
@@ -404,20 +407,13 @@ def test_curve_approximation_on_uneven_knots_keeps_the_curve_starting_at_frame_0
 
 
 def captured_local_ba(monkeypatch):
-    """Replace local BA's optimiser and L_DR by recorders: which control points move, which rays
-    and slot times it renders, and where L_DR is sampled, read off their arguments."""
-    calls = []
+    """:func:`captured_optimiser` of local BA, with L_DR replaced by a recorder of where it is sampled."""
 
     def record_dynamics(poses, time_range, dynamics, generator):
         return None if time_range is None else ("L_DR over", time_range)  # None: no regulariser
 
-    def record(field_model, map_optimizer, ray_sources, poses, *args, **kwargs):
-        calls.append((ray_sources, poses, kwargs))
-        return BAStats()
-
     monkeypatch.setattr(local_ba, "dynamics_term", record_dynamics)
-    monkeypatch.setattr(local_ba, "joint_optimization", record)
-    return calls
+    return captured_optimiser(monkeypatch, local_ba)
 
 
 def ten_point_window():
