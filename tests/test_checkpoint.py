@@ -47,8 +47,8 @@ def recorded(tmp_path_factory):
 
     def keep(current):
         if current.done == 5:  # after a spline interval: spline, frame rays, keyframes all filled
-            # deep copy: to_plain shares tensors (frame_poses) that the loop keeps writing into
-            kept["state"] = checkpoint.from_plain(copy.deepcopy(checkpoint.to_plain(current)))
+            # no copy here: to_plain must not share the tensors the loop keeps writing into
+            kept["state"] = checkpoint.from_plain(checkpoint.to_plain(current))
             kept["live"] = {  # the oracle: copied from the loop's own objects, not through checkpoint.py
                 "done": current.done, "intervals_done": current.intervals_done,
                 "generator_state": current.generator.get_state().clone(),

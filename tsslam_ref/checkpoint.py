@@ -42,8 +42,26 @@ def _rays_from_plain(values: Dict[str, torch.Tensor]):
     return RayBatch(values["directions_cam"], values["rgb"], values["depth"], values["frame_ids"])
 
 
+def _snapshot(value):
+    """``value`` with every tensor in its nested dicts / lists replaced by a detached copy."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().clone()
+    if isinstance(value, dict):
+        return {key: _snapshot(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_snapshot(item) for item in value]
+    return value
+
+
 def to_plain(state) -> Dict[str, Any]:
-    """The state of ``slam.SLAMState`` as nested dicts / lists of tensors, numbers and strings."""
+    """The state of ``slam.SLAMState`` as nested dicts / lists of tensors, numbers and strings: a
+    snapshot that shares no tensor with the running state (the loop keeps writing into its poses,
+    spline and map optimizer's moments), so a state rebuilt by :func:`from_plain` is independent."""
+    return _snapshot(_plain_view(state))
+
+
+def _plain_view(state) -> Dict[str, Any]:
+    """:func:`to_plain`'s dict before the copy: its tensors are the running state's own."""
     trajectory = None
     if state.trajectory is not None:
         spline = state.trajectory
