@@ -139,3 +139,20 @@ def test_se3_a_and_omegadot_are_time_derivatives_at_a_short_knot_spacing():
     minus = se3_spline.evaluate(R, P, t - h, dt, t0, derivatives=1).velocity_world
     fd = (plus - minus) / (2 * h)
     assert float((joint.acceleration_world - fd).abs().max()) <= 1e-7 * float(fd.abs().max())
+
+
+def test_se3_v_and_omega_are_time_derivatives_at_a_short_knot_spacing():
+    """derivatives=1 at Δt = 0.05 s (d/dt = 20 d/du), large rotations.  Oracle: central differences
+    (h = 1e-5 Δt) of the pose, v = (p(t+h) − p(t−h))/2h and ω_body = Log(R(t−h)ᵀ R(t+h))/2h, to 1e-7."""
+    g = torch.Generator().manual_seed(6)
+    n, dt, t0 = 7, 0.05, 10.0
+    R = so3_exp(torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.7)
+    P = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    t = t0 + dt * (2 + np.add.outer(np.arange(n - 3), [0.13, 0.5, 0.87]).reshape(-1))  # off the knots
+    sample = se3_spline.evaluate(R, P, t, dt, t0, derivatives=1)
+    h = 1e-5 * dt
+    plus, minus = se3_spline.evaluate(R, P, t + h, dt, t0), se3_spline.evaluate(R, P, t - h, dt, t0)
+    v = (plus.translation - minus.translation) / (2 * h)
+    omega = so3_log(minus.rotation.transpose(-1, -2) @ plus.rotation) / (2 * h)
+    assert float((sample.velocity_world - v).abs().max()) <= 1e-7 * float(v.abs().max())
+    assert float((sample.omega_body - omega).abs().max()) <= 1e-7 * float(omega.abs().max())
