@@ -317,6 +317,33 @@ def test_fast_encoding_gradcheck_on_tiny_grid():
     assert torch.autograd.gradcheck(grid._encode_fast, (x,))
 
 
+
+def _level0_feature_on_every_path(grid: HashGridEncoding, point) -> dict:
+    """Level 0, feature 0 of one point on each encoding path, with table row r holding the value r."""
+    with torch.no_grad():
+        grid.table[:] = torch.arange(grid.table.shape[0], dtype=grid.table.dtype).unsqueeze(1)
+    values = {}
+    for path in ("compiled", "torch", "reference"):
+        if path == "compiled" and not hash_kernel.available():
+            continue  # covered by the compiled-kernel tests, which say why they skip
+        _use_path(grid, path)
+        values[path] = float(grid(torch.tensor([point], dtype=torch.float64))[0, 0].detach())
+    return values
+
+
+def test_dense_index_one_past_the_level_wraps_to_its_first_row():
+    """A dense level with R^3 = size (R = 4, 64 rows): the point (-1/3, -1/3, 1) sits at position
+    (-0.5, -0.5, 3.5), the middle of the cell with corners i, j in {-1, 0}, k in {3, 4}, so each
+    corner weighs 1/8.  Hand-worked rows i + 4j + 16k mod 64: 43, 44, 47, 48, 59, 60, 63 and
+    64 mod 64 = 0 (not row 64, the hashed level's first row); mean 364 / 8 = 45.5.  The point is
+    the batch's only one, so the fast path takes its no-wrap branch, whose test must send an
+    index equal to the level's size to the wrap."""
+    grid = HashGridEncoding(8, n_levels=2, base_resolution=4, log2_hashmap_size=6).double()
+    assert grid.level_resolutions[0] == 4 and grid.level_sizes[0] == 64 and grid.level_dense == [True, False]
+    for path, value in _level0_feature_on_every_path(grid, (-1 / 3, -1 / 3, 1.0)).items():
+        assert value == pytest.approx(45.5, abs=1e-9), path
+
+
 # ---------------------------------------------------------------- the field
 
 
