@@ -344,6 +344,20 @@ def test_dense_index_one_past_the_level_wraps_to_its_first_row():
         assert value == pytest.approx(45.5, abs=1e-9), path
 
 
+def test_dense_index_outside_the_box_wraps_as_tcnn_uint32():
+    """tcnn computes a dense index in uint32: a negative i + R j + R^2 k becomes 2^32 + n before
+    mod size.  R = 6, size 216 (which does not divide 2^32, so this differs from n mod 216):
+    the point (-0.2, -0.2, -0.2) sits at position -0.5 on every axis, corners i, j, k in
+    {-1, 0}, each weighing 1/8; rows (n mod 2^32) mod 216 for n in {0, -1, -6, -7, -36, -37,
+    -42, -43} are 0, 183, 178, 177, 148, 147, 142, 141 (2^32 mod 216 = 184); mean 1116 / 8."""
+    grid = HashGridEncoding(12, n_levels=2, base_resolution=6, log2_hashmap_size=8).double()
+    assert grid.level_resolutions[0] == 6 and grid.level_sizes[0] == 216 and grid.level_dense == [True, False]
+    rows = [(i + 6 * j + 36 * k) % 2**32 % 216 for i in (-1, 0) for j in (-1, 0) for k in (-1, 0)]
+    assert sorted(rows) == [0, 141, 142, 147, 148, 177, 178, 183]
+    for path, value in _level0_feature_on_every_path(grid, (-0.2, -0.2, -0.2)).items():
+        assert value == pytest.approx(1116 / 8, abs=1e-9), path
+
+
 # ---------------------------------------------------------------- the field
 
 
