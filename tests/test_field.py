@@ -496,6 +496,18 @@ def test_environment_switch_turns_the_kernel_off(monkeypatch):
     assert "TSSLAM_NO_COMPILED_KERNEL" in hash_kernel.load_error()
 
 
+def test_environment_switch_set_to_zero_keeps_the_kernel(monkeypatch):
+    """Only a value other than "" and "0" turns the kernel off: TSSLAM_NO_COMPILED_KERNEL=0 reads
+    as "no" (a shell flag), so the loader goes on to build or load the kernel (a stand-in here,
+    which records the call: loading the real library twice in one process aborts it)."""
+    builds = []
+    monkeypatch.setattr(hash_kernel, "_build", lambda: builds.append(1) or True)
+    monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
+    monkeypatch.setenv("TSSLAM_NO_COMPILED_KERNEL", "0")
+    assert hash_kernel.available() and builds == [1]
+    assert hash_kernel.load_error() is None
+
+
 def test_stale_kernel_build_lock_is_named(tmp_path):
     """A build lock left by a killed build makes torch wait forever; the kernel loader names it
     (with its path) once it is older than a plausible build, and stays quiet otherwise."""
