@@ -95,6 +95,17 @@ def test_samples_follow_coslam_layout():
     assert all(torch.isclose(z[1], torch.tensor(value)).any() for value in (0.25, 1.25, 3.75))
 
 
+def test_samples_with_a_near_plane_span_near_to_far():
+    """near = 0.5, far = 4: the 8 uniform samples are 0.5 + 3.5 i / 7 = 0.5, 1.0, ..., 4.0 (worked
+    by hand), the 3 guided ones 1.9, 2.0, 2.1 around a depth of 2 m or, without a depth, 0.5, 2.25,
+    4.0 (evenly in [near, far])."""
+    cfg = dataclasses.replace(config.tum().render, perturb=False, near=0.5, far=4.0, n_samples=8, n_range_d=3,
+                              range_d=0.1)
+    z = sample_along_rays(torch.tensor([2.0, 0.0], dtype=torch.float64), cfg)
+    expected = torch.tensor([[0.5, 1.0, 1.5, 1.9, 2.0, 2.0, 2.1, 2.5, 3.0, 3.5, 4.0],
+                             [0.5, 0.5, 1.0, 1.5, 2.0, 2.25, 2.5, 3.0, 3.5, 4.0, 4.0]], dtype=torch.float64)
+    assert torch.allclose(z, expected, atol=1e-12)
+
 def test_perturbed_samples_stay_sorted_within_midpoints_and_are_seeded():
     cfg = config.tiny().render
     depth = torch.rand(100) * 3
