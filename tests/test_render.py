@@ -36,6 +36,18 @@ def test_pixel_directions_equal_inverse_intrinsics():
     assert torch.all(directions[:, 2] == 1)
 
 
+def test_pixel_directions_of_float64_subpixel_positions_stay_float64():
+    """Sub-pixel float64 positions give float64 directions equal to K^-1 [u, v, 1] (numpy's solve)
+    to 1e-12, which float32 (relative 6e-8) cannot meet."""
+    rows = torch.tensor([23.5, 0.25, 47.125], dtype=torch.float64)
+    cols = torch.tensor([31.5, 63.75, 0.0625], dtype=torch.float64)
+    fx, fy, cx, cy = INTRINSICS
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    expected = np.linalg.solve(K, np.stack([cols.numpy(), rows.numpy(), np.ones(3)])).T
+    directions = pixel_directions(rows, cols, INTRINSICS)
+    assert directions.dtype == torch.float64
+    assert np.allclose(directions.numpy(), expected, rtol=0, atol=1e-12)
+
 def test_sample_pixels_unique_inside_edge_and_seeded():
     rows, cols = sample_pixels(48, 64, 500, ignore_edge=5, generator=torch.Generator().manual_seed(1))
     assert rows.dtype == torch.long and len(rows) == 500
