@@ -156,6 +156,18 @@ def test_first_surface_cut_keeps_samples_before_the_first_crossing_plus_tr():
     assert torch.allclose(weights.sum(), torch.tensor(1.0))
 
 
+def test_a_sample_exactly_at_zero_is_no_crossing_as_in_coslam():
+    """Co-SLAM's crossing test is s_i s_(i+1) < 0: around an exact zero both products are 0, so a ray
+    that only passes through zero (no strict sign change) is cut at its first sample, worked by hand:
+    z = 0.5, 0.6, ..., kept where z < 0.5 + tr."""
+    z = (torch.arange(8, dtype=torch.float64) * 0.1 + 0.5).unsqueeze(0)
+    sdf = torch.tensor([[0.9, 0.6, 0.3, 0.0, -0.3, -0.6, -0.9, -1.0]], dtype=torch.float64)
+    weights = sdf_to_weights(sdf, z, 0.25)
+    assert torch.equal(weights[0] > 0, z[0] < 0.5 + 0.25)
+    nudged = sdf_to_weights(sdf - 1e-9 * (sdf == 0), z, 0.25)  # a strict change between 0.7 and 0.8 m
+    assert torch.equal(nudged[0] > 0, z[0] < 0.7 + 0.25)
+
+
 def test_no_sign_change_keeps_only_samples_within_tr_of_the_first():
     z = torch.linspace(0.5, 3.0, 26).unsqueeze(0)
     sdf = torch.full_like(z, 0.8)

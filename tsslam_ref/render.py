@@ -246,7 +246,8 @@ def sdf_to_weights(sdf: torch.Tensor, z_vals: torch.Tensor, truncation: float) -
 
     Differs from: the paper's formula reads s as metric; with Co-SLAM's normalised s this is a
     double scaling (metric logistic scale tr^2), kept as Co-SLAM's ``sdf2weights`` has it
-    (docs/map.md).
+    (docs/map.md). Also as Co-SLAM: a sample exactly at s = 0 makes both of its products 0, so it is
+    no crossing; the bias-free MLP gives s = 0 exactly wherever all its hidden units are off.
     """
     weights = torch.sigmoid(sdf / truncation) * torch.sigmoid(-sdf / truncation)  # (R, S)
     sign_change = (sdf[:, 1:] * sdf[:, :-1] < 0).to(sdf.dtype)  # (R, S - 1)
