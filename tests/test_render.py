@@ -201,6 +201,27 @@ def test_planar_sdf_renders_the_plane_depth_within_one_sample_spacing(truncation
     assert torch.allclose(out["rgb"], 0.5 * out["weights"].sum(-1, keepdim=True).expand(200, 3))
 
 
+def test_image_render_puts_each_pixels_depth_at_its_row_and_column():
+    """A tilted plane seen by a 12 x 16 camera: every pixel's rendered depth against the ray-plane depth
+    worked out in numpy for that pixel's (row, col), so a transposed or scrambled pixel order fails."""
+    cfg = config.tiny().render
+    normal = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
+    offset = -2.0  # plane n . x = offset, the camera at the origin looking along +z
+
+    def planar_field(points):
+        return torch.full_like(points, 0.5), (offset - points @ torch.from_numpy(normal)) / cfg.truncation
+
+    fx, fy, cx, cy = small = (12.0, 13.0, 7.5, 5.5)
+    rows, cols = np.mgrid[0:12, 0:16]
+    rays = np.stack([(cols - cx) / fx, (rows - cy) / fy, np.ones((12, 16))], axis=-1)  # (12, 16, 3)
+    true_depth = offset / (rays @ normal)  # camera z = depth along a z = 1 ray
+    out = render_image(planar_field, torch.eye(4, dtype=torch.float64), small, cfg, depth=torch.from_numpy(true_depth))
+    spacing = 2 * cfg.range_d / (cfg.n_range_d - 1)
+    assert out["depth"].shape == (12, 16)
+    assert float(np.ptp(true_depth)) > 10 * spacing  # the plane's tilt is resolved
+    assert np.abs(out["depth"].numpy() - true_depth).max() < spacing
+
+
 def test_chunked_image_render_equals_unchunked():
     cfg = config.tiny()
     field = SceneField(cfg.field, [[-1.0, 1.0], [-1.0, 1.0], [0.0, 3.0]], generator=torch.Generator().manual_seed(0))
