@@ -150,3 +150,26 @@ def test_dynamics_regularizer_rejects_bad_input():
     pose_only = spline.SplineSample(torch.eye(3)[None], torch.zeros(1, 3))
     with pytest.raises(ValueError, match="derivatives=2"):
         dynamics.dynamics_regularizer(pose_only, lambda_acc=1, lambda_ang=1, a_max=1, omegadot_max=1)
+
+
+def test_trajectory_dynamics_loss_uses_the_configured_barrier_limit():
+    """cfg.barrier_limit reaches the barrier.  Oracle, written out here in numpy: with L = 0.3 every
+    ratio x above L costs −ln(1 − L) + u + u²/2, u = (x − L)/(1 − L) (the module's continuation),
+    which is below the −ln(1 − x) that the default L = 0.95 would give."""
+    rng = np.random.default_rng(2)
+    traj = BSplineTrajectory(so3_exp(torch.as_tensor(rng.normal(scale=0.2, size=(8, 3)))),
+                             torch.as_tensor(rng.normal(scale=0.01, size=(8, 3))), 0.25, 0.0)
+    start, end = traj.domain()
+    cfg = DynamicsConfig(lambda_acc=0.3, lambda_ang=0.4, a_max=2.0, omegadot_max=25.0, n_samples=16, barrier_limit=0.3)
+    value = dynamics.trajectory_dynamics_loss(traj, start, end, cfg, torch.Generator().manual_seed(3))
+    sample = traj.evaluate(dynamics.sample_times(start, end, 16, torch.Generator().manual_seed(3)), derivatives=2)
+    ratios = [sample.acceleration_world.norm(dim=-1).numpy() / cfg.a_max,
+              sample.omegadot_body.norm(dim=-1).numpy() / cfg.omegadot_max]
+    assert max(r.max() for r in ratios) < 0.95 and sum((r > 0.3).sum() for r in ratios) >= 4
+
+    def barrier(x):
+        u = (x - 0.3) / 0.7
+        return np.where(x <= 0.3, -np.log1p(-np.minimum(x, 0.3)), -np.log(0.7) + u + 0.5 * u**2)
+
+    expected = cfg.lambda_acc * barrier(ratios[0]).sum() + cfg.lambda_ang * barrier(ratios[1]).sum()
+    assert abs(float(value) - expected) < 1e-12
