@@ -294,3 +294,18 @@ def test_planned_interval_assumes_its_own_length_for_the_knots_after_it():
     assert [round(trajectory.interval(n)[1], 12) for n in range(6)] == [1.3, 1.4, 1.55, 1.7, 1.85, 2.0]
     with pytest.raises(ValueError, match="assumed_spacing"):
         trajectory.plan_interval_end(3, 1.8, assumed_spacing=0.0)
+
+
+def test_knots_before_and_after_the_stored_run_continue_with_spacing_dt():
+    """Oracle, the class docstring's rule by hand: stored knots 0..4 at 1.0, 1.15, 1.2, 1.4, 1.45 s
+    with dt = 0.1 s continue as t_-2 = 0.8, t_-1 = 0.9 and t_5 = 1.55, t_6 = 1.65; the basalt
+    convention's curve (o = 0) reads knots t_-2..t_N-1, so its first interval depends on t_-2, t_-1."""
+    R, P = random_controls(37, 5)
+    stored = [1.0, 1.15, 1.2, 1.4, 1.45]
+    traj = BSplineTrajectory(R, P, 0.1, 1.0, convention="basalt", knots=stored)
+    assert [traj.knot_time(k) for k in (-2, -1, 5, 6)] == pytest.approx([0.8, 0.9, 1.55, 1.65], abs=1e-12)
+    knot_vector = np.array([0.8, 0.9] + stored)
+    assert np.allclose(traj.knot_vector(), knot_vector, atol=1e-12, rtol=0)
+    times = np.linspace(*traj.domain(), 7)
+    for a, b in zip(traj.evaluate(times, 2), knots.evaluate(R, P, times, knot_vector, 2)):
+        assert torch.allclose(a, b, atol=1e-12, rtol=0)
