@@ -309,3 +309,13 @@ def test_knots_before_and_after_the_stored_run_continue_with_spacing_dt():
     times = np.linspace(*traj.domain(), 7)
     for a, b in zip(traj.evaluate(times, 2), knots.evaluate(R, P, times, knot_vector, 2)):
         assert torch.allclose(a, b, atol=1e-12, rtol=0)
+
+
+def test_clone_keeps_the_start_pose_as_a_copy():
+    """The oracle is the original: a clone has the same start pose (the BA gauge), in a tensor of its own."""
+    R, P = random_controls(39, 5)
+    start_pose = make_pose(R[2], P[2])
+    traj = BSplineTrajectory(R, P, 0.25, 0.0, start_pose=start_pose)
+    copied = traj.clone()
+    assert torch.equal(copied.start_pose, start_pose) and copied.start_pose.data_ptr() != start_pose.data_ptr()
+    assert torch.equal(traj.to(torch.float32).start_pose, start_pose.float())
