@@ -319,3 +319,19 @@ def test_clone_keeps_the_start_pose_as_a_copy():
     copied = traj.clone()
     assert torch.equal(copied.start_pose, start_pose) and copied.start_pose.data_ptr() != start_pose.data_ptr()
     assert torch.equal(traj.to(torch.float32).start_pose, start_pose.float())
+
+
+def test_start_weights_below_four_control_points_follow_the_knots():
+    """Oracle, the Cox-de Boor values of knots.start_weights' docstring by hand: interval 0 planned to
+    end at 1.1 s on dt = 0.25 s gives κ_0..κ_5 = 0.5, 0.75, 1.0, 1.1, 1.35, 1.6, so
+    N_0 = 0.1² / (0.35 · 0.6), N_2 = 0.25² / (0.6 · 0.35) and (B̃_1, B̃_2) = (1 − N_0, N_2),
+    with 3 control points as with 4 (the loop asks before the fourth arrives)."""
+    R, P = random_controls(38, 3)
+    traj = BSplineTrajectory.empty(1.0, 0.25, torch.zeros(1, dtype=F64))
+    traj.plan_interval_end(0, 1.1)
+    expected = (1 - 0.01 / (0.35 * 0.6), 0.0625 / (0.6 * 0.35))
+    for k in range(3):
+        traj.push_back(R[k], P[k])
+    assert traj.start_weights() == pytest.approx(expected, abs=1e-12)
+    traj.push_back(R[2], P[2])
+    assert traj.start_weights() == pytest.approx(expected, abs=1e-12)
