@@ -335,3 +335,11 @@ def test_start_weights_below_four_control_points_follow_the_knots():
     assert traj.start_weights() == pytest.approx(expected, abs=1e-12)
     traj.push_back(R[2], P[2])
     assert traj.start_weights() == pytest.approx(expected, abs=1e-12)
+
+
+def test_a_window_keeps_the_stored_knots_it_may_plan_with():
+    """Oracle, the original trajectory: window(first, stop) has t0 at knot ``first`` and the same
+    knots from first − 2 to stop + 2 (the knots a push or a plan after its last point reads)."""
+    traj = uneven_trajectory(40, 11)
+    window = traj.window(2, 7)
+    assert [window.knot_time(k) for k in range(-2, 8)] == [traj.knot_time(2 + k) for k in range(-2, 8)]
