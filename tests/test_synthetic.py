@@ -241,3 +241,13 @@ def test_seeds_are_limited_to_what_the_generator_keeps():
         config.apply_overrides(config.tiny(), [f"seed={2**32}"])
     config.apply_overrides(config.tiny(), [f"seed={2**32 - 1}"])
     assert data.main(["synthesize", "--out", "unused", "--seed", str(2**32)]) == 2
+
+
+def test_look_rotation_is_the_opencv_camera_worked_out_by_hand():
+    """Looking along world +x with z up, an OpenCV camera's right (x_c) is world −y, its down (y_c)
+    world −z and its forward (z_c) world +x: columns (0, −1, 0), (0, 0, −1), (1, 0, 0)."""
+    expected = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    np.testing.assert_allclose(synthetic.look_rotation((2.0, 0.0, 0.0)), expected, atol=1e-15)
+    tilted = synthetic.look_rotation((1.0, 1.0, -0.5))
+    np.testing.assert_allclose(tilted.T @ tilted, np.eye(3), atol=1e-12)
+    assert np.linalg.det(tilted) == pytest.approx(1.0) and tilted[2, 1] < 0  # image down is world down
