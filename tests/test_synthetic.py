@@ -251,3 +251,15 @@ def test_look_rotation_is_the_opencv_camera_worked_out_by_hand():
     tilted = synthetic.look_rotation((1.0, 1.0, -0.5))
     np.testing.assert_allclose(tilted.T @ tilted, np.eye(3), atol=1e-12)
     assert np.linalg.det(tilted) == pytest.approx(1.0) and tilted[2, 1] < 0  # image down is world down
+
+
+def test_albedo_is_the_base_colour_scaled_between_0_55_and_1():
+    """Module docstring: albedo = base x (0.55 + 0.45 w), w in [0, 1].  In an empty room (base
+    ROOM_COLOUR everywhere) the ratio albedo / base stays in [0.55, 1] and spans most of it."""
+    scene = ProceduralRoom(boxes=[], spheres=[], cylinders=[])
+    generator = torch.Generator().manual_seed(0)
+    low, high = torch.tensor(synthetic.ROOM_MIN), torch.tensor(synthetic.ROOM_MAX)
+    points = low + (high - low) * torch.rand(4000, 3, generator=generator, dtype=torch.float64)
+    ratio = scene.color(points).numpy() / np.asarray(synthetic.ROOM_COLOUR)
+    assert ratio.min() >= 0.55 - 1e-12 and ratio.max() <= 1.0 + 1e-12
+    assert ratio.min() < 0.65 and ratio.max() > 0.9
