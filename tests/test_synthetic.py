@@ -263,3 +263,21 @@ def test_albedo_is_the_base_colour_scaled_between_0_55_and_1():
     ratio = scene.color(points).numpy() / np.asarray(synthetic.ROOM_COLOUR)
     assert ratio.min() >= 0.55 - 1e-12 and ratio.max() <= 1.0 + 1e-12
     assert ratio.min() < 0.65 and ratio.max() > 0.9
+
+
+def test_depth_noise_sigma_and_dropouts_on_a_depth_step():
+    """Module docstring, by hand, on a 200 x 200 step (1 m left, 3 m right, every surface facing the
+    camera): sigma(1 m) = 0.0012 + 0.0019 · 0.6² = 0.001884 m and sigma(3 m) = 0.0012 + 0.0019 · 2.6²
+    = 0.014044 m; the two columns at the step (spread 2 m > 5 % of z) lose 80 % of their pixels,
+    the rest 0.5 % (binomial: 0.5 % of 39,600 is 198 +- 14)."""
+    depth = torch.ones(200, 200, dtype=torch.float64)
+    depth[:, 100:] = 3.0
+    noisy = synthetic._depth_noise(depth, torch.ones_like(depth), torch.Generator().manual_seed(0)).numpy()
+    dropped = noisy == 0
+    edge = np.zeros_like(dropped)
+    edge[:, 99:101] = True
+    assert 0.72 < dropped[edge].mean() < 0.88
+    assert 0.0035 < dropped[~edge].mean() < 0.0065
+    for columns, z, sigma in ((slice(0, 99), 1.0, 0.001884), (slice(101, 200), 3.0, 0.014044)):
+        kept = noisy[:, columns][noisy[:, columns] > 0]
+        assert np.std(kept - z) == pytest.approx(sigma, rel=0.04)
