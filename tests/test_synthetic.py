@@ -281,3 +281,12 @@ def test_depth_noise_sigma_and_dropouts_on_a_depth_step():
     for columns, z, sigma in ((slice(0, 99), 1.0, 0.001884), (slice(101, 200), 3.0, 0.014044)):
         kept = noisy[:, columns][noisy[:, columns] > 0]
         assert np.std(kept - z) == pytest.approx(sigma, rel=0.04)
+
+
+def test_cylinder_sdf_at_points_worked_out_by_hand():
+    """One cylinder of radius 0.3 m on z in [0, 1] m at the origin (room walls >= 1.3 m away):
+    0.2 m above its cap, 0.2 m beside its side, sqrt(0.2² + 0.4²) m off its rim, −0.1 m inside below the cap."""
+    scene = ProceduralRoom(boxes=[], spheres=[], cylinders=[((0.0, 0.0, 0.0, 1.0), 0.3, (1, 0, 0))])
+    points = torch.tensor([[0.0, 0.0, 1.2], [0.5, 0.0, 0.5], [0.0, -0.5, 1.4], [0.0, 0.1, 0.9]], dtype=torch.float64)
+    expected = [0.2, 0.2, np.hypot(0.2, 0.4), -0.1]
+    np.testing.assert_allclose(scene.sdf(points).numpy(), expected, atol=1e-12)
