@@ -304,3 +304,20 @@ def test_mesh_faces_wind_towards_free_space():
     step = torch.from_numpy(0.02 * normals)
     scene = ProceduralRoom()
     assert (scene.sdf(centres + step) > scene.sdf(centres - step)).double().mean().item() > 0.9
+
+
+def test_resampling_keeps_the_first_of_duplicate_stamps_and_puts_body_to_camera_on_the_right(tmp_path):
+    """Oracle, by hand: stamps 0, 0, 1 s at x = 0, 5, 1 m (identity rotation, then 90 deg about z at
+    1 s); frame 0 keeps the first line (x = 0).  With T_bc a 0.1 m shift along body x, the camera
+    is 0.1 m along the *rotated* body x: at 1 s that is world +y, so (1, 0.1, 0)."""
+    path = tmp_path / "duplicates.txt"
+    s = np.sqrt(0.5)
+    path.write_text(f"0.0 0 0 0 0 0 0 1\n0.0 5 0 0 0 0 0 1\n1.0 1 0 0 0 0 {s} {s}\n")
+    times, poses = synthetic.resample_trajectory(path, 2, 1.0)
+    np.testing.assert_allclose(times, [0.0, 1.0])
+    np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-12)
+    body_to_camera = np.eye(4)
+    body_to_camera[0, 3] = 0.1
+    _, shifted = synthetic.resample_trajectory(path, 2, 1.0, body_to_camera=body_to_camera)
+    np.testing.assert_allclose(shifted[1][:3, 3], [1.0, 0.1, 0.0], atol=1e-12)
+    np.testing.assert_allclose(shifted[1][:3, :3], poses[1][:3, :3], atol=1e-12)
