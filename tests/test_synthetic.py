@@ -321,3 +321,11 @@ def test_resampling_keeps_the_first_of_duplicate_stamps_and_puts_body_to_camera_
     _, shifted = synthetic.resample_trajectory(path, 2, 1.0, body_to_camera=body_to_camera)
     np.testing.assert_allclose(shifted[1][:3, 3], [1.0, 0.1, 0.0], atol=1e-12)
     np.testing.assert_allclose(shifted[1][:3, :3], poses[1][:3, :3], atol=1e-12)
+
+
+def test_default_intrinsics_put_the_principal_point_at_the_image_centre():
+    """Pixel centres at integers (module docstring): a 640 x 480 image's centre is (319.5, 239.5);
+    the Kinect focal length is 525 px at 640 wide, 262.5 px at 320."""
+    k = synthetic.default_intrinsics(640, 480)
+    assert (k.fx, k.fy, k.cx, k.cy, k.width, k.height) == (525.0, 525.0, 319.5, 239.5, 640, 480)
+    assert synthetic.default_intrinsics(320, 240).fx == 262.5
