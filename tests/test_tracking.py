@@ -21,7 +21,7 @@ from tsslam_ref.render import RayBatch, frame_rays, sample_pixels
 from tsslam_ref.trajectory import BSplineTrajectory
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
 from tsslam_ref.losses import RenderLossSettings, render_loss
-from tsslam_ref.tracking import constant_velocity_init, track_frame
+from tsslam_ref.tracking import check_ray_budget, constant_velocity_init, track_frame
 
 
 @pytest.fixture(scope="module")
@@ -302,3 +302,20 @@ def test_adam_caps_a_frames_correction_near_iterations_times_learning_rate(scene
         assert moved <= 1.2 * np.sqrt(3) * cfg.tracking.iters * lr, (lr, moved)
     assert end_r[1e-3] > 0.7 * start_r, (start_r, end_r)
     assert end_r[3e-3] < end_r[1e-3] - np.deg2rad(0.3), (start_r, end_r)
+
+
+def test_ray_budget_counts_inner_pixels_for_tracking_and_the_whole_frame_for_the_first_map():
+    """Oracle, counted by hand: a 20 x 10 px frame with ignore_edge = 2 has (10 − 4)(20 − 4) = 96
+    pixels to track from and 200 for the first map; one ray more than each is refused, no fewer."""
+    cfg = config.tiny()
+    cfg.tracking.ignore_edge, cfg.tracking.n_rays, cfg.mapping.first_n_rays = 2, 96, 200
+    check_ray_budget(cfg, 10, 20)
+    cfg.tracking.n_rays = 97
+    with pytest.raises(ValueError, match="tracking.n_rays = 97 is more than the 96 pixels"):
+        check_ray_budget(cfg, 10, 20)
+    cfg.tracking.n_rays, cfg.mapping.first_n_rays = 96, 201
+    with pytest.raises(ValueError, match="mapping.first_n_rays = 201 is more than the 200 pixels"):
+        check_ray_budget(cfg, 10, 20)
+    cfg.tracking.ignore_edge = 5
+    with pytest.raises(ValueError, match="leaves no pixel of the 20x10 frames; expected < 5"):
+        check_ray_budget(cfg, 10, 20)
