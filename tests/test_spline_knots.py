@@ -85,6 +85,20 @@ def test_equally_spaced_knots_give_the_uniform_spline(convention, t0):
         assert float((a - b).abs().max()) <= rel * scale, name
 
 
+def test_a_time_on_an_interior_knot_starts_the_next_segment():
+    """The index rule worked by hand for 8 control points (knots t_0..t_9, domain [t_2, t_7], segments
+    0..4): a time exactly on knot t_(3+s) is segment s + 1 at u = 0, the domain's end is the last
+    segment at u = 1, and a time just before a knot stays in the previous segment with u near 1."""
+    knot_vector = random_spline(0)[2]
+    segment, u, _ = knots.locate(knot_vector[2:8], knot_vector)
+    assert segment.tolist() == [0, 1, 2, 3, 4, 4]
+    assert u.tolist() == [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+    before = knot_vector[3:7] - 1e-9
+    segment, u, _ = knots.locate(before, knot_vector)
+    assert segment.tolist() == [0, 1, 2, 3]
+    assert bool(((u > 1.0 - 1e-7) & (u < 1.0)).all())
+
+
 def test_basis_matrix_of_equal_spacing_is_the_paper_matrix():
     local = torch.tensor([[-2.0, -1.0, 0.0, 1.0, 2.0, 3.0]], dtype=F64)
     C = torch.tensor(spline._C, dtype=F64) / 6.0
