@@ -320,7 +320,6 @@ def test_fast_encoding_gradcheck_on_tiny_grid():
     assert torch.autograd.gradcheck(grid._encode_fast, (x,))
 
 
-
 def _level0_feature_on_every_path(grid: HashGridEncoding, point) -> dict:
     """Level 0, feature 0 of one point on each encoding path, with table row r holding the value r."""
     with torch.no_grad():

@@ -17,7 +17,6 @@ PACKAGE = Path(tsslam_ref.__file__).resolve().parent
 LAYERS = tsslam_ref.LAYERS
 
 
-
 def module_name(path: Path) -> str:
     """Dotted name below the package: tsslam_ref/datasets/images.py -> 'datasets.images'."""
     parts = list(path.relative_to(PACKAGE).with_suffix("").parts)
