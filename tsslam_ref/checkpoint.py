@@ -161,7 +161,7 @@ def from_plain(values: Dict[str, Any], device=None):
 def save(state, path, environment: Optional[Dict[str, Any]] = None) -> Path:
     """Write the loop state to ``path`` atomically (a new file, the user's normal mode), with the
     ``environment`` the run started in (``device.run_environment``), which ``--resume`` compares."""
-    plain = to_plain(state)
+    plain = _plain_view(state)  # written at once, so no copy of the tensors
     if environment is not None:
         plain["environment"] = environment
     with atomic_path(path) as temporary:
