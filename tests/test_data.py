@@ -696,3 +696,11 @@ def test_timing_summary_states_the_duration_and_the_median_rate():
     assert data.timing_summary(np.arange(100) / 30.0) == "3.3 s at 30 Hz"
     assert data.timing_summary(np.array([0.0, 0.01, 0.02, 0.5])) == "0.5 s at 100 Hz"  # the median step
     assert data.timing_summary(np.array([7.0])) == "one frame"
+
+
+def test_calibration_txt_reads_fx_fy_cx_cy_width_height_in_that_order(tmp_path):
+    """calibration.txt's documented order 'fx fy cx cy width height': four distinct values written by
+    hand must come back in the same slots (a reader taking 'fx cx fy cy' would swap fy and cx)."""
+    folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])
+    (folder / "calibration.txt").write_text("# fx fy cx cy width height\n9.5 10.25 3.75 2.125 8 6\n")
+    assert data.load_sequence(folder).intrinsics == data.Intrinsics(9.5, 10.25, 3.75, 2.125, 8, 6)
