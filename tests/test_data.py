@@ -704,3 +704,15 @@ def test_calibration_txt_reads_fx_fy_cx_cy_width_height_in_that_order(tmp_path):
     folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])
     (folder / "calibration.txt").write_text("# fx fy cx cy width height\n9.5 10.25 3.75 2.125 8 6\n")
     assert data.load_sequence(folder).intrinsics == data.Intrinsics(9.5, 10.25, 3.75, 2.125, 8, 6)
+
+
+def test_colour_of_16_bits_and_with_alpha_reads_as_rgb_in_0_1(tmp_path):
+    """A 16-bit grey PNG is value / 65535 on all three channels and an RGBA PNG drops its alpha
+    (values written by hand: 32768 / 65535 = 0.500008; RGBA (10, 20, 30, 255) -> (10, 20, 30) / 255)."""
+    stamps = 10.0 + np.arange(1) / 30
+    folder = make_tum(tmp_path / "t", stamps, stamps, stamps, _random_poses(1))
+    path = folder / f"rgb/{stamps[0]:.6f}.png"
+    iio.imwrite(path, np.full((6, 8), 32768, np.uint16))
+    np.testing.assert_allclose(data.load_sequence(folder)[0].rgb[2, 3], np.full(3, 32768 / 65535), atol=1e-6)
+    iio.imwrite(path, np.tile(np.array([10, 20, 30, 255], np.uint8), (6, 8, 1)))
+    np.testing.assert_allclose(data.load_sequence(folder)[0].rgb[2, 3], np.array([10, 20, 30]) / 255, atol=1e-6)
