@@ -716,3 +716,12 @@ def test_colour_of_16_bits_and_with_alpha_reads_as_rgb_in_0_1(tmp_path):
     np.testing.assert_allclose(data.load_sequence(folder)[0].rgb[2, 3], np.full(3, 32768 / 65535), atol=1e-6)
     iio.imwrite(path, np.tile(np.array([10, 20, 30, 255], np.uint8), (6, 8, 1)))
     np.testing.assert_allclose(data.load_sequence(folder)[0].rgb[2, 3], np.array([10, 20, 30]) / 255, atol=1e-6)
+
+
+def test_resized_height_is_the_nearest_whole_pixel_to_the_aspect_ratio():
+    """Replica's 1200x680 at width 160: 680 * 160 / 1200 = 90.67 px -> 91 rows (nearest, not the
+    floor 90, which would stretch y by 1 %); after a 10 px crop, 660 * 160 / 1180 = 89.49 -> 89."""
+    from tsslam_ref.datasets.images import output_size
+
+    assert output_size(1200, 680, 0, 160) == (160, 91)
+    assert output_size(1200, 680, 10, 160) == (160, 89)
