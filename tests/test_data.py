@@ -725,3 +725,14 @@ def test_resized_height_is_the_nearest_whole_pixel_to_the_aspect_ratio():
 
     assert output_size(1200, 680, 0, 160) == (160, 91)
     assert output_size(1200, 680, 10, 160) == (160, 89)
+
+
+def test_crop_edge_removes_that_many_pixels_from_every_side(tmp_path):
+    """crop_edge=2 on a 16x12 depth whose value encodes its pixel (row * 16 + column + 1, in mm at
+    scale 1000): frame.depth must be the input's rows 2..9 and columns 2..13, i.e. depth[2:-2, 2:-2]."""
+    stamps = 10.0 + np.arange(1) / 30
+    folder = make_tum(tmp_path / "t", stamps, stamps, stamps, _random_poses(1), size=(16, 12))
+    code = (np.arange(12)[:, None] * 16 + np.arange(16)[None, :] + 1).astype(np.uint16)  # (12, 16)
+    iio.imwrite(folder / f"depth/{stamps[0]:.6f}.png", code)
+    frame = data.load_sequence(folder, crop_edge=2, depth_scale=1.0)[0]
+    np.testing.assert_array_equal(frame.depth, code[2:-2, 2:-2].astype(np.float32))
