@@ -736,3 +736,18 @@ def test_crop_edge_removes_that_many_pixels_from_every_side(tmp_path):
     iio.imwrite(folder / f"depth/{stamps[0]:.6f}.png", code)
     frame = data.load_sequence(folder, crop_edge=2, depth_scale=1.0)[0]
     np.testing.assert_array_equal(frame.depth, code[2:-2, 2:-2].astype(np.float32))
+
+
+def test_colour_of_twice_the_depth_size_is_cropped_on_the_depth_pixels(tmp_path):
+    """Colour at 32x24 for 16x12 depth, crop_edge=2: the colour is first brought to the depth size,
+    then cropped, so output column j shows depth column j + 2.  Oracle: colour column c holds the ramp
+    4 c + 2; depth column d covers colour columns 2d, 2d + 1 (centre 2d + 0.5), and a symmetric
+    bilinear filter keeps a ramp, so output column j reads 4 (2 (j + 2) + 0.5) + 2 = 8 j + 20."""
+    stamps = 10.0 + np.arange(1) / 30
+    folder = make_tum(tmp_path / "t", stamps, stamps, stamps, _random_poses(1), size=(16, 12))
+    colour = np.zeros((24, 32, 3), np.uint8)
+    colour[..., 0] = 4 * np.arange(32) + 2
+    iio.imwrite(folder / f"rgb/{stamps[0]:.6f}.png", colour)
+    frame = data.load_sequence(folder, crop_edge=2)[0]
+    assert frame.rgb.shape == (8, 12, 3)
+    np.testing.assert_allclose(frame.rgb[4, :, 0] * 255, 8 * np.arange(12) + 20, atol=0.5)
