@@ -751,3 +751,11 @@ def test_colour_of_twice_the_depth_size_is_cropped_on_the_depth_pixels(tmp_path)
     frame = data.load_sequence(folder, crop_edge=2)[0]
     assert frame.rgb.shape == (8, 12, 3)
     np.testing.assert_allclose(frame.rgb[4, :, 0] * 255, 8 * np.arange(12) + 20, atol=0.5)
+
+
+def test_association_ties_go_to_the_earlier_stamp():
+    """A colour stamp exactly halfway between two depth stamps (0.5 between 0.25 and 0.75, exact in
+    binary) takes the earlier one, as documented; a stamp nearer the later one takes the later one."""
+    from tsslam_ref.datasets.tum_format import associate_nearest
+
+    np.testing.assert_array_equal(associate_nearest(np.array([0.5, 0.625]), np.array([0.25, 0.75]), 0.3), [0, 1])
