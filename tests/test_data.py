@@ -759,3 +759,18 @@ def test_association_ties_go_to_the_earlier_stamp():
     from tsslam_ref.datasets.tum_format import associate_nearest
 
     np.testing.assert_array_equal(associate_nearest(np.array([0.5, 0.625]), np.array([0.25, 0.75]), 0.3), [0, 1])
+
+
+def test_ground_truth_rotation_interpolates_along_the_shorter_arc():
+    """GT samples at yaw +170 deg and -170 deg (20 deg apart across 180 deg): halfway between, the pose
+    is yaw 180 deg, a quarter of the way yaw 175 deg (scipy's Slerp as oracle), not the long way
+    round through yaw 0."""
+    from tsslam_ref.datasets.tum_format import ground_truth_at
+
+    yaws = Rotation.from_euler("z", [[170.0], [-170.0]], degrees=True)
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[:, :3, :3] = yaws.as_matrix()
+    got = ground_truth_at(np.array([0.005, 0.0025]), np.array([0.0, 0.01]), poses, 0.02)
+    expected = Slerp([0.0, 0.01], yaws)([0.005, 0.0025]).as_matrix()
+    np.testing.assert_allclose(got[:, :3, :3], expected, atol=1e-9)
+    np.testing.assert_allclose(expected[0], Rotation.from_euler("z", 180.0, degrees=True).as_matrix(), atol=1e-9)
