@@ -774,3 +774,15 @@ def test_ground_truth_rotation_interpolates_along_the_shorter_arc():
     expected = Slerp([0.0, 0.01], yaws)([0.005, 0.0025]).as_matrix()
     np.testing.assert_allclose(got[:, :3, :3], expected, atol=1e-9)
     np.testing.assert_allclose(expected[0], Rotation.from_euler("z", 180.0, degrees=True).as_matrix(), atol=1e-9)
+
+
+def test_ground_truth_interpolates_across_a_gap_of_up_to_twice_the_tolerance():
+    """GT at 0 s (x = 0 m) and 0.03 s (x = 3 m), tolerance 0.02 s: the gap 0.03 s <= 2 * 0.02 s, so a
+    frame at 0.01 s gets the interpolated x = 1 m (by hand), not the nearest sample's 0 m; with
+    samples 0.05 s apart it gets the nearest sample's pose."""
+    from tsslam_ref.datasets.tum_format import ground_truth_at
+
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[1, 0, 3] = 3.0
+    np.testing.assert_allclose(ground_truth_at(np.array([0.01]), np.array([0.0, 0.03]), poses, 0.02)[0, 0, 3], 1.0)
+    np.testing.assert_allclose(ground_truth_at(np.array([0.01]), np.array([0.0, 0.05]), poses, 0.02)[0, 0, 3], 0.0)
