@@ -786,3 +786,12 @@ def test_ground_truth_interpolates_across_a_gap_of_up_to_twice_the_tolerance():
     poses[1, 0, 3] = 3.0
     np.testing.assert_allclose(ground_truth_at(np.array([0.01]), np.array([0.0, 0.03]), poses, 0.02)[0, 0, 3], 1.0)
     np.testing.assert_allclose(ground_truth_at(np.array([0.01]), np.array([0.0, 0.05]), poses, 0.02)[0, 0, 3], 0.0)
+
+
+def test_frame_range_counts_only_frames_with_ground_truth(tmp_path):
+    """Frames 0..4 at 30 Hz, GT only from 0.1 s: frames 3 and 4 are usable, so the range [0:1] is frame
+    3 and the stride [::2] is frame 3 alone (the slice is over the usable frames, as documented)."""
+    rgb = 100.0 + np.arange(5) / 30.0
+    folder = make_tum(tmp_path / "t", rgb, rgb, 100.1 + np.arange(5) * 0.01, _random_poses(5))
+    np.testing.assert_allclose(data.load_sequence(folder, frame_stop=1).timestamps, np.round(rgb[[3]], 6), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(data.load_sequence(folder, frame_step=2).timestamps, np.round(rgb[[3]], 6), rtol=0, atol=1e-9)
