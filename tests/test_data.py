@@ -795,3 +795,14 @@ def test_frame_range_counts_only_frames_with_ground_truth(tmp_path):
     folder = make_tum(tmp_path / "t", rgb, rgb, 100.1 + np.arange(5) * 0.01, _random_poses(5))
     np.testing.assert_allclose(data.load_sequence(folder, frame_stop=1).timestamps, np.round(rgb[[3]], 6), rtol=0, atol=1e-9)
     np.testing.assert_allclose(data.load_sequence(folder, frame_step=2).timestamps, np.round(rgb[[3]], 6), rtol=0, atol=1e-9)
+
+
+def test_depth_scale_of_the_calibration_file_is_used_when_none_is_configured(tmp_path):
+    """intrinsics.json says 4000 PNG values per metre and the depth PNG holds 3200: 0.8 m (by hand),
+    not the folder layout's standard 1000 (3.2 m)."""
+    folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"], depth_mm=3200)
+    (folder / "calibration.txt").unlink()
+    (folder / "intrinsics.json").write_text(json.dumps({"fx": 9, "fy": 9, "cx": 3.5, "cy": 2.5, "depth_scale": 4000}))
+    sequence = data.load_sequence(folder)
+    assert sequence.depth_scale == 4000
+    np.testing.assert_allclose(sequence[0].depth, 0.8, atol=1e-6)
