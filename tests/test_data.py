@@ -806,3 +806,11 @@ def test_depth_scale_of_the_calibration_file_is_used_when_none_is_configured(tmp
     sequence = data.load_sequence(folder)
     assert sequence.depth_scale == 4000
     np.testing.assert_allclose(sequence[0].depth, 0.8, atol=1e-6)
+
+
+def test_load_from_config_passes_every_frame_setting(tum_folder):
+    """DataConfig's frame_start / frame_stop / frame_step reach the loader: [1:5:2] of the usable
+    frames (colour stamps 0, 1, 2, 4, 5 of the fixture) is stamps 1 and 4, as load_sequence gives."""
+    folder, rgb, _, _ = tum_folder
+    sequence = data.load_from_config(DataConfig(path=str(folder), frame_start=1, frame_stop=5, frame_step=2))
+    np.testing.assert_array_equal(sequence.timestamps, rgb[[1, 4]])
