@@ -814,3 +814,12 @@ def test_load_from_config_passes_every_frame_setting(tum_folder):
     folder, rgb, _, _ = tum_folder
     sequence = data.load_from_config(DataConfig(path=str(folder), frame_start=1, frame_stop=5, frame_step=2))
     np.testing.assert_array_equal(sequence.timestamps, rgb[[1, 4]])
+
+
+def test_resized_intrinsics_have_exactly_the_requested_size():
+    """resized(w, h) scales by w / W, and W * (w / W) can fall a hair below w in floating point (1200 *
+    (55 / 1200) = 54.99999...); the size must still be the requested w x h for every w and h (oracle:
+    the request itself)."""
+    k = data.Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
+    sizes = [(k.resized(w, 1 + w * 679 // 1199).width, k.resized(w, 1 + w * 679 // 1199).height) for w in range(1, 1201)]
+    assert sizes == [(w, 1 + w * 679 // 1199) for w in range(1, 1201)]
