@@ -823,3 +823,14 @@ def test_resized_intrinsics_have_exactly_the_requested_size():
     k = data.Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
     sizes = [(k.resized(w, 1 + w * 679 // 1199).width, k.resized(w, 1 + w * 679 // 1199).height) for w in range(1, 1201)]
     assert sizes == [(w, 1 + w * 679 // 1199) for w in range(1, 1201)]
+
+
+def test_each_frame_reads_the_depth_file_its_stamp_associates_to(tmp_path):
+    """depth.txt starts two stamps earlier than rgb.txt, so colour line i pairs with depth line i + 2
+    (nearest stamp, 1 ms apart); make_tum writes depth line k as 1 + 0.1 k metres, so frame i must
+    read 1 + 0.1 (i + 2) m, the file named on the depth line, not on the depth line of the same number."""
+    rgb = 20.0 + np.arange(4) / 30.0
+    depth = np.concatenate([20.0 - np.array([2.0, 1.0]) / 30.0, rgb]) + 0.001
+    folder = make_tum(tmp_path / "t", rgb, depth, rgb, _random_poses(4))
+    sequence = data.load_sequence(folder)
+    np.testing.assert_allclose([sequence[i].depth.mean() for i in range(4)], 1.0 + 0.1 * (np.arange(4) + 2), atol=1e-6)
