@@ -190,3 +190,10 @@ def test_colour_of_another_aspect_ratio_than_the_depth_is_refused(tmp_path, colo
     with pytest.raises(ValueError, match=words):
         sequence.check_files()
     sequence[0]  # the other frame still reads
+
+
+def test_replica_reads_the_intrinsics_of_its_calibration_file(tmp_path):
+    """A Replica folder with intrinsics.json (fx 12, cx 7.5, cy 5.5 for its 16x12 renders, as written
+    by make_replica) uses those values, not the 1200x680 release's built-in ones."""
+    folder = make_replica(tmp_path / "replica", 2, _random_poses(2))
+    assert data.load_sequence(folder).intrinsics == data.Intrinsics(12.0, 12.0, 7.5, 5.5, 16, 12)
