@@ -135,3 +135,33 @@ def test_a_partial_config_file_starts_from_the_preset_it_names(tmp_path):
     saved = tmp_path / "saved.json"
     config.save(config.synthetic_cpu(), str(saved))
     assert config.load(str(saved)) == config.synthetic_cpu()
+
+
+def _inclusive_ends(comparison, bound):
+    """The values on the allowed side of each closed end of a rule (written independently of
+    config._check_range): every choice of "in", the bound of ">=", both ends of "[]", the top of "(]"."""
+    if comparison == "in":
+        return list(bound)
+    if comparison == ">=":
+        return [bound]
+    if comparison == "[]":
+        return list(bound)
+    return [bound[1]] if comparison == "(]" else []
+
+
+def test_every_closed_end_of_a_range_is_accepted():
+    """The counterpart of the test above: a value on a closed end (spline.dt = 10 s,
+    mapping.kf_pixel_fraction = 1, seed = 2**32 - 1) is allowed and set as given."""
+    for key, comparison, bound in _ranged_fields():
+        for good in _inclusive_ends(comparison, bound):
+            extra = ["local_ba.fit_controls=1"] if key == "local_ba.window" else []
+            cfg = config.apply_overrides(config.tum_cpu(), [f"{key}={json.dumps(good)}"] + extra)
+            section, _, name = key.rpartition(".")
+            assert getattr(getattr(cfg, section) if section else cfg, name) == good, key
+
+
+def test_the_seed_range_is_the_32_bits_the_docs_state():
+    """docs/cli.md: seeds in [0, 2**32 - 1], PyTorch's CPU generator keeps 32 bits."""
+    assert config.apply_overrides(config.tum_cpu(), [f"seed={2**32 - 1}"]).seed == 4294967295
+    with pytest.raises(ValueError, match=re.escape(f"seed = {2**32} must be")):
+        config.apply_overrides(config.tum_cpu(), [f"seed={2**32}"])
