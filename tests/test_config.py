@@ -165,3 +165,12 @@ def test_the_seed_range_is_the_32_bits_the_docs_state():
     assert config.apply_overrides(config.tum_cpu(), [f"seed={2**32 - 1}"]).seed == 4294967295
     with pytest.raises(ValueError, match=re.escape(f"seed = {2**32} must be")):
         config.apply_overrides(config.tum_cpu(), [f"seed={2**32}"])
+
+
+@pytest.mark.parametrize("override, key", [("tracking.iters=true", "tracking.iters = True must be an integer"),
+                                           ("dynamics.a_max=false", "dynamics.a_max = False must be a finite number")])
+def test_a_boolean_is_no_number(override, key):
+    """Python's bool is an int (True == 1), so only an explicit check stops `--set tracking.iters=true`
+    from running 1 iteration."""
+    with pytest.raises(ValueError, match=re.escape(key)):
+        config.apply_overrides(config.tum_cpu(), [override])
