@@ -174,3 +174,13 @@ def test_a_boolean_is_no_number(override, key):
     from running 1 iteration."""
     with pytest.raises(ValueError, match=re.escape(key)):
         config.apply_overrides(config.tum_cpu(), [override])
+
+
+def test_python_spelled_values_mean_what_they_say():
+    """`True`, `False` and `None` as Python writes them (not JSON) set True, False and None."""
+    cfg = config.apply_overrides(config.tum_cpu(), ["local_ba.use_dynamics=False", "tracking.best=True",
+                                                    "data.resize_width=None", "local_ba.enabled=True"])
+    assert cfg.local_ba.use_dynamics is False and cfg.tracking.best is True and cfg.local_ba.enabled is True
+    assert cfg.data.resize_width is None
+    cfg = config.apply_overrides(config.tum_cpu(), ["local_ba.use_dynamics=True", "tracking.best=False"])
+    assert cfg.local_ba.use_dynamics is True and cfg.tracking.best is False
