@@ -184,3 +184,9 @@ def test_python_spelled_values_mean_what_they_say():
     assert cfg.data.resize_width is None
     cfg = config.apply_overrides(config.tum_cpu(), ["local_ba.use_dynamics=True", "tracking.best=False"])
     assert cfg.local_ba.use_dynamics is True and cfg.tracking.best is False
+
+
+def test_an_override_value_may_hold_an_equals_sign():
+    """Only the first '=' separates key and value: a folder named `run=1` stays whole."""
+    cfg = config.apply_overrides(config.tum_cpu(), ["data.path=/data/run=1/teddy"])
+    assert cfg.data.path == "/data/run=1/teddy"
