@@ -190,3 +190,12 @@ def test_an_override_value_may_hold_an_equals_sign():
     """Only the first '=' separates key and value: a folder named `run=1` stays whole."""
     cfg = config.apply_overrides(config.tum_cpu(), ["data.path=/data/run=1/teddy"])
     assert cfg.data.path == "/data/run=1/teddy"
+
+
+def test_overrides_leave_the_config_they_start_from_unchanged():
+    """apply_overrides returns a copy: a base config reused for several variants (a benchmark's rows)
+    keeps its values, sections included."""
+    base = config.tum_cpu()
+    changed = config.apply_overrides(base, ["tracking.iters=3", "spline.dt=0.1", "seed=7"])
+    assert changed.tracking.iters == 3 and changed.spline.dt == 0.1 and changed.seed == 7
+    assert base == config.tum_cpu()
