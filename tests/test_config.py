@@ -199,3 +199,12 @@ def test_overrides_leave_the_config_they_start_from_unchanged():
     changed = config.apply_overrides(base, ["tracking.iters=3", "spline.dt=0.1", "seed=7"])
     assert changed.tracking.iters == 3 and changed.spline.dt == 0.1 and changed.seed == 7
     assert base == config.tum_cpu()
+
+
+def test_the_rules_between_two_values_accept_their_equal_case_and_refuse_a_flat_box():
+    """fit_controls may fill the whole window (fit_controls <= window); a box side of zero length
+    (min == max) is refused (docs/cli.md: min < max)."""
+    cfg = config.apply_overrides(config.tum_cpu(), ["local_ba.window=4", "local_ba.fit_controls=4"])
+    assert cfg.local_ba.fit_controls == cfg.local_ba.window == 4
+    with pytest.raises(ValueError, match=re.escape("field.bound = [[0, 1], [2, 2], [0, 1]] must be")):
+        config.apply_overrides(config.tum_cpu(), ["field.bound=[[0,1],[2,2],[0,1]]"])
