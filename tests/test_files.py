@@ -75,3 +75,15 @@ def test_only_our_stray_temporaries_are_removed(tmp_path):
     assert sorted(p.name for p in removed) == sorted(ours + [".metrics.json.q1w2e3r4.tmp"])
     assert sorted(p.name for p in run.iterdir()) == sorted(theirs)
     assert outside.read_text() == "keep"
+
+
+def test_the_temporary_is_one_that_the_cleanup_after_a_kill_recognises(tmp_path):
+    """A write killed half-way leaves its temporary; it must be hidden and named after its output
+    (``.<name>.<8 characters>.tmp``) so that remove_stray_temporaries finds it the next time."""
+    with files.atomic_path(tmp_path / "trajectory.txt") as temporary:
+        temporary.write_text("half")
+        assert temporary.parent == tmp_path and temporary.name.startswith(".trajectory.txt.")
+        removed = files.remove_stray_temporaries(tmp_path, lambda name: name == "trajectory.txt")
+        assert removed == [temporary]  # what a killed process would have left
+        temporary.write_text("whole")  # the write goes on
+    assert (tmp_path / "trajectory.txt").read_text() == "whole"
