@@ -87,3 +87,14 @@ def test_the_temporary_is_one_that_the_cleanup_after_a_kill_recognises(tmp_path)
         assert removed == [temporary]  # what a killed process would have left
         temporary.write_text("whole")  # the write goes on
     assert (tmp_path / "trajectory.txt").read_text() == "whole"
+
+
+def test_a_link_to_a_folder_at_the_name_is_replaced_and_the_folder_kept(tmp_path):
+    """Only a real folder is refused; a link at the name is replaced, whatever it points to."""
+    folder = tmp_path / "users_folder"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("mine")
+    (tmp_path / "mesh.ply").symlink_to(folder)
+    files.atomic_write_text(tmp_path / "mesh.ply", "ply")
+    assert not (tmp_path / "mesh.ply").is_symlink() and (tmp_path / "mesh.ply").read_text() == "ply"
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"] and (folder / "notes.txt").read_text() == "mine"
