@@ -98,3 +98,11 @@ def test_a_link_to_a_folder_at_the_name_is_replaced_and_the_folder_kept(tmp_path
     files.atomic_write_text(tmp_path / "mesh.ply", "ply")
     assert not (tmp_path / "mesh.ply").is_symlink() and (tmp_path / "mesh.ply").read_text() == "ply"
     assert [p.name for p in folder.iterdir()] == ["notes.txt"] and (folder / "notes.txt").read_text() == "mine"
+
+
+def test_a_dangling_link_named_like_our_temporary_is_removed(tmp_path):
+    """remove_stray_temporaries unlinks a link of our name even when its target is gone."""
+    (tmp_path / ".metrics.json.a1b2c3d4.tmp").symlink_to(tmp_path / "gone")
+    assert files.remove_stray_temporaries(tmp_path, lambda name: name == "metrics.json") == [
+        tmp_path / ".metrics.json.a1b2c3d4.tmp"]
+    assert list(tmp_path.iterdir()) == []
