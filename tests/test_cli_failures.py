@@ -716,3 +716,24 @@ def test_resume_in_another_environment_warns_and_metrics_record_both(runs, tmp_p
     assert "frames from 4 on will not match" in warning
     metrics = json.loads((tmp_path / "stopped" / "metrics.json").read_text())
     assert metrics["environment"]["torch"] == "0.0-other" and metrics["environment_at_start"] == started_in
+
+
+def test_three_frames_with_a_ground_truth_pose_get_an_ate():
+    """docs and the closing line say ATE / RPE need 3 frames with a ground-truth pose: with exactly
+    3 (frames 0, 2, 4 of 5) metrics.json gets them. Oracle: the estimate is the ground truth moved
+    by one rigid motion, so its ATE after alignment is 0, over the 3 known frames."""
+    from types import SimpleNamespace
+    from scipy.spatial.transform import Rotation
+    from tsslam_ref import run_outputs
+
+    times = np.arange(5) * 0.1
+    gt = np.full((5, 4, 4), np.nan)
+    for i, position in zip((0, 2, 4), ([0.0, 0.0, 0.0], [0.3, 0.1, 0.0], [0.2, 0.5, 0.4])):
+        gt[i] = np.eye(4)
+        gt[i, :3, :3] = Rotation.from_rotvec([0.1 * i, 0.0, 0.05]).as_matrix()
+        gt[i, :3, 3] = position
+    moved = np.eye(4)
+    moved[:3, :3], moved[:3, 3] = Rotation.from_rotvec([0.2, -0.1, 0.3]).as_matrix(), [1.0, 2.0, 3.0]
+    estimate = np.array([moved @ pose if np.isfinite(pose).all() else np.eye(4) for pose in gt])
+    metrics = run_outputs.trajectory_metrics(SimpleNamespace(gt_poses=gt), times, estimate)
+    assert metrics["n_matched"] == 3 and metrics["ate_rmse_m"] < 1e-9
