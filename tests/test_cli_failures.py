@@ -737,3 +737,16 @@ def test_three_frames_with_a_ground_truth_pose_get_an_ate():
     estimate = np.array([moved @ pose if np.isfinite(pose).all() else np.eye(4) for pose in gt])
     metrics = run_outputs.trajectory_metrics(SimpleNamespace(gt_poses=gt), times, estimate)
     assert metrics["n_matched"] == 3 and metrics["ate_rmse_m"] < 1e-9
+
+
+def test_number_options_accept_both_closed_ends_of_their_range():
+    """The ends written in docs/cli.md: --seed 0 and 2**32 - 1, --checkpoint-every 0,
+    --export-rate 1000 are accepted; --export-rate 0 (an open end) is refused."""
+    import argparse
+    from tsslam_ref import cli_args
+
+    assert run._seed("0") == 0 and run._seed(str(2**32 - 1)) == 2**32 - 1
+    assert run._checkpoint_every("0") == 0 and run._export_rate(str(run.MAX_EXPORT_RATE)) == run.MAX_EXPORT_RATE
+    with pytest.raises(argparse.ArgumentTypeError, match=r"--export-rate 0: must be a finite number in \(0, "):
+        run._export_rate("0")
+    assert cli_args.number_in("--fps", 0, 1000, low_open=True)("1000") == 1000.0
