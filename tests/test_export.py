@@ -131,3 +131,26 @@ def test_exported_columns_follow_a_moving_spline(tmp_path):
     assert np.linalg.norm(omega, axis=1).min() > 0.6 and speed_gap.min() > 0.3, speed_gap.min()  # turns; v, w unlike
     assert np.abs(rows[1:-1, 8:11] - velocity).max() < 1e-4
     assert np.abs(rows[1:-1, 11:14] - omega).max() < 1e-4
+
+
+def test_the_trajectory_written_during_a_run_has_each_processed_frame_with_its_own_stamp(tmp_path):
+    """run_outputs.write_partial_trajectory after 3 of 5 frames (a Co-SLAM state): 3 lines in the
+    TUM format "t tx ty tz qx qy qz qw", each frame's own time stamp and camera-to-world pose.
+    Oracle: the poses built here and scipy's (x, y, z, w) quaternions, read back with np.loadtxt."""
+    from scipy.spatial.transform import Rotation
+
+    from tsslam_ref.run_outputs import write_partial_trajectory
+
+    rotations = Rotation.from_rotvec([[0.1 * i, -0.2, 0.05 * i] for i in range(5)])
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    poses[:, :3, :3] = rotations.as_matrix()
+    poses[:, :3, 3] = [[i, 2.0 * i, -0.5 * i] for i in range(5)]
+    state = SimpleNamespace(cfg=SimpleNamespace(method="coslam"), frame_poses=torch.from_numpy(poses), done=3,
+                            relative_to_keyframe={}, keyframe_of_frame={}, timestamps=STAMP + 0.1 * np.arange(5))
+    write_partial_trajectory(state, tmp_path)
+    rows = np.loadtxt(tmp_path / "trajectory.txt", ndmin=2)
+    assert rows.shape == (3, 8)
+    assert np.allclose(rows[:, 0], STAMP + 0.1 * np.arange(3), rtol=0, atol=1e-6)
+    assert np.allclose(rows[:, 1:4], poses[:3, :3, 3], atol=1e-9)
+    expected = rotations.as_quat()[:3]
+    assert np.allclose(np.abs(np.sum(rows[:, 4:] * expected, axis=1)), 1.0, atol=1e-9)  # q or -q
