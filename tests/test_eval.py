@@ -98,6 +98,25 @@ def test_horn_alignment_is_a_least_squares_minimum():
         assert cost(R, t, s * (1 + rng.normal(scale=1e-3))) > best
 
 
+def test_horn_alignment_of_a_mirror_image_is_the_best_proper_rotation_and_its_scale():
+    """A mirror image (z -> -z) of the data: the unconstrained SVD solution U V^T is then a
+    reflection (det -1), which no trajectory can undergo.  Oracles: scipy's Rotation.align_vectors
+    (best proper rotation of the centred sets) for R; for that R the least-squares scale, from
+    d/ds sum |s R m'_i - d'_i|^2 = 0, is s = sum d'_i . R m'_i / sum |m'_i|^2."""
+    rng = np.random.default_rng(21)
+    data = rng.normal(size=(60, 3)) * [2.0, 1.0, 0.5]
+    model = 0.6 * data * [1.0, 1.0, -1.0] + rng.normal(scale=0.05, size=(60, 3))
+    model_c, data_c = model - model.mean(0), data - data.mean(0)
+    scipy_R = Rotation.align_vectors(data_c, model_c)[0].as_matrix()
+    for with_scale in (False, True):
+        R, t, s = ev.horn_alignment(model, data, with_scale=with_scale)
+        assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_allclose(R, scipy_R, atol=1e-10)
+        expected_s = np.sum(data_c * (model_c @ R.T)) / np.sum(model_c**2) if with_scale else 1.0
+        assert s == pytest.approx(expected_s, rel=1e-12)
+        np.testing.assert_allclose(t, data.mean(0) - s * R @ model.mean(0), atol=1e-12)
+
+
 def _poses_at(positions):
     poses = np.tile(np.eye(4), (len(positions), 1, 1))
     poses[:, :3, 3] = positions
