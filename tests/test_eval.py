@@ -150,6 +150,19 @@ def test_ate_of_a_camera_on_a_rail_or_standing_still_is_the_least_squares_minimu
     assert ev.horn_alignment(np.zeros((4, 3)), line[:4], with_scale=True)[2] == 1.0  # no 0 / 0
 
 
+def test_alignment_of_a_planar_trajectory_is_unique():
+    """A ground robot's positions lie in a plane: two independent directions fix a rotation, so
+    the alignment is unique (only a line or a point leaves it free).  Oracle: the planted rotation
+    about z and translation of a rigid copy are recovered."""
+    rng = np.random.default_rng(22)
+    planar = np.column_stack([rng.normal(size=(20, 2)), np.zeros(20)])
+    planted = Rotation.from_rotvec([0.0, 0.0, 0.7]).as_matrix()
+    estimate = planar @ planted.T + [0.3, -0.2, 0.0]  # what the estimate saw; GT = planted^-1 (est - t)
+    result = ev.ate(_poses_at(planar), _poses_at(estimate))
+    assert result["alignment_unique"] is True and result["ate_rmse_m"] < 1e-12
+    np.testing.assert_allclose(result["alignment"][:3, :3], planted.T, atol=1e-12)
+
+
 def test_rpe_refuses_missing_poses_as_ate_does():
     poses = _poses_at(np.random.default_rng(4).normal(size=(5, 3)))
     holed = poses.copy()
