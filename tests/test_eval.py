@@ -163,6 +163,27 @@ def test_alignment_of_a_planar_trajectory_is_unique():
     np.testing.assert_allclose(result["alignment"][:3, :3], planted.T, atol=1e-12)
 
 
+def test_rpe_statistics_by_hand_in_metres_and_degrees():
+    """Consecutive-pair errors of 1, 2, 3, 4, 5 cm (a sideways step added to each move) and, on a
+    camera turning in place, 1, 2, 3, 4, 5 degrees (added yaw per frame).  By hand for e = 1..5:
+    mean 3, median 3, RMSE sqrt(55 / 5) = sqrt(11), std sqrt(2) (population, numpy's and evo's;
+    the sample std would be sqrt(2.5)), min 1, max 5."""
+    steps = np.arange(1.0, 6.0)
+    gt = _poses_at(np.outer(np.arange(6.0), [1.0, 0.0, 0.0]))
+    est = _poses_at(np.column_stack([np.arange(6.0), np.concatenate([[0.0], np.cumsum(0.01 * steps)]), np.zeros(6)]))
+    turning = np.tile(np.eye(4), (6, 1, 1))
+    turning[:, :3, :3] = Rotation.from_euler("z", np.concatenate([[0.0], np.cumsum(steps)])[:, None], degrees=True).as_matrix()
+    by_hand = {"rmse": np.sqrt(11.0), "mean": 3.0, "median": 3.0, "std": np.sqrt(2.0), "min": 1.0, "max": 5.0}
+    trans = ev.rpe(gt, est)
+    rot = ev.rpe(np.tile(np.eye(4), (6, 1, 1)), turning)
+    np.testing.assert_allclose(trans["trans_errors_m"], 0.01 * steps, atol=1e-12)
+    np.testing.assert_allclose(rot["rot_errors_deg"], steps, atol=1e-9)
+    for stat, value in by_hand.items():
+        assert trans[f"rpe_trans_{stat}_m"] == pytest.approx(0.01 * value, abs=1e-12), stat
+        assert rot[f"rpe_rot_{stat}_deg"] == pytest.approx(value, abs=1e-9), stat
+    assert rot["rpe_trans_max_m"] < 1e-12 and trans["rpe_rot_max_deg"] < 1e-9
+
+
 def test_rpe_refuses_missing_poses_as_ate_does():
     poses = _poses_at(np.random.default_rng(4).normal(size=(5, 3)))
     holed = poses.copy()
