@@ -324,6 +324,13 @@ def test_associate_is_one_to_one_nearest_first():
     assert idx_a.tolist() == [0, 2] and idx_b.tolist() == [0, 2]
 
 
+def test_associate_pairs_a_difference_of_exactly_max_diff():
+    """Binary-exact stamps: |1.25 - 1.0| = 0.25 equals max_diff and pairs (<=, as evo and the
+    docstring say); every other difference is 0.5 and does not."""
+    idx_a, idx_b = ev.associate([0.0, 1.0], [0.5, 1.25], max_diff=0.25)
+    assert idx_a.tolist() == [1] and idx_b.tolist() == [1]
+
+
 def test_associate_handles_unsorted_input_like_sorted_input():
     rng = np.random.default_rng(9)
     times_a = np.sort(rng.uniform(0, 10, 300)) + 1.3e9
