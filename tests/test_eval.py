@@ -632,6 +632,25 @@ def test_cli_interpolate_scores_at_the_estimate_stamps_as_a_run_does(tmp_path, c
     assert nearest["ate_rmse_m"] > 1e-3  # 4 ms at 0.86 m/s
 
 
+def test_cli_interpolate_uses_the_given_max_diff(tmp_path, capsys):
+    """Ground truth at 10 Hz, estimate stamps 45 ms after a GT stamp: with --max-diff 0.06 a GT stamp
+    is near enough and the bracketing pair (0.1 s apart <= 2 x 0.06) interpolates the motion exactly
+    (oracle: the same linear motion written here, ATE 0 on all 12 frames); with --max-diff 0.03 no
+    GT stamp is near enough and the command refuses (exit 2)."""
+    def motion(times):
+        return _poses_at(np.outer(times - 5.0, [0.5, 0.2, -0.1]))
+
+    gt_times = 5.0 + 0.1 * np.arange(30)
+    est_times = 5.045 + 0.2 * np.arange(12)
+    _write_tum(tmp_path / "gt.txt", gt_times, motion(gt_times))
+    _write_tum(tmp_path / "est.txt", est_times, motion(est_times))
+    arguments = ["trajectory", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--json", "--interpolate"]
+    assert ev.main(arguments + ["--max-diff", "0.06"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["n_matched"] == 12 and printed["ate_rmse_m"] < 1e-7
+    assert ev.main(arguments + ["--max-diff", "0.03"]) == 2
+
+
 def test_cli_mesh(tmp_path, capsys):
     trimesh.creation.icosphere(subdivisions=3, radius=1.0).export(tmp_path / "gt.ply")
     trimesh.creation.icosphere(subdivisions=3, radius=1.02).export(tmp_path / "rec.ply")
