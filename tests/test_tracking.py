@@ -10,6 +10,7 @@ import copy
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from tsslam_ref import config, spline
 from tsslam_ref.analytic import AnalyticField
@@ -72,6 +73,24 @@ def test_pose_increment_starts_at_base_and_has_finite_gradients_at_zero():
     assert torch.isfinite(increment.rotation_delta.grad).all()
     assert torch.autograd.gradcheck(lambda d: make_pose(so3_exp(d) @ base[:, :3, :3], base[:, :3, 3]),
                                     (torch.zeros(2, 3, dtype=torch.float64, requires_grad=True),))
+
+
+def test_pose_increment_turns_the_base_rotation_in_the_world_frame():
+    """T(delta, t) = [Exp(delta) R_base | t] (the docstring: delta is a world-frame increment, applied
+    after the base).  Oracle: scipy's Rotation.from_rotvec(delta) @ R_base; the body-frame
+    R_base Exp(delta) differs by about 0.1 here."""
+    base_rotation = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()
+    delta = np.array([0.05, 0.2, -0.1])
+    base = torch.eye(4, dtype=torch.float64)
+    base[:3, :3], base[:3, 3] = torch.as_tensor(base_rotation), torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    increment = PoseIncrement(base)
+    with torch.no_grad():
+        increment.rotation_delta.copy_(torch.as_tensor(delta))
+    expected = Rotation.from_rotvec(delta).as_matrix() @ base_rotation
+    pose = increment().detach().numpy()
+    np.testing.assert_allclose(pose[:3, :3], expected, atol=1e-12)
+    np.testing.assert_allclose(pose[:3, 3], [1.0, 2.0, 3.0], atol=0)
+    assert np.abs(base_rotation @ Rotation.from_rotvec(delta).as_matrix() - expected).max() > 0.05
 
 
 def test_tracking_recovers_a_perturbed_pose_against_an_exact_map(scene_setup):
