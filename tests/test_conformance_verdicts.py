@@ -154,6 +154,30 @@ def test_a_correct_independent_float64_candidate_passes_every_vector_with_a_wide
 # check-all
 
 
+def test_compare_verdict_maths_by_hand():
+    """The module docstring's definition on a three-time file whose numbers are exact in binary:
+    error = max over times and components of |cand - ref|, scale = max |ref| (the reference's, not
+    the candidate's), pass when error <= atol + rtol * scale (the bound itself passes), scaled =
+    error / scale.  By hand: p_ref = (1, 0, 0), (2, 0, 0), (4, 0, 0), so scale 4; with
+    atol = 2^-10 and rtol = 2^-12 the bound is 2^-10 + 2^-10 = 2^-9."""
+    zeros, identity = np.zeros((3, 3)), np.tile(np.eye(3), (3, 1, 1))
+    reference = {"times": [0.0, 1.0, 2.0], "R": identity, "p": np.outer([1.0, 2.0, 4.0], [1.0, 0.0, 0.0]),
+                 "v": zeros, "a": zeros, "omega_body": zeros, "omegadot_body": zeros}
+    atol, rtol = 2.0**-10, 2.0**-12
+    for offset, ok in ((2.0**-9, True), (2.0**-9 + 2.0**-10, False)):
+        candidate = dict(reference, p=reference["p"] + [[0.0, 0.0, 0.0], [0.0, offset, 0.0], [0.0, 0.0, 0.0]])
+        candidate["p"][2, 0] = 8.0 - offset  # a candidate far off in scale: the scale must stay the reference's
+        report = conformance.compare(reference, candidate, atol=atol, rtol=rtol)
+        row = {row["quantity"]: row for row in report["rows"]}["p"]
+        assert (row["error"], row["scale"], row["bound"], row["scaled"]) == (4.0 - offset, 4.0, 2.0**-9, (4.0 - offset) / 4)
+        candidate["p"][2, 0] = 4.0
+        report = conformance.compare(reference, candidate, atol=atol, rtol=rtol)
+        row = {row["quantity"]: row for row in report["rows"]}["p"]
+        assert (row["error"], row["index"], row["bound"], row["ok"], report["ok"]) == (offset, 1, 2.0**-9, ok, ok)
+        assert row["per_time"].tolist() == [0.0, offset, 0.0]
+    assert conformance.compare(reference, dict(reference), atol=0.0, rtol=0.0)["ok"]  # identical passes at zero tolerance
+
+
 def _user_folder(tmp_path, leave_out=(), break_one=None):
     """FOLDER/<name>.json for every shipped vector (the vector itself as a correct candidate)."""
     folder = tmp_path / "mine"
