@@ -172,6 +172,23 @@ def test_joint_optimization_moves_free_poses_only_and_accumulates(scene_setup):
     assert after < 0.6 * before, (before, after)  # Adam at lr 3e-3 with sample jitter settles near 1 cm
 
 
+def test_joint_optimization_steps_the_poses_only_after_every_full_accumulation(scene_setup):
+    """Co-SLAM's pose_accum_step k: a pose step after iterations k, 2k, ... (1-based), on the summed
+    gradients.  By hand for k = 2: 1 iteration gives no step (the pose stays where it started),
+    5 iterations give 2 steps."""
+    scene, intrinsics, pose, rgb, depth, cfg = scene_setup
+    field = AnalyticField(scene, cfg.render.truncation)
+    start = _perturb(torch.as_tensor(pose, dtype=torch.float32), [0.0, 0.01, 0.0], [0.02, 0.0, 0.0])[None]
+    sources = [(_rays(rgb, depth, intrinsics, 64, seed=12), 64)]
+    for iters, steps in ((1, 0), (5, 2)):
+        model = DiscretePoses(start, torch.tensor([False]), lr_rot=3e-3, lr_trans=3e-3)
+        stats = joint_optimization(field, None, sources, model, RenderLossSettings.from_config(cfg), iters=iters,
+                                   generator=torch.Generator().manual_seed(13), optimise_map=False, pose_accum_step=2)
+        assert stats.pose_steps == steps
+        moved = float((model.poses().detach() - start).abs().max())
+        assert (moved < 1e-6) == (steps == 0), moved  # one Adam step moves a coordinate by ~lr = 3e-3
+
+
 def test_the_dynamics_term_is_added_to_the_ba_loss_and_its_gradients(scene_setup):
     """Eq. (10) = L_NeRF + L_DR.  A zig-zag spline (accelerations of several m/s^2 against a_max =
     5 m/s^2) near the frame's pose, two slots rendered with it; the same ray draws and depth jitter
