@@ -315,6 +315,20 @@ def keyframe_rays(n_keyframes: int, n_rays: int, n_current: int):
     return database, rays(n_current)
 
 
+def test_keyframe_database_slots_are_insertion_positions_and_rays_are_relabelled_by_position():
+    """By hand: three keyframes added get slots 0, 1, 2 (the slot add() returns indexes frame_indices
+    and timestamps); rays([2, 0]) holds keyframe 2's rays as slot 0, then keyframe 0's as slot 1."""
+    database, _ = keyframe_rays(0, 0, 0)
+    stored = [keyframe_rays(1, n, 0)[0].rays() for n in (3, 4, 5)]
+    slots = [database.add(frame, 0.5 * frame, rays) for frame, rays in zip((10, 20, 30), stored)]
+    assert slots == [0, 1, 2] and len(database) == 3
+    assert [database.frame_indices[slot] for slot in slots] == [10, 20, 30]
+    assert [database.timestamps[slot] for slot in slots] == [5.0, 10.0, 15.0]
+    picked = database.rays([2, 0])
+    assert picked.frame_ids.tolist() == [0] * 5 + [1] * 3
+    assert torch.equal(picked.depth, torch.cat([stored[2].depth, stored[0].depth]))
+
+
 def test_global_ba_frees_every_keyframe_but_the_first_and_gives_the_current_frame_its_share(monkeypatch):
     """(Global BA, kept in this file.)  Oracle: Co-SLAM's rules worked by hand for n_rays = 100,
     min_pixels_cur = 10: keyframe 0 fixed, the others free, the current frame (slot K) free iff
