@@ -178,6 +178,26 @@ def test_compare_verdict_maths_by_hand():
     assert conformance.compare(reference, dict(reference), atol=0.0, rtol=0.0)["ok"]  # identical passes at zero tolerance
 
 
+def test_compare_matches_large_times_by_relative_gap_lists_left_out_times_and_places_the_worst_error():
+    """By hand.  Times near 1e9 s one ulp (1.2e-7 s) apart from the reference's match, since the
+    match is relative (4 eps max(1, |t|)); a candidate without the reference's last time gets that
+    time in ``missing``; paper convention, t0 = 0, dt = 0.25: t = 0.8 s lies in segment
+    [t_3, t_4) = [0.75, 1.0) at u = (0.8 - 0.75) / 0.25 = 0.2."""
+    zeros = np.zeros((3, 3))
+    big = {"times": 1e9 + np.array([0.0, 0.5, 1.0]), "R": np.tile(np.eye(3), (3, 1, 1)), "p": zeros, "v": zeros,
+           "a": zeros, "omega_body": zeros, "omegadot_body": zeros}
+    nudged = {key: value[:2] for key, value in big.items()}
+    nudged["times"] = np.nextafter(big["times"][:2], np.inf)
+    report = conformance.compare(big, nudged)
+    assert report["ok"] and report["matched"].tolist() == [0, 1] and report["missing"].tolist() == [1e9 + 1.0]
+    data = {"convention": "paper", "dt": 0.25, "t0": 0.0, "rotvecs": 0.1 * np.arange(18.0).reshape(6, 3) % 0.7,
+            "translations": np.arange(18.0).reshape(6, 3) ** 0.5, "times": [0.6, 0.8, 1.1]}
+    reference = conformance.evaluate_input(data)
+    candidate = dict(reference, p=np.array(reference["p"]) + [[0.0] * 3, [1e-3, 0.0, 0.0], [0.0] * 3])
+    row = {row["quantity"]: row for row in conformance.compare(reference, candidate)["rows"]}["p"]
+    assert (row["index"], row["segment"]) == (1, 3) and row["u"] == pytest.approx(0.2, abs=1e-12)
+
+
 def _user_folder(tmp_path, leave_out=(), break_one=None):
     """FOLDER/<name>.json for every shipped vector (the vector itself as a correct candidate)."""
     folder = tmp_path / "mine"
