@@ -14,8 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from tsslam_ref import config, spline
 from tsslam_ref.analytic import AnalyticField
-from tsslam_ref.bundle import (DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, dynamics_term, iteration_loss,
-                               joint_optimization)
+from tsslam_ref.bundle import (DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, dynamics_term, frozen,
+                               iteration_loss, joint_optimization)
 from tsslam_ref.dynamics import trajectory_dynamics_loss
 from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
 from tsslam_ref.render import RayBatch, frame_rays, sample_pixels
@@ -91,6 +91,16 @@ def test_pose_increment_turns_the_base_rotation_in_the_world_frame():
     np.testing.assert_allclose(pose[:3, :3], expected, atol=1e-12)
     np.testing.assert_allclose(pose[:3, 3], [1.0, 2.0, 3.0], atol=0)
     assert np.abs(base_rotation @ Rotation.from_rotvec(delta).as_matrix() - expected).max() > 0.05
+
+
+def test_frozen_restores_each_parameter_flag_it_found():
+    """By hand: a module with one trainable and one already-frozen parameter; inside ``frozen``
+    neither needs a gradient, afterwards each is back as it was (the frozen one stays frozen)."""
+    module = torch.nn.Linear(2, 2)
+    module.bias.requires_grad_(False)
+    with frozen(module):
+        assert [parameter.requires_grad for parameter in module.parameters()] == [False, False]
+    assert (module.weight.requires_grad, module.bias.requires_grad) == (True, False)
 
 
 def test_tracking_recovers_a_perturbed_pose_against_an_exact_map(scene_setup):
