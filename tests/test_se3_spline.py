@@ -121,15 +121,22 @@ def test_check_names_a_split_candidate_against_a_joint_se3_vector(tmp_path, caps
     assert "p equals the SPLIT" in out and "worst at index" in out
 
 
+def _short_spacing_spline(seed: int):
+    """7 random control points with large rotations at dt = 0.05 s from t0 = 10 s, and 12 query
+    times off the knots: (R (7, 3, 3), P (7, 3), t (12,), dt, t0)."""
+    g = torch.Generator().manual_seed(seed)
+    n, dt, t0 = 7, 0.05, 10.0
+    R = so3_exp(torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.7)
+    P = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    t = t0 + dt * (2 + np.add.outer(np.arange(n - 3), [0.13, 0.5, 0.87]).reshape(-1))
+    return R, P, t, dt, t0
+
+
 def test_se3_a_and_omegadot_are_time_derivatives_at_a_short_knot_spacing():
     """derivatives=2 at Δt = 0.05 s, where d/du and d/dt differ by 20x (a: 400x), with large rotations.
     Oracles: ω̇_body equals the split spline's Eq. (9) recursion (the same rotation curve, another
     formulation) to 1e-11; a equals central differences (h = 1e-5 Δt) of v to 1e-7, both float64."""
-    g = torch.Generator().manual_seed(5)
-    n, dt, t0 = 7, 0.05, 10.0
-    R = so3_exp(torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.7)
-    P = torch.randn(n, 3, generator=g, dtype=torch.float64)
-    t = t0 + dt * (2 + np.add.outer(np.arange(n - 3), [0.13, 0.5, 0.87]).reshape(-1))  # off the knots
+    R, P, t, dt, t0 = _short_spacing_spline(seed=5)
     joint = se3_spline.evaluate(R, P, t, dt, t0, derivatives=2)
     split = spline.evaluate(R, P, t, dt, t0, derivatives=2)
     scale = float(split.omegadot_body.abs().max())
@@ -144,11 +151,7 @@ def test_se3_a_and_omegadot_are_time_derivatives_at_a_short_knot_spacing():
 def test_se3_v_and_omega_are_time_derivatives_at_a_short_knot_spacing():
     """derivatives=1 at Δt = 0.05 s (d/dt = 20 d/du), large rotations.  Oracle: central differences
     (h = 1e-5 Δt) of the pose, v = (p(t+h) − p(t−h))/2h and ω_body = Log(R(t−h)ᵀ R(t+h))/2h, to 1e-7."""
-    g = torch.Generator().manual_seed(6)
-    n, dt, t0 = 7, 0.05, 10.0
-    R = so3_exp(torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.7)
-    P = torch.randn(n, 3, generator=g, dtype=torch.float64)
-    t = t0 + dt * (2 + np.add.outer(np.arange(n - 3), [0.13, 0.5, 0.87]).reshape(-1))  # off the knots
+    R, P, t, dt, t0 = _short_spacing_spline(seed=6)
     sample = se3_spline.evaluate(R, P, t, dt, t0, derivatives=1)
     h = 1e-5 * dt
     plus, minus = se3_spline.evaluate(R, P, t + h, dt, t0), se3_spline.evaluate(R, P, t - h, dt, t0)
