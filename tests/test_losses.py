@@ -199,3 +199,21 @@ def test_smoothness_lattice_geometry_and_constant_features_give_zero():
     with torch.no_grad():
         field.grid.table.fill_(0.3)
     assert smoothness_loss(field, loss_cfg, torch.Generator().manual_seed(0)).item() == pytest.approx(0.0, abs=1e-20)
+
+
+def test_samples_exactly_on_the_band_edges_and_a_depth_exactly_at_the_limit():
+    """Co-SLAM's get_masks: front is z < D - tr, behind is z > D + tr, so both edges z = D -+ tr
+    belong to the band; a depth equal to depth_trunc is invalid for L_d and L_rgb.  Oracle: one ray,
+    D = 1, tr = 0.25, samples 0.5, 0.75, 1.0, 1.25, 1.5 (all exact in binary): 1 front, 3 band, 1
+    behind; the terms written out by hand (SDF 0 everywhere, so the band residual is z - D)."""
+    z = torch.tensor([[0.5, 0.75, 1.0, 1.25, 1.5]], dtype=torch.float64)
+    target_depth = torch.tensor([1.0], dtype=torch.float64)
+    rendered = _rendered(z, torch.zeros_like(z), torch.zeros(1, 3, dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64))
+    loss_cfg = dataclasses.replace(config.synthetic().loss, rgb_missing=0.5)
+    out = reconstruction_losses(rendered, torch.ones(1, 3, dtype=torch.float64), target_depth, loss_cfg, 0.25, 1.0)
+    n_front, n_band = 1, 3
+    assert out["fs"].item() == pytest.approx((0 - 1) ** 2 / 5 * (1 - n_front / 4), rel=1e-12)
+    assert out["sdf"].item() == pytest.approx((0.25**2 + 0 + 0.25**2) / 5 * (1 - n_band / 4), rel=1e-12)
+    assert out["depth"].item() == 0.0  # D = depth_trunc: invalid
+    assert out["rgb"].item() == pytest.approx(0.5**2, rel=1e-12)  # rgb_missing applies
+
