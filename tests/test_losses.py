@@ -217,3 +217,17 @@ def test_samples_exactly_on_the_band_edges_and_a_depth_exactly_at_the_limit():
     assert out["depth"].item() == 0.0  # D = depth_trunc: invalid
     assert out["rgb"].item() == pytest.approx(0.5**2, rel=1e-12)  # rgb_missing applies
 
+
+def test_a_lattice_that_just_fits_the_bound_stays_inside_its_margins():
+    """Co-SLAM's offset o = m + U (E - (n-1) v - 2m): with E = (n-1) v + 2m per axis o = m for
+    every draw, so the lattice starts within one voxel of bound_min + m (only delta in [0, 1)
+    moves it) and ends inside bound_max - m.  Oracle: this arithmetic, for several seeds."""
+    n, v, m = 6, 0.1, 0.05
+    extent = (n - 1) * v + 2 * m  # 0.6 m per axis
+    bound = torch.tensor([[0.0, extent], [1.0, 1.0 + extent], [-1.0, -1.0 + extent]], dtype=torch.float64)
+    loss_cfg = dataclasses.replace(config.synthetic().loss, smooth_pts=n, smooth_vox=v, smooth_margin=m)
+    for seed in range(6):
+        points = smoothness_lattice(bound, loss_cfg, torch.Generator().manual_seed(seed)).reshape(-1, 3)
+        start = points.min(0).values - (bound[:, 0] + m)  # = delta v per axis
+        assert bool((start >= -1e-12).all() and (start < v).all()), (seed, start)
+        assert bool((points.max(0).values <= bound[:, 1] - m + 1e-12).all()), seed
