@@ -142,3 +142,20 @@ def test_a_grid_too_large_is_refused_before_any_memory_is_taken():
     field.bound = torch.tensor([[0.0, 82.0], [0.0, 62.0], [0.0, 67.0]], dtype=torch.float64)  # a depth scale 10x off
     with pytest.raises(ValueError, match=r"82.0 x 62.0 x 67.0 m bound at voxel_size 0.03 m needs 1.26e\+10 grid points"):
         extract_mesh(field, voxel_size=0.03, color=False)
+
+
+def test_a_corner_at_exactly_the_cutoff_or_far_on_the_upper_side_skips_the_cell():
+    """The cutoff is strict (|s| < cutoff keeps a corner, |s| = cutoff does not), and all 8
+    corners count, the upper ones on every axis too.  Oracle: step fields whose only crossing
+    cell (0.4-0.5 along one axis) has corners -1 below and +3 (or -10 with +1 below) above."""
+    def steps(values, axis):  # s = values[0] for coordinate < 0.45 along axis, values[1] beyond
+        return lambda p: torch.where(p[:, axis] < 0.45, torch.tensor(values[0], dtype=p.dtype),
+                                     torch.tensor(values[1], dtype=p.dtype))
+
+    for axis in range(3):
+        for values in ([-1.0, 3.0], [1.0, -10.0]):
+            with pytest.raises(ValueError, match="zero crossing"):
+                extract_mesh(UnitBoxField(steps(values, axis)), voxel_size=0.1, sdf_cutoff=3.0, color=False)
+        kept = extract_mesh(UnitBoxField(steps([-1.0, 2.99], axis)), voxel_size=0.1, sdf_cutoff=3.0, color=False)
+        assert np.allclose(kept.vertices[:, axis], 0.4 + 0.1 / 3.99)  # linear interpolation -1 -> 2.99
+
