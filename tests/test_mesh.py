@@ -159,3 +159,16 @@ def test_a_corner_at_exactly_the_cutoff_or_far_on_the_upper_side_skips_the_cell(
         kept = extract_mesh(UnitBoxField(steps([-1.0, 2.99], axis)), voxel_size=0.1, sdf_cutoff=3.0, color=False)
         assert np.allclose(kept.vertices[:, axis], 0.4 + 0.1 / 3.99)  # linear interpolation -1 -> 2.99
 
+
+def test_the_grid_has_round_extent_over_voxel_cells_spanning_the_bound_exactly():
+    """N = round(extent / voxel + 0.0005) cells per axis, stretched to the bound.  Oracle by hand:
+    a 0.7 m side at 0.1 m is 7 cells (0.7 / 0.1 = 6.9999... in floating point), a 1 m side at
+    0.37 m is round(2.70) = 3 cells of 1/3 m; a plane x = 0.5 then has vertices at x = 0.5 on
+    the (N + 1) x (N + 1) lattice of the other two axes."""
+    field = UnitBoxField(lambda p: (p[:, 0] - 0.5) / 0.1)
+    for side, voxel, n_cells in ((0.7, 0.1, 7), (1.0, 0.37, 3)):
+        field.bound = torch.tensor([[0.0, 1.0], [0.0, side], [0.0, side]], dtype=torch.float64)
+        plane = extract_mesh(field, voxel_size=voxel, color=False)
+        assert np.allclose(plane.vertices[:, 0], 0.5)
+        for axis in (1, 2):
+            np.testing.assert_allclose(np.unique(plane.vertices[:, axis].round(9)), np.linspace(0, side, n_cells + 1))
