@@ -582,6 +582,16 @@ def test_cull_mesh_frustum_and_occlusion():
     np.testing.assert_array_equal(mesh.faces, before[1])
 
 
+def test_depth_l1_valid_mask_never_counts_a_missing_reference():
+    """valid is ANDed with reference > 0: a pixel without reference depth is left out even where
+    valid is True.  Oracle by hand: |2.5 - 2|, |1.5 - 1|, |3.5 - 3| -> 0.5; the missing pixel's 5 m is ignored."""
+    reference = np.array([[0.0, 2.0], [1.0, 3.0]])
+    rendered = np.array([[5.0, 2.5], [1.5, 3.5]])
+    assert ev.depth_l1(rendered, reference, valid=np.ones((2, 2), bool)) == pytest.approx(0.5, abs=1e-12)
+
+
+
+
 # ------------------------------------------------------------------------------------------
 # Command line
 
