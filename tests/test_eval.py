@@ -590,6 +590,14 @@ def test_depth_l1_valid_mask_never_counts_a_missing_reference():
     assert ev.depth_l1(rendered, reference, valid=np.ones((2, 2), bool)) == pytest.approx(0.5, abs=1e-12)
 
 
+def test_zbuffer_skips_a_triangle_with_a_vertex_behind_the_camera():
+    """A triangle crossing the camera plane (one vertex at z = -1) is not rasterised, as documented
+    (no near-plane clipping); projecting its behind vertex would flip it across the image.
+    Oracle: every pixel stays inf (no surface)."""
+    crossing = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [0.0, 1.0, -1.0]])
+    depth = ev.render_depth_zbuffer(crossing, np.array([[0, 1, 2]]), np.eye(4), INTRINSICS)
+    assert np.isinf(depth).all()
+
 
 
 # ------------------------------------------------------------------------------------------
