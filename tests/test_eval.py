@@ -599,6 +599,22 @@ def test_zbuffer_skips_a_triangle_with_a_vertex_behind_the_camera():
     assert np.isinf(depth).all()
 
 
+def test_virtual_cameras_add_observations_but_never_frustum_membership():
+    """Co-SLAM's virtual cameras may reveal a triangle a real camera had in view but occluded;
+    they never add one no real camera had in its frustum.  Oracle: the analytic scene with a
+    virtual camera 3 m to the right: the back plane behind the front quad with 0 <= x <= 0.5 is
+    seen from there (its rays pass x >= 1.6 at z = 2), the back plane beyond x = 3.15 is in no real frustum."""
+    mesh, labels = _scene()
+    x, y = mesh.vertices[mesh.faces][..., 0], mesh.vertices[mesh.faces][..., 1]
+    back = labels == 1
+    virtual = np.eye(4)
+    virtual[0, 3] = 3.0
+    kept = _kept(mesh, ev.cull_mesh(mesh, np.eye(4)[None], INTRINSICS, virtual_poses_c2w=virtual[None]))
+    revealed = back & ((x >= 0.0) & (x <= 0.5) & (np.abs(y) <= 0.3)).all(1)
+    outside = back & ((x > 3.2) | (np.abs(y) > 2.4)).all(1)
+    assert revealed.sum() > 5 and kept[revealed].all()
+    assert outside.sum() > 20 and not kept[outside].any()
+
 
 # ------------------------------------------------------------------------------------------
 # Command line
