@@ -105,3 +105,27 @@ def test_a_cuda_device_number_the_machine_lacks_is_refused_naming_it(monkeypatch
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ValueError, match=r"device 'cuda:1' was asked for but torch.cuda.is_available\(\) is False"):
         device_module.resolve_device("cuda:1")
+
+
+def test_a_frame_on_the_device_keeps_its_dtype_shape_pixel_order_and_sampling_border():
+    """frame_to_device on a 5 x 7 frame whose pixels encode (row, col): depth = 1 + row + col / 100.
+    Oracle by hand: height 5, width 7, float64 throughout, all_rays in row-major order with
+    d = ((col - cx) / fx, (row - cy) / fy, 1), sampled rays at least ignore_edge = 2 px from the border."""
+    from tsslam_ref.datasets.intrinsics import Intrinsics
+
+    rows, cols = np.meshgrid(np.arange(5), np.arange(7), indexing="ij")
+    depth = (1 + rows + cols / 100).astype(np.float32)
+    rgb = np.stack([rows / 10, cols / 100, np.zeros_like(depth)], -1).astype(np.float32)
+    intrinsics = Intrinsics(fx=10.0, fy=20.0, cx=3.0, cy=2.0, width=7, height=5)
+    frame = data.Frame(index=3, timestamp=0.5, rgb=rgb, depth=depth, intrinsics=intrinsics, pose_c2w=None)
+    on_device = device_module.frame_to_device(frame, torch.device("cpu"), torch.float64)
+    assert (on_device.height, on_device.width) == (5, 7)
+    assert on_device.rgb.dtype == on_device.depth.dtype == torch.float64
+    rays = on_device.all_rays()
+    expected_dirs = np.stack([(cols - 3.0) / 10.0, (rows - 2.0) / 20.0, np.ones_like(depth)], -1).reshape(-1, 3)
+    np.testing.assert_allclose(rays.directions_cam.numpy(), expected_dirs, atol=1e-12)
+    np.testing.assert_array_equal(rays.depth.numpy(), depth.reshape(-1).astype(np.float64))
+    sampled = on_device.sampled_rays(3, torch.Generator().manual_seed(0), ignore_edge=2)
+    sampled_rows = np.round(sampled.rgb[:, 0].numpy() * 10)
+    sampled_cols = np.round(sampled.rgb[:, 1].numpy() * 100)
+    assert set(sampled_rows) == {2.0} and set(sampled_cols) <= {2.0, 3.0, 4.0}  # the 1 x 3 inner pixels
