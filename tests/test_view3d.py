@@ -73,6 +73,16 @@ def test_camera_frusta_trace_draws_apex_corners_and_every_nth_camera():
     assert trace.mode == "lines" and sum(v is None for v in trace.x) == 3  # one piece per camera
 
 
+def test_frustum_roof_sits_above_the_image_top_edge():
+    """Oracle by hand: identity pose, K = diag(100, 100, 1) with (cx, cy) = (49.5, 39.5), a
+    100 x 80 image, depth 1: the top corners are at y = (-0.5 - 39.5) / 100 = -0.4, their midpoint
+    at (0, -0.4, 1), and the roof 0.25 m further towards -y (up in OpenCV axes): (0, -0.65, 1)."""
+    intrinsics = np.array([[100.0, 0.0, 49.5], [0.0, 100.0, 39.5], [0.0, 0.0, 1.0]])
+    trace = view3d.camera_frusta(np.eye(4)[None], intrinsics, (100, 80), depth=1.0)
+    roof = [trace[a][9] for a in "xyz"]  # apex, c0, c1, apex, c2, c3, apex, c3, c0, roof, ...
+    np.testing.assert_allclose(roof, [0.0, -0.65, 1.0], atol=1e-9)
+
+
 def test_trajectory_holds_the_positions_from_positions_or_poses():
     poses = random_poses(10, seed=3)
     from_poses = view3d.trajectory(poses, name="estimate", color="red")
