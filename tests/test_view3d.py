@@ -118,6 +118,12 @@ def test_mesh_faces_and_colours_are_the_inputs():
     assert list(trace.vertexcolor) == ["rgb(255,0,0)", "rgb(0,255,0)", "rgb(0,0,255)", "rgb(255,255,255)"]
 
 
+def test_trajectory_marks_its_first_position():
+    """Oracle: the start marker (size 6) is on the first of the given positions, the others size 0."""
+    trace = view3d.trajectory(np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]))
+    assert list(trace.marker.size) == [6, 0, 0] and trace.mode == "lines+markers"
+
+
 def test_scene_has_equal_axes_in_metres():
     figure = view3d.scene(view3d.trajectory(random_poses(3)), title="path")
     assert figure.layout.scene.aspectmode == "data"
