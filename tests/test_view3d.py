@@ -124,6 +124,15 @@ def test_trajectory_marks_its_first_position():
     assert list(trace.marker.size) == [6, 0, 0] and trace.mode == "lines+markers"
 
 
+@pytest.mark.parametrize("view,eye", [((90.0, 0.0), (0.0, 0.0, 2.0)), ((0.0, 90.0), (0.0, 2.0, 0.0)),
+                                      ((30.0, 0.0), (3**0.5, 0.0, 1.0))])
+def test_scene_view_puts_the_eye_at_elevation_and_azimuth(view, eye):
+    """Oracle by hand: the eye sits 2 units from the centre at the given (elevation, azimuth), z up:
+    straight above for elevation 90, on +y for azimuth 90, (2 cos 30, 0, 2 sin 30) for (30, 0)."""
+    camera = view3d.scene(view3d.trajectory(random_poses(3)), view=view).layout.scene.camera
+    np.testing.assert_allclose([camera.eye.x, camera.eye.y, camera.eye.z], eye, atol=1e-4)
+
+
 def test_scene_has_equal_axes_in_metres():
     figure = view3d.scene(view3d.trajectory(random_poses(3)), title="path")
     assert figure.layout.scene.aspectmode == "data"
