@@ -685,6 +685,21 @@ def test_cli_interpolate_uses_the_given_max_diff(tmp_path, capsys):
     assert ev.main(arguments + ["--max-diff", "0.03"]) == 2
 
 
+def test_cli_delta_sets_the_rpe_interval(tmp_path, capsys):
+    """Oracle by hand: identity rotations and an estimate that drifts 1 cm per frame along x, so
+    every pair (i, i + delta) has a relative translation error of exactly delta cm: RPE RMSE 0.01 m
+    with the default --delta 1, 0.03 m with --delta 3, and no rotation error."""
+    times = 2.0 + 0.1 * np.arange(20)
+    gt_positions = np.outer(np.arange(20), [0.05, 0.02, 0.0])
+    _write_tum(tmp_path / "gt.txt", times, _poses_at(gt_positions))
+    _write_tum(tmp_path / "est.txt", times, _poses_at(gt_positions + np.outer(np.arange(20), [0.01, 0.0, 0.0])))
+    arguments = ["trajectory", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--json"]
+    for extra, expected in (([], 0.01), (["--delta", "3"], 0.03)):
+        assert ev.main(arguments + extra) == 0
+        printed = json.loads(capsys.readouterr().out)
+        assert printed["rpe_trans_rmse_m"] == pytest.approx(expected, abs=1e-8) and printed["rpe_rot_rmse_deg"] < 1e-6
+
+
 def test_cli_mesh(tmp_path, capsys):
     trimesh.creation.icosphere(subdivisions=3, radius=1.0).export(tmp_path / "gt.ply")
     trimesh.creation.icosphere(subdivisions=3, radius=1.02).export(tmp_path / "rec.ply")
