@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref.export import export_continuous, export_times
+from tsslam_ref.export import coslam_output_poses, export_continuous, export_times, spline_output_poses
 from tsslam_ref.trajectory import BSplineTrajectory
 
 STAMP = 1520530328.18968  # a TUM RGB-D timestamp (s): float64 resolves about 2.4e-7 s here
@@ -62,6 +62,16 @@ def test_a_state_whose_spline_stops_before_its_last_frame_is_refused(tmp_path):
     with pytest.raises(ValueError, match="last processed frame is at 100.800000 s.*finish"):
         export_continuous(state, 10.0, tmp_path / "export.txt")
     assert not (tmp_path / "export.txt").exists()
+
+
+def test_a_last_frame_on_the_half_open_end_of_the_spline_is_refused(tmp_path):
+    """The domain [100.0, 100.75) leaves out its end: a last frame at exactly 100.75 s is not covered
+    yet, so the export refuses rather than stopping one sample short of it."""
+    trajectory = BSplineTrajectory(torch.eye(3, dtype=torch.float64).repeat(6, 1, 1),
+                                   torch.zeros(6, 3, dtype=torch.float64), 0.25, 100.0 - 0.5)
+    state = SimpleNamespace(trajectory=trajectory, timestamps=np.array([100.0, 100.5, 100.75]), done=3)
+    with pytest.raises(ValueError, match="last processed frame is at 100.750000 s"):
+        export_continuous(state, 10.0, tmp_path / "export.txt")
 
 
 def test_quaternions_of_a_turn_through_180_degrees_stay_in_one_hemisphere(tmp_path):
