@@ -74,6 +74,22 @@ def test_a_last_frame_on_the_half_open_end_of_the_spline_is_refused(tmp_path):
         export_continuous(state, 10.0, tmp_path / "export.txt")
 
 
+def test_coslam_output_re_anchors_each_frame_on_its_moved_keyframe():
+    """Oracle by hand: keyframe 0 was tracked at the identity and frame 1 at x = 1 m, so frame 1's
+    relative pose is T_1 T_0^-1 = [I | (1, 0, 0)]; global BA then turns keyframe 0 by 90 degrees
+    about z.  Co-SLAM reports T_1 = relative @ T_0' = [Rz(90) | (1, 0, 0)] (not T_0' @ relative,
+    which would put frame 1 at (0, 1, 0))."""
+    turned = np.eye(4)
+    turned[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    relative = np.eye(4)
+    relative[0, 3] = 1.0
+    state = SimpleNamespace(frame_poses=torch.tensor(np.stack([turned, relative])), done=2,
+                            relative_to_keyframe={1: torch.tensor(relative)}, keyframe_of_frame={1: 0})
+    expected = turned.copy()
+    expected[:3, 3] = [1.0, 0.0, 0.0]
+    np.testing.assert_allclose(coslam_output_poses(state).numpy(), np.stack([turned, expected]), atol=1e-12)
+
+
 def test_quaternions_of_a_turn_through_180_degrees_stay_in_one_hemisphere(tmp_path):
     """A yaw from 150 to 210 degrees crosses qw = 0; forcing qw >= 0 wrote q then about -q on
     neighbouring rows (their linear midpoint was no rotation at all).  Oracles: the rotation each
