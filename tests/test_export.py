@@ -90,6 +90,24 @@ def test_coslam_output_re_anchors_each_frame_on_its_moved_keyframe():
     np.testing.assert_allclose(coslam_output_poses(state).numpy(), np.stack([turned, expected]), atol=1e-12)
 
 
+@pytest.mark.parametrize("use_spline", [True, False])
+def test_spline_output_uses_the_spline_only_where_it_covers_and_is_switched_on(use_spline):
+    """Oracle by hand: control points all at [I | (1, 2, 3)] make the spline that constant pose on
+    its domain [100.0, 100.75); frames at 100.2 and 100.6 s get it, the frame at 100.8 s (past the
+    domain) keeps its own pose, and with local_ba.use_spline off every frame keeps its own pose."""
+    trajectory = BSplineTrajectory(torch.eye(3, dtype=torch.float64).repeat(6, 1, 1),
+                                   torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64).repeat(6, 1), 0.25, 99.5)
+    frame_poses = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    frame_poses[:, :3, 3] = torch.tensor([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [5.0, 5.0, 5.0]])
+    state = SimpleNamespace(trajectory=trajectory, frame_poses=frame_poses, done=3,
+                            timestamps=np.array([100.2, 100.6, 100.8, 101.0]),
+                            cfg=SimpleNamespace(local_ba=SimpleNamespace(use_spline=use_spline)))
+    expected = frame_poses[:3].clone()
+    if use_spline:
+        expected[:2, :3, 3] = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    torch.testing.assert_close(spline_output_poses(state), expected, rtol=0, atol=1e-12)
+
+
 def test_quaternions_of_a_turn_through_180_degrees_stay_in_one_hemisphere(tmp_path):
     """A yaw from 150 to 210 degrees crosses qw = 0; forcing qw >= 0 wrote q then about -q on
     neighbouring rows (their linear midpoint was no rotation at all).  Oracles: the rotation each
