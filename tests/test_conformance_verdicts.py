@@ -247,6 +247,18 @@ def test_check_all_allow_missing_is_a_partial_check_that_still_counts_them(tmp_p
     assert code == 1 and lines[-1].startswith(f"FAIL: {total - 2} of {total} shipped vectors passed, 1 failed"), lines
 
 
+def test_check_all_counts_a_malformed_candidate_as_a_failure(tmp_path, capsys):
+    """The documented exit codes: a candidate that is no JSON object fails check-all (exit 1) with
+    every other vector passing, with or without --allow-missing, and the last line counts it."""
+    folder = _user_folder(tmp_path)
+    (folder / "basalt_dt1_large_rot.json").write_text("[1, 2]")
+    total = len(VECTOR_PATHS)
+    for extra in ((), ("--allow-missing",)):
+        code, lines, _ = _check_all(capsys, folder, *extra)
+        assert code == 1 and lines[-1] == (f"FAIL: {total - 1} of {total} shipped vectors passed, 0 failed, "
+                                           f"1 malformed, 0 missing"), lines
+
+
 def test_check_all_of_a_folder_without_any_vector_is_bad_input(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     code, _, err = _check_all(capsys, tmp_path / "empty", "--allow-missing")
