@@ -259,6 +259,13 @@ def test_check_all_counts_a_malformed_candidate_as_a_failure(tmp_path, capsys):
                                            f"1 malformed, 0 missing"), lines
 
 
+def test_check_all_refuses_a_negative_tolerance_before_checking_anything(tmp_path, capsys):
+    """The documented exit code 2 for bad input: --atol -1 is refused up front, in one line naming
+    the option and its value, with no vector checked (no '== <name>' block printed)."""
+    code, lines, err = _check_all(capsys, _user_folder(tmp_path), "--atol", "-1")
+    assert code == 2 and lines == [] and "--atol" in err and "-1" in err, (lines, err)
+
+
 def test_check_all_of_a_folder_without_any_vector_is_bad_input(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     code, _, err = _check_all(capsys, tmp_path / "empty", "--allow-missing")
