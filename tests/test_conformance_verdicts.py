@@ -198,6 +198,22 @@ def test_compare_matches_large_times_by_relative_gap_lists_left_out_times_and_pl
     assert (row["index"], row["segment"]) == (1, 3) and row["u"] == pytest.approx(0.2, abs=1e-12)
 
 
+def test_report_lists_every_left_out_time_and_marks_only_more_with_an_ellipsis():
+    """A candidate without the reference's last distinct times: with 3 left out the note names all
+    3 (no '...'); with 4 it names the first 3 and ends them with '...'.  Oracle: the reference's own
+    last distinct times, taken with np.unique."""
+    reference = load(VECTOR_PATHS[1])
+    distinct = np.unique(reference["times"])
+    for left_out, ellipsis in ((3, False), (4, True)):
+        keep = np.asarray(reference["times"]) < distinct[-left_out]
+        candidate = {key: np.asarray(reference[key])[keep] for key in ("times",) + conformance.OUTPUT_KEYS}
+        report = spline_kit.format_report(conformance.compare(reference, candidate))
+        note = next(line for line in report.splitlines() if "leaves out" in line)
+        shown = ", ".join(repr(float(t)) for t in distinct[-left_out:][:3])
+        assert f"leaves out {left_out} reference time(s)" in note and f"(missing: {shown}" in note, note
+        assert (" ...;" in note) == ellipsis, note
+
+
 def _user_folder(tmp_path, leave_out=(), break_one=None):
     """FOLDER/<name>.json for every shipped vector (the vector itself as a correct candidate)."""
     folder = tmp_path / "mine"
