@@ -9,6 +9,7 @@ loop with very few iterations on a 64x48 synthetic sequence) cover --overwrite, 
 and its refusals.
 """
 
+import argparse
 import hashlib
 import json
 import os
@@ -16,13 +17,15 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
-from tsslam_ref import checkpoint, data, files, run, spline_kit
+from tsslam_ref import checkpoint, cli_args, data, files, run, run_outputs, spline_kit
 from tsslam_ref import eval as evaluation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -564,9 +567,6 @@ def test_an_output_folder_that_cannot_be_written_is_one_line_and_exit_2(tmp_path
 
 
 def test_the_closing_line_says_why_there_is_no_ate():
-    from types import SimpleNamespace
-    from tsslam_ref import run_outputs
-
     two_known = np.full((5, 4, 4), np.nan)
     two_known[[0, 3]] = np.eye(4)
     assert run_outputs._why_no_metrics(SimpleNamespace(gt_poses=None)) == "no ground-truth poses, so no ATE / RPE"
@@ -722,10 +722,6 @@ def test_three_frames_with_a_ground_truth_pose_get_an_ate():
     """docs and the closing line say ATE / RPE need 3 frames with a ground-truth pose: with exactly
     3 (frames 0, 2, 4 of 5) metrics.json gets them. Oracle: the estimate is the ground truth moved
     by one rigid motion, so its ATE after alignment is 0, over the 3 known frames."""
-    from types import SimpleNamespace
-    from scipy.spatial.transform import Rotation
-    from tsslam_ref import run_outputs
-
     times = np.arange(5) * 0.1
     gt = np.full((5, 4, 4), np.nan)
     for i, position in zip((0, 2, 4), ([0.0, 0.0, 0.0], [0.3, 0.1, 0.0], [0.2, 0.5, 0.4])):
@@ -742,9 +738,6 @@ def test_three_frames_with_a_ground_truth_pose_get_an_ate():
 def test_number_options_accept_both_closed_ends_of_their_range():
     """The ends written in docs/cli.md: --seed 0 and 2**32 - 1, --checkpoint-every 0,
     --export-rate 1000 are accepted; --export-rate 0 (an open end) is refused."""
-    import argparse
-    from tsslam_ref import cli_args
-
     assert run._seed("0") == 0 and run._seed(str(2**32 - 1)) == 2**32 - 1
     assert run._checkpoint_every("0") == 0 and run._export_rate(str(run.MAX_EXPORT_RATE)) == run.MAX_EXPORT_RATE
     with pytest.raises(argparse.ArgumentTypeError, match=r"--export-rate 0: must be a finite number in \(0, "):

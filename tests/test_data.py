@@ -17,7 +17,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from tsslam_ref import data
 from tsslam_ref.config import DataConfig
-from tsslam_ref.datasets.images import resize_rgb
+from tsslam_ref.datasets.images import output_size, resize_rgb
+from tsslam_ref.datasets.tum_format import associate_nearest, ground_truth_at
 
 FR3 = dict(fx=535.4, fy=539.2, cx=320.1, cy=247.6)
 
@@ -721,8 +722,6 @@ def test_colour_of_16_bits_and_with_alpha_reads_as_rgb_in_0_1(tmp_path):
 def test_resized_height_is_the_nearest_whole_pixel_to_the_aspect_ratio():
     """Replica's 1200x680 at width 160: 680 * 160 / 1200 = 90.67 px -> 91 rows (nearest, not the
     floor 90, which would stretch y by 1 %); after a 10 px crop, 660 * 160 / 1180 = 89.49 -> 89."""
-    from tsslam_ref.datasets.images import output_size
-
     assert output_size(1200, 680, 0, 160) == (160, 91)
     assert output_size(1200, 680, 10, 160) == (160, 89)
 
@@ -756,8 +755,6 @@ def test_colour_of_twice_the_depth_size_is_cropped_on_the_depth_pixels(tmp_path)
 def test_association_ties_go_to_the_earlier_stamp():
     """A colour stamp exactly halfway between two depth stamps (0.5 between 0.25 and 0.75, exact in
     binary) takes the earlier one, as documented; a stamp nearer the later one takes the later one."""
-    from tsslam_ref.datasets.tum_format import associate_nearest
-
     np.testing.assert_array_equal(associate_nearest(np.array([0.5, 0.625]), np.array([0.25, 0.75]), 0.3), [0, 1])
 
 
@@ -765,8 +762,6 @@ def test_ground_truth_rotation_interpolates_along_the_shorter_arc():
     """GT samples at yaw +170 deg and -170 deg (20 deg apart across 180 deg): halfway between, the pose
     is yaw 180 deg, a quarter of the way yaw 175 deg (scipy's Slerp as oracle), not the long way
     round through yaw 0."""
-    from tsslam_ref.datasets.tum_format import ground_truth_at
-
     yaws = Rotation.from_euler("z", [[170.0], [-170.0]], degrees=True)
     poses = np.tile(np.eye(4), (2, 1, 1))
     poses[:, :3, :3] = yaws.as_matrix()
@@ -780,8 +775,6 @@ def test_ground_truth_interpolates_across_a_gap_of_up_to_twice_the_tolerance():
     """GT at 0 s (x = 0 m) and 0.03 s (x = 3 m), tolerance 0.02 s: the gap 0.03 s <= 2 * 0.02 s, so a
     frame at 0.01 s gets the interpolated x = 1 m (by hand), not the nearest sample's 0 m; with
     samples 0.05 s apart it gets the nearest sample's pose."""
-    from tsslam_ref.datasets.tum_format import ground_truth_at
-
     poses = np.tile(np.eye(4), (2, 1, 1))
     poses[1, 0, 3] = 3.0
     np.testing.assert_allclose(ground_truth_at(np.array([0.01]), np.array([0.0, 0.03]), poses, 0.02)[0, 0, 3], 1.0)

@@ -111,12 +111,10 @@ def test_a_frame_on_the_device_keeps_its_dtype_shape_pixel_order_and_sampling_bo
     """frame_to_device on a 5 x 7 frame whose pixels encode (row, col): depth = 1 + row + col / 100.
     Oracle by hand: height 5, width 7, float64 throughout, all_rays in row-major order with
     d = ((col - cx) / fx, (row - cy) / fy, 1), sampled rays at least ignore_edge = 2 px from the border."""
-    from tsslam_ref.datasets.intrinsics import Intrinsics
-
     rows, cols = np.meshgrid(np.arange(5), np.arange(7), indexing="ij")
     depth = (1 + rows + cols / 100).astype(np.float32)
     rgb = np.stack([rows / 10, cols / 100, np.zeros_like(depth)], -1).astype(np.float32)
-    intrinsics = Intrinsics(fx=10.0, fy=20.0, cx=3.0, cy=2.0, width=7, height=5)
+    intrinsics = data.Intrinsics(fx=10.0, fy=20.0, cx=3.0, cy=2.0, width=7, height=5)
     frame = data.Frame(index=3, timestamp=0.5, rgb=rgb, depth=depth, intrinsics=intrinsics, pose_c2w=None)
     on_device = device_module.frame_to_device(frame, torch.device("cpu"), torch.float64)
     assert (on_device.height, on_device.width) == (5, 7)

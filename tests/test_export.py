@@ -9,8 +9,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
+from tsslam_ref import data
 from tsslam_ref.export import coslam_output_poses, export_continuous, export_times, spline_output_poses
+from tsslam_ref.geometry import make_pose
+from tsslam_ref.run_outputs import write_partial_trajectory
 from tsslam_ref.trajectory import BSplineTrajectory
 
 STAMP = 1520530328.18968  # a TUM RGB-D timestamp (s): float64 resolves about 2.4e-7 s here
@@ -112,11 +116,6 @@ def test_quaternions_of_a_turn_through_180_degrees_stay_in_one_hemisphere(tmp_pa
     """A yaw from 150 to 210 degrees crosses qw = 0; forcing qw >= 0 wrote q then about -q on
     neighbouring rows (their linear midpoint was no rotation at all).  Oracles: the rotation each
     row stands for (scipy), and the sign of neighbouring rows' dot products."""
-    from scipy.spatial.transform import Rotation
-
-    from tsslam_ref import data
-    from tsslam_ref.geometry import make_pose
-
     angles = np.radians(np.linspace(150.0, 210.0, 31))
     rotations = Rotation.from_euler("y", angles[:, None]).as_matrix()
     poses = make_pose(torch.as_tensor(rotations), torch.zeros(31, 3, dtype=torch.float64)).numpy()
@@ -148,8 +147,6 @@ def test_exported_columns_follow_a_moving_spline(tmp_path):
     file's 1e-9 rounding adds 1e-9 / h = 4e-7; the tolerance 1e-4 is eight times that.  Swapping two
     position columns (x and y differ by about 1 m) or the v and w blocks (|v| exceeds |w| by 0.3 and
     more on every row) misses by far more."""
-    from scipy.spatial.transform import Rotation
-
     dt, n_ctrl, rate = 0.25, 8, 400.0
     k = torch.arange(n_ctrl, dtype=torch.float64)[:, None]
     offset = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
@@ -181,10 +178,6 @@ def test_the_trajectory_written_during_a_run_has_each_processed_frame_with_its_o
     """run_outputs.write_partial_trajectory after 3 of 5 frames (a Co-SLAM state): 3 lines in the
     TUM format "t tx ty tz qx qy qz qw", each frame's own time stamp and camera-to-world pose.
     Oracle: the poses built here and scipy's (x, y, z, w) quaternions, read back with np.loadtxt."""
-    from scipy.spatial.transform import Rotation
-
-    from tsslam_ref.run_outputs import write_partial_trajectory
-
     rotations = Rotation.from_rotvec([[0.1 * i, -0.2, 0.05 * i] for i in range(5)])
     poses = np.tile(np.eye(4), (5, 1, 1))
     poses[:, :3, :3] = rotations.as_matrix()

@@ -296,14 +296,14 @@ def test_cylinder_sdf_at_points_worked_out_by_hand():
 def test_mesh_faces_wind_towards_free_space():
     """Oracle: each face's normal from its vertex order, (v1 − v0) x (v2 − v0), computed here (what a
     PLY reader sees, not trimesh's cached normals); the SDF grows along it for nearly every face."""
-    mesh = ProceduralRoom().mesh(0.1)
+    scene = ProceduralRoom()
+    mesh = scene.mesh(0.1)
     corners = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]  # (F, 3, 3)
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     areas = np.linalg.norm(normals, axis=-1)
     normals, corners = normals[areas > 1e-12] / areas[areas > 1e-12, None], corners[areas > 1e-12]
     centres = torch.from_numpy(corners.mean(axis=1))
     step = torch.from_numpy(0.02 * normals)
-    scene = ProceduralRoom()
     assert (scene.sdf(centres + step) > scene.sdf(centres - step)).double().mean().item() > 0.9
 
 

@@ -10,8 +10,9 @@ notebooks/00_data_and_cameras.ipynb.
   The SDF is positive in free space: sdf(p) = min(-box_room(p), objects(p)).  Exact for each
   primitive; the min is exact outside all objects (enough for sphere tracing).
 * **Texture.** Albedo = per-primitive base colour x (0.55 + 0.45 w(p)), w in [0, 1] the mean of four
-  sinusoids in 3-D per channel, mapped from [-1, 1], with periods 0.4-2 m: smooth gradients everywhere, view independent, so
-  photometric tracking has signal and colours agree exactly between views.
+  sinusoids in 3-D per channel, mapped from [-1, 1], with periods 0.4-2 m: smooth gradients
+  everywhere, view independent, so photometric tracking has signal and colours agree exactly
+  between views.
 * **Rendering.** Sphere tracing of one ray per pixel centre (pixel centres at integer
   coordinates, OpenCV axes); depth is the camera z of the hit point.
 * **Depth noise** (unless ``clean``), in the spirit of NeuralRGBD's simulated Kinect depth: axial
