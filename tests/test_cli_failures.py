@@ -117,6 +117,7 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--frames", "5:2"], ["--frames '5:2' selects no frames"]),
     (["--set", "spline.dt=1e6"], ["spline.dt = 1000000.0", "(0, 10]"]),
     (["--method", "coslam", "--export-rate", "5"], ["--export-rate needs --method tsslam"]),
+    (["--set", "method=coslam", "--export-rate", "5"], ["--export-rate needs --method tsslam", "coslam"]),
     (["--set", "local_ba.use_spline=false", "--export-rate", "30"],
      ["--export-rate needs the spline", "local_ba.use_spline = false"]),
     (["--set", "spline.knots=adaptive", "--set", "spline.dt_min=0.5", "--set", "spline.dt_max=0.2"],
