@@ -744,3 +744,14 @@ def test_number_options_accept_both_closed_ends_of_their_range():
     with pytest.raises(argparse.ArgumentTypeError, match=r"--export-rate 0: must be a finite number in \(0, "):
         run._export_rate("0")
     assert cli_args.number_in("--fps", 0, 1000, low_open=True)("1000") == 1000.0
+
+
+def test_frames_edges_parse_as_documented():
+    """docs/cli.md: 0 <= START < STOP, STEP >= 1; worked by hand: ':5' is frames 0..4 (an empty START
+    is 0), '3:3' selects nothing, and a negative STOP gets the negative-position message."""
+    assert run.parse_frames(":5") == (0, 5, 1) and run.parse_frames("2:") == (2, None, 1)
+    assert run.parse_frames("1:9:2") == (1, 9, 2)
+    with pytest.raises(run.BadInput, match="'3:3' selects no frames"):
+        run.parse_frames("3:3")
+    with pytest.raises(run.BadInput, match="must be >= 0"):
+        run.parse_frames("0:-3")
