@@ -755,3 +755,15 @@ def test_frames_edges_parse_as_documented():
         run.parse_frames("3:3")
     with pytest.raises(run.BadInput, match="must be >= 0"):
         run.parse_frames("0:-3")
+
+
+def test_command_line_options_reach_the_config_even_at_their_zero_value(tmp_path):
+    """A config file with seed 7: --seed 0 must still give seed 0 (0 is a valid seed, not 'unset');
+    --dataset synthetic names a folder written by `data synthesize`, in the TUM layout (the
+    option's help), so the layout is 'tum'."""
+    config_file = tmp_path / "mine.json"
+    config_file.write_text(json.dumps({"seed": 7}))
+    parse = run.build_parser().parse_args
+    assert run.resolve_config(parse(["--config", str(config_file), "--seed", "0"])).seed == 0
+    assert run.resolve_config(parse(["--config", str(config_file)])).seed == 7
+    assert run.resolve_config(parse(["--dataset", "synthetic", "--data", str(tmp_path)])).data.dataset == "tum"
