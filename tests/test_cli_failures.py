@@ -767,3 +767,14 @@ def test_command_line_options_reach_the_config_even_at_their_zero_value(tmp_path
     assert run.resolve_config(parse(["--config", str(config_file), "--seed", "0"])).seed == 0
     assert run.resolve_config(parse(["--config", str(config_file)])).seed == 7
     assert run.resolve_config(parse(["--dataset", "synthetic", "--data", str(tmp_path)])).data.dataset == "tum"
+
+
+def test_overwrite_removes_exports_by_their_exact_name_and_dangling_links(tmp_path):
+    """Worked by hand from OUTPUT_NAMES: 'trajectory_5hz.txt' is ours (also as a link to nothing),
+    'trajectory_5hz.txt.bak' and 'my_trajectory_5hz.txt' are the user's and stay."""
+    (tmp_path / "trajectory_5hz.txt.bak").write_text("mine")
+    (tmp_path / "my_trajectory_5hz.txt").write_text("mine")
+    (tmp_path / "trajectory_5hz.txt").symlink_to(tmp_path / "gone")
+    assert not run.is_output_name("trajectory_5hz.txt.bak") and run.is_output_name("trajectory_5hz.txt")
+    assert run.remove_previous_outputs(tmp_path) == [tmp_path / "trajectory_5hz.txt"]
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["my_trajectory_5hz.txt", "trajectory_5hz.txt.bak"]
