@@ -778,3 +778,12 @@ def test_overwrite_removes_exports_by_their_exact_name_and_dangling_links(tmp_pa
     assert not run.is_output_name("trajectory_5hz.txt.bak") and run.is_output_name("trajectory_5hz.txt")
     assert run.remove_previous_outputs(tmp_path) == [tmp_path / "trajectory_5hz.txt"]
     assert sorted(path.name for path in tmp_path.iterdir()) == ["my_trajectory_5hz.txt", "trajectory_5hz.txt.bak"]
+
+
+def test_the_default_output_folder_names_the_sequence_and_the_configs_method(tmp_path, monkeypatch):
+    """docs: --out defaults to runs/<sequence>-<method>; with no --method the method is the
+    config's (tum-cpu: tsslam), never the absent option's None."""
+    monkeypatch.chdir(tmp_path)
+    parse = run.build_parser().parse_args
+    assert run.prepare(parse([])).out == Path("runs") / f"{BUNDLED.name}-tsslam"
+    assert run.prepare(parse(["--set", "method=coslam"])).out == Path("runs") / f"{BUNDLED.name}-coslam"
