@@ -787,3 +787,17 @@ def test_the_default_output_folder_names_the_sequence_and_the_configs_method(tmp
     parse = run.build_parser().parse_args
     assert run.prepare(parse([])).out == Path("runs") / f"{BUNDLED.name}-tsslam"
     assert run.prepare(parse(["--set", "method=coslam"])).out == Path("runs") / f"{BUNDLED.name}-coslam"
+
+
+def test_resume_refusal_counts_the_other_differences(tmp_path, monkeypatch, capsys):
+    """A checkpoint whose config differs in seed and tracking.iters (two keys, set by hand here):
+    the message names the first (sorted: seed) and adds '(and 1 more)'."""
+    from tsslam_ref import config as config_module
+    saved = config_module.load("tum-cpu")
+    saved.seed, saved.tracking.iters = 5, saved.tracking.iters + 1
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "checkpoint.pt").write_bytes(b"read through the stand-in below")
+    values = {"config": json.dumps(config_module.to_dict(saved))}
+    monkeypatch.setattr(checkpoint, "read", lambda path: values)
+    refused_in_process(capsys, run.main, ["--out", out, "--resume"], "seed was 5", "(and 1 more)")
