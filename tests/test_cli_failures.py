@@ -801,3 +801,18 @@ def test_resume_refusal_counts_the_other_differences(tmp_path, monkeypatch, caps
     values = {"config": json.dumps(config_module.to_dict(saved))}
     monkeypatch.setattr(checkpoint, "read", lambda path: values)
     refused_in_process(capsys, run.main, ["--out", out, "--resume"], "seed was 5", "(and 1 more)")
+
+
+def test_resume_names_the_first_frame_past_a_shorter_selection(tmp_path, monkeypatch, capsys):
+    """The checkpoint holds frames 0..10 of the bundled slice, this command selects 0..9: the frames
+    agree as far as both go, so by hand the first difference is frame 10 (11 saved, 10 now)."""
+    from tsslam_ref import config as config_module
+    cfg = run.resolve_config(run.build_parser().parse_args(["--frames", "0:10"]))
+    saved = data.load_from_config(run.resolve_config(run.build_parser().parse_args(["--frames", "0:11"])).data)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "checkpoint.pt").write_bytes(b"read through the stand-in below")
+    values = {"config": json.dumps(config_module.to_dict(cfg)), "timestamps": torch.from_numpy(saved.timestamps)}
+    monkeypatch.setattr(checkpoint, "read", lambda path: values)
+    refused_in_process(capsys, run.main, ["--frames", "0:10", "--out", out, "--resume"],
+                       "11 frames saved, 10 now; the first difference at frame 10")
