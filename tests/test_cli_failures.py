@@ -26,6 +26,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from tsslam_ref import checkpoint, cli_args, data, files, run, run_outputs, spline_kit
+from tsslam_ref import config as config_module
 from tsslam_ref import eval as evaluation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -792,7 +793,6 @@ def test_the_default_output_folder_names_the_sequence_and_the_configs_method(tmp
 def test_resume_refusal_counts_the_other_differences(tmp_path, monkeypatch, capsys):
     """A checkpoint whose config differs in seed and tracking.iters (two keys, set by hand here):
     the message names the first (sorted: seed) and adds '(and 1 more)'."""
-    from tsslam_ref import config as config_module
     saved = config_module.load("tum-cpu")
     saved.seed, saved.tracking.iters = 5, saved.tracking.iters + 1
     out = tmp_path / "out"
@@ -806,7 +806,6 @@ def test_resume_refusal_counts_the_other_differences(tmp_path, monkeypatch, caps
 def test_resume_names_the_first_frame_past_a_shorter_selection(tmp_path, monkeypatch, capsys):
     """The checkpoint holds frames 0..10 of the bundled slice, this command selects 0..9: the frames
     agree as far as both go, so by hand the first difference is frame 10 (11 saved, 10 now)."""
-    from tsslam_ref import config as config_module
     cfg = run.resolve_config(run.build_parser().parse_args(["--frames", "0:10"]))
     saved = data.load_from_config(run.resolve_config(run.build_parser().parse_args(["--frames", "0:11"])).data)
     out = tmp_path / "out"
