@@ -479,3 +479,20 @@ def test_parallel_ctrl_c_while_joining_waits_for_the_mapping_thread(synthetic_se
     with pytest.raises(KeyboardInterrupt):
         parallel.run_slam_in_two_threads(sequence, cfg, device=torch.device("cpu"))
     assert interrupts and not interrupts[0].is_alive()
+
+
+def two_thread_state(n_frames: int = 20) -> slam.SLAMState:
+    """A SLAMState holding only what parallel.py reads: (N, 4, 4) identity poses, a small module for
+    the map, no rays yet; frame 0 done."""
+    return slam.SLAMState(cfg=small_config("tsslam"), field=torch.nn.Linear(2, 1), map_optimizer=None, keyframes=None,
+                          timestamps=np.arange(n_frames) / 30.0, frame_poses=torch.eye(4).repeat(n_frames, 1, 1),
+                          done=1)
+
+
+def test_parallel_coslam_lead_is_map_every_frames():
+    """Oracle (docs/system.md): Co-SLAM's mapping period is ``map_every`` frames, at least one."""
+    state = two_thread_state()
+    state.cfg.method = "coslam"
+    for map_every, expected in ((5, 5), (1, 1), (0, 1)):
+        state.cfg.mapping.map_every = map_every
+        assert parallel.tracking_lag(state) == expected
