@@ -496,3 +496,24 @@ def test_parallel_coslam_lead_is_map_every_frames():
     for map_every, expected in ((5, 5), (1, 1), (0, 1)):
         state.cfg.mapping.map_every = map_every
         assert parallel.tracking_lag(state) == expected
+
+
+def test_parallel_commit_copies_the_mapped_frames_and_keeps_what_tracking_wrote_since():
+    """Mapping works on a view taken at frame 2 while tracking goes on with frame 3.  Oracle, by
+    hand: rows 0-2 of the pose table and the rays mapping dropped (frames 0 and 2) come from the
+    view; row 3 and the rays of frames 3-4 are tracking's; spline, interval count and ``done = 3``
+    come from the mapping step."""
+    state = two_thread_state()
+    state.window_rays = {0: "rays 0", 1: "rays 1", 2: "rays 2", 3: "rays 3"}
+    view = parallel.mapping_view(state, 2)
+    assert sorted(view.window_rays) == [0, 1, 2] and view.frame_poses is not state.frame_poses
+    state.frame_poses[3, 0, 3] = 30.0  # tracking writes frame 3 and its rays after the view was taken
+    state.window_rays[4] = "rays 4"
+    view.frame_poses[:4, 0, 3] = torch.tensor([1.0, 2.0, 3.0, -1.0])  # mapping moves frames 0-2 (and a stale 3)
+    del view.window_rays[0], view.window_rays[2]
+    view.trajectory, view.intervals_done = "spline of the view", 4
+    assert state.frame_poses[:3, 0, 3].tolist() == [0.0, 0.0, 0.0]  # nothing reaches the shared table before the commit
+    parallel.commit(state, view, 2)
+    assert state.frame_poses[:5, 0, 3].tolist() == [1.0, 2.0, 3.0, 30.0, 0.0]
+    assert sorted(state.window_rays) == [1, 3, 4]
+    assert (state.trajectory, state.intervals_done, state.done) == ("spline of the view", 4, 3)
