@@ -517,3 +517,43 @@ def test_parallel_commit_copies_the_mapped_frames_and_keeps_what_tracking_wrote_
     assert state.frame_poses[:5, 0, 3].tolist() == [1.0, 2.0, 3.0, 30.0, 0.0]
     assert sorted(state.window_rays) == [1, 3, 4]
     assert (state.trajectory, state.intervals_done, state.done) == ("spline of the view", 4, 3)
+
+
+def test_parallel_mapping_publishes_a_copy_of_the_map_after_each_step_that_changed_it(monkeypatch):
+    """map_one_frame with a stand-in mapping step: frame 1 only keyframes, frame 2 runs a TS-SLAM map
+    update, frame 3 a global BA.  Oracle: the snapshot tracking reads is replaced after frames 2 and
+    3 only, by a copy holding the weights of that moment (later in-place changes of the map do not
+    reach it); the view is taken and committed, and ``on_frame`` called, under the lock, the mapping
+    step runs without it."""
+    import threading
+    from types import SimpleNamespace
+
+    state = two_thread_state()
+    lock = threading.Lock()
+    progress = threading.Condition(lock)
+    snapshot = {"field": "map of frame 0"}
+    held = []
+    steps = {1: None, 2: "map_update", 3: "global_ba"}
+
+    def mapping_step(view, frame):
+        held.append(("mapping", lock.locked()))
+        if steps[frame.index] is not None:
+            view.timings.add(steps[frame.index], 0.0, 1)
+            with torch.no_grad():
+                view.field.weight.fill_(float(frame.index))
+
+    commit, mapping_view = parallel.commit, parallel.mapping_view
+    monkeypatch.setattr(slam, "after_tracking", mapping_step)
+    monkeypatch.setattr(parallel, "mapping_view", lambda *args: held.append(("view", lock.locked())) or mapping_view(*args))
+    monkeypatch.setattr(parallel, "commit", lambda *args: held.append(("commit", lock.locked())) or commit(*args))
+    published = []
+    for i in (1, 2, 3):
+        parallel.map_one_frame(state, SimpleNamespace(index=i), progress, snapshot,
+                               on_frame=lambda state: held.append(("on_frame", lock.locked())))
+        field = snapshot["field"]
+        published.append(field if isinstance(field, str) else field.weight.flatten().tolist())
+        with torch.no_grad():
+            state.field.weight.fill_(-1.0)  # the next step changes the map in place
+    assert published == ["map of frame 0", [2.0, 2.0], [3.0, 3.0]] and snapshot["field"] is not state.field
+    assert held == [("view", True), ("mapping", False), ("commit", True), ("on_frame", True)] * 3
+    assert state.done == 4
