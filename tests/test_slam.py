@@ -557,3 +557,42 @@ def test_parallel_mapping_publishes_a_copy_of_the_map_after_each_step_that_chang
     assert published == ["map of frame 0", [2.0, 2.0], [3.0, 3.0]] and snapshot["field"] is not state.field
     assert held == [("view", True), ("mapping", False), ("commit", True), ("on_frame", True)] * 3
     assert state.done == 4
+
+
+def run_two_threads_with_stand_ins(monkeypatch, mapping_step, tracked, lag=2, n_frames=12, tracking_step=None):
+    """run_tracking_and_mapping over frames 1.. of a hand-built state, with tracking replaced by
+    ``tracking_step(frame)`` (if given) and a recorder appending (frame, state.done, map tracked
+    against) to ``tracked``, and mapping by ``mapping_step(frame)``."""
+    from types import SimpleNamespace
+
+    state = two_thread_state(n_frames)
+
+    def track(state, frame, field_model=None, lock=None):
+        if tracking_step is not None:
+            tracking_step(frame)
+        tracked.append((frame.index, state.done, field_model))
+
+    monkeypatch.setattr(parallel, "tracking_lag", lambda state: lag)
+    monkeypatch.setattr(parallel, "frame_to_device", lambda frame, device, dtype: frame)
+    monkeypatch.setattr(slam, "track", track)
+    monkeypatch.setattr(slam, "after_tracking", lambda view, frame: mapping_step(frame))
+    sequence = [SimpleNamespace(index=i, timestamp=i / 30.0) for i in range(n_frames)]
+    try:
+        parallel.run_tracking_and_mapping(sequence, state, torch.device("cpu"), torch.float32)
+    finally:
+        monkeypatch.undo()
+    return state
+
+
+def test_parallel_tracking_runs_ahead_by_exactly_the_lag_against_the_published_copy(monkeypatch):
+    """Mapping (20 ms a frame) is slower than tracking (instant), so tracking waits at the bound.
+    Oracle (docs/system.md): frame i is tracked only once ``state.done >= i - lag`` (lag 2 here),
+    the bound is reached, and it is tracked against the snapshot, a copy, never the live map."""
+    import time
+
+    tracked = []
+    state = run_two_threads_with_stand_ins(monkeypatch, lambda frame: time.sleep(0.02), tracked)
+    assert [i for i, _, _ in tracked] == list(range(1, 12)) and state.done == 12
+    leads = [i - done for i, done, _ in tracked]
+    assert max(leads) == 2, leads
+    assert all(isinstance(model, torch.nn.Linear) and model is not state.field for _, _, model in tracked)
