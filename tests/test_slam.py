@@ -596,3 +596,17 @@ def test_parallel_tracking_runs_ahead_by_exactly_the_lag_against_the_published_c
     leads = [i - done for i, done, _ in tracked]
     assert max(leads) == 2, leads
     assert all(isinstance(model, torch.nn.Linear) and model is not state.field for _, _, model in tracked)
+
+
+def test_parallel_mapping_failure_stops_tracking_and_reaches_the_caller(monkeypatch):
+    """The mapping step fails at frame 3.  Oracle: the error is raised in the caller, and tracking
+    stopped: with lag 1 and frames 0-2 committed (done = 3) it can have tracked frame 4 at most."""
+    tracked = []
+
+    def mapping_step(frame):
+        if frame.index == 3:
+            raise RuntimeError("mapping failed at frame 3")
+
+    with pytest.raises(RuntimeError, match="mapping failed at frame 3"):
+        run_two_threads_with_stand_ins(monkeypatch, mapping_step, tracked, lag=1)
+    assert tracked and max(i for i, _, _ in tracked) <= 4, tracked
