@@ -610,3 +610,29 @@ def test_parallel_mapping_failure_stops_tracking_and_reaches_the_caller(monkeypa
     with pytest.raises(RuntimeError, match="mapping failed at frame 3"):
         run_two_threads_with_stand_ins(monkeypatch, mapping_step, tracked, lag=1)
     assert tracked and max(i for i, _, _ in tracked) <= 4, tracked
+
+
+def test_parallel_ctrl_c_in_tracking_drops_the_queued_mapping_steps(monkeypatch):
+    """Ctrl-C while tracking frame 4, with frames 2-3 queued behind the mapping step of frame 1.
+    Oracle (docs/system.md): the step under way (frame 1) finishes, the queued ones are dropped."""
+    import threading
+    import time
+
+    started, interrupted, mapped = threading.Event(), threading.Event(), []
+
+    def mapping_step(frame):
+        if frame.index == 1:
+            started.set()
+            interrupted.wait(timeout=10)
+            time.sleep(0.1)  # the main thread handles its KeyboardInterrupt meanwhile
+        mapped.append(frame.index)
+
+    def tracking_step(frame):
+        if frame.index == 4:
+            started.wait(timeout=10)
+            interrupted.set()
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_two_threads_with_stand_ins(monkeypatch, mapping_step, [], lag=10, tracking_step=tracking_step)
+    assert mapped == [1]
