@@ -636,3 +636,26 @@ def test_parallel_ctrl_c_in_tracking_drops_the_queued_mapping_steps(monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         run_two_threads_with_stand_ins(monkeypatch, mapping_step, [], lag=10, tracking_step=tracking_step)
     assert mapped == [1]
+
+
+def test_parallel_join_keeps_waiting_through_ctrl_c_then_raises_it():
+    """A stand-in worker whose first join is cut by Ctrl-C and which ends at its second.  Oracle
+    (docs/system.md): the wait goes on until the worker has ended, the stop flag is set (queued
+    steps dropped), and the KeyboardInterrupt is raised afterwards."""
+    import threading
+
+    class Worker:
+        joins = 0
+
+        def is_alive(self):
+            return self.joins < 2
+
+        def join(self):
+            self.joins += 1
+            if self.joins == 1:
+                raise KeyboardInterrupt
+
+    worker, stop = Worker(), threading.Event()
+    with pytest.raises(KeyboardInterrupt):
+        parallel.join_through_interrupts(worker, stop)
+    assert worker.joins == 2 and stop.is_set()
