@@ -10,6 +10,9 @@ import json
 import os
 import subprocess
 import sys
+import threading
+import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -143,8 +146,6 @@ def test_without_local_ba_the_run_ends_cleanly(synthetic_sequence):
 
 def test_a_spline_that_leaves_tracking_stops_the_run_with_a_message():
     """check_spline_follows_tracking: the 'w/o LBA' failure path, on a spline displaced by 0.5 m."""
-    from types import SimpleNamespace
-
     from tsslam_ref import local_ba
     from tsslam_ref.trajectory import BSplineTrajectory
 
@@ -167,8 +168,6 @@ def test_tsslam_motion_prediction_measures_motion_between_tracking_outputs_not_s
     which the constant-velocity prediction of frame 3 is exactly M T_2.  Frame 1's stored pose is
     then replaced, as a spline pose replaces it when an interval ends: Co-SLAM's rule measures the
     motion between the stored poses and is thrown off; TS-SLAM's uses the tracking outputs."""
-    from types import SimpleNamespace
-
     from tsslam_ref.geometry import make_pose, so3_exp
 
     motion = make_pose(so3_exp(torch.tensor([0.0, 0.02, 0.01], dtype=torch.float64)),
@@ -371,8 +370,6 @@ def test_global_ba_names_a_fixed_mask_of_the_wrong_length():
 
 def test_parallel_tracking_lead_is_one_interval_of_the_trajectory_being_tracked():
     """Oracle: frames per interval counted by hand at 30 Hz (uniform 0.3 s: 9; a planned 0.1 s: 3)."""
-    from types import SimpleNamespace
-
     from tsslam_ref.trajectory import BSplineTrajectory
 
     timestamps = np.arange(30) / 30.0
@@ -395,8 +392,6 @@ def test_parallel_tracking_rereads_its_lead_while_mapping_runs(synthetic_sequenc
     is tracked, then none; from frame 6 on, each frame must wait until mapping has committed the
     frame before it (``state.done >= i`` when it is tracked).  Mapping is slowed by a sleep so
     that a lead read once, at the start, would run ahead of it."""
-    import time
-
     cfg = small_config("tsslam")
     cfg.parallel = True
     sequence = data.load_sequence(synthetic_sequence)
@@ -425,8 +420,6 @@ def test_parallel_tracking_rereads_its_lead_while_mapping_runs(synthetic_sequenc
 def test_a_non_finite_mapping_loss_ends_the_run_as_a_tracking_failure(monkeypatch):
     """bundle.joint_optimization raises FloatingPointError on a NaN loss; the loop must turn it into
     TrackingFailure (the benchmark and the command line handle that) naming the frame."""
-    from types import SimpleNamespace
-
     def diverge(state, frame):
         raise FloatingPointError("joint optimisation loss is not finite at iteration 0")
 
@@ -455,9 +448,6 @@ def test_parallel_ctrl_c_while_joining_waits_for_the_mapping_thread(synthetic_se
     """Ctrl-C while the main thread waits for the mapping thread used to leave that thread running
     inside PyTorch while Python exited (an abort, exit 134) or wrote the outputs.  Oracle: when the
     KeyboardInterrupt reaches the caller, the mapping thread has ended."""
-    import threading
-    import time
-
     cfg = small_config("tsslam")
     cfg.parallel = True
     sequence = data.load_sequence(synthetic_sequence, frame_stop=5)
@@ -525,9 +515,6 @@ def test_parallel_mapping_publishes_a_copy_of_the_map_after_each_step_that_chang
     3 only, by a copy holding the weights of that moment (later in-place changes of the map do not
     reach it); the view is taken and committed, and ``on_frame`` called, under the lock, the mapping
     step runs without it."""
-    import threading
-    from types import SimpleNamespace
-
     state = two_thread_state()
     lock = threading.Lock()
     progress = threading.Condition(lock)
@@ -563,8 +550,6 @@ def run_two_threads_with_stand_ins(monkeypatch, mapping_step, tracked, lag=2, n_
     """run_tracking_and_mapping over frames 1.. of a hand-built state, with tracking replaced by
     ``tracking_step(frame)`` (if given) and a recorder appending (frame, state.done, map tracked
     against) to ``tracked``, and mapping by ``mapping_step(frame)``."""
-    from types import SimpleNamespace
-
     state = two_thread_state(n_frames)
 
     def track(state, frame, field_model=None, lock=None):
@@ -588,8 +573,6 @@ def test_parallel_tracking_runs_ahead_by_exactly_the_lag_against_the_published_c
     """Mapping (20 ms a frame) is slower than tracking (instant), so tracking waits at the bound.
     Oracle (docs/system.md): frame i is tracked only once ``state.done >= i - lag`` (lag 2 here),
     the bound is reached, and it is tracked against the snapshot, a copy, never the live map."""
-    import time
-
     tracked = []
     state = run_two_threads_with_stand_ins(monkeypatch, lambda frame: time.sleep(0.02), tracked)
     assert [i for i, _, _ in tracked] == list(range(1, 12)) and state.done == 12
@@ -615,24 +598,25 @@ def test_parallel_mapping_failure_stops_tracking_and_reaches_the_caller(monkeypa
 def test_parallel_ctrl_c_in_tracking_drops_the_queued_mapping_steps(monkeypatch):
     """Ctrl-C while tracking frame 4, with frames 2-3 queued behind the mapping step of frame 1.
     Oracle (docs/system.md): the step under way (frame 1) finishes, the queued ones are dropped."""
-    import threading
-    import time
+    started, joining, mapped = threading.Event(), threading.Event(), []
+    join_through_interrupts = parallel.join_through_interrupts
 
-    started, interrupted, mapped = threading.Event(), threading.Event(), []
+    def join_and_note(worker, stop=None):
+        joining.set()  # the main thread set its stop flag before it began to wait
+        join_through_interrupts(worker, stop)
 
     def mapping_step(frame):
         if frame.index == 1:
             started.set()
-            interrupted.wait(timeout=10)
-            time.sleep(0.1)  # the main thread handles its KeyboardInterrupt meanwhile
+            joining.wait(timeout=10)  # the main thread has handled its KeyboardInterrupt
         mapped.append(frame.index)
 
     def tracking_step(frame):
         if frame.index == 4:
             started.wait(timeout=10)
-            interrupted.set()
             raise KeyboardInterrupt
 
+    monkeypatch.setattr(parallel, "join_through_interrupts", join_and_note)
     with pytest.raises(KeyboardInterrupt):
         run_two_threads_with_stand_ins(monkeypatch, mapping_step, [], lag=10, tracking_step=tracking_step)
     assert mapped == [1]
@@ -642,8 +626,6 @@ def test_parallel_join_keeps_waiting_through_ctrl_c_then_raises_it():
     """A stand-in worker whose first join is cut by Ctrl-C and which ends at its second.  Oracle
     (docs/system.md): the wait goes on until the worker has ended, the stop flag is set (queued
     steps dropped), and the KeyboardInterrupt is raised afterwards."""
-    import threading
-
     class Worker:
         joins = 0
 
