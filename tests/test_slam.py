@@ -18,8 +18,15 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import config, data, device, eval as evaluation, hash_kernel, parallel, run, run_outputs, slam, synthetic
+from tsslam_ref import config, data, device, eval as evaluation, global_ba, hash_kernel, local_ba, parallel, run
+from tsslam_ref import run_outputs, slam, synthetic
+from tsslam_ref.bundle import KeyframeDatabase
 from tsslam_ref.field import SceneField
+from tsslam_ref.geometry import make_pose, so3_exp
+from tsslam_ref.losses import RenderLossSettings
+from tsslam_ref.timings import Timings
+from tsslam_ref.tracking import TrackingResult
+from tsslam_ref.trajectory import BSplineTrajectory
 
 
 @pytest.fixture(scope="module")
@@ -146,9 +153,6 @@ def test_without_local_ba_the_run_ends_cleanly(synthetic_sequence):
 
 def test_a_spline_that_leaves_tracking_stops_the_run_with_a_message():
     """check_spline_follows_tracking: the 'w/o LBA' failure path, on a spline displaced by 0.5 m."""
-    from tsslam_ref import local_ba
-    from tsslam_ref.trajectory import BSplineTrajectory
-
     cfg = small_config("tsslam")
     cfg.local_ba.enabled = False
     times = 0.5 + np.arange(12) / 30.0
@@ -168,8 +172,6 @@ def test_tsslam_motion_prediction_measures_motion_between_tracking_outputs_not_s
     which the constant-velocity prediction of frame 3 is exactly M T_2.  Frame 1's stored pose is
     then replaced, as a spline pose replaces it when an interval ends: Co-SLAM's rule measures the
     motion between the stored poses and is thrown off; TS-SLAM's uses the tracking outputs."""
-    from tsslam_ref.geometry import make_pose, so3_exp
-
     motion = make_pose(so3_exp(torch.tensor([0.0, 0.02, 0.01], dtype=torch.float64)),
                        torch.tensor([0.02, 0.0, 0.005], dtype=torch.float64))
     start = make_pose(so3_exp(torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)),
@@ -324,8 +326,6 @@ def test_parallel_mode_hands_a_mapping_failure_to_the_caller(synthetic_sequence)
 
 
 def test_the_parallel_flag_reaches_the_config_and_the_default_stays_sequential():
-    from tsslam_ref import run
-
     parser = run.build_parser()
     assert run.resolve_config(parser.parse_args(["--config", "tiny", "--parallel"])).parallel is True
     assert run.resolve_config(parser.parse_args(["--config", "tiny"])).parallel is False
@@ -357,10 +357,6 @@ def test_run_cli_hands_a_parallel_run_to_the_two_thread_loop(synthetic_sequence,
 
 
 def test_global_ba_names_a_fixed_mask_of_the_wrong_length():
-    from tsslam_ref import global_ba
-    from tsslam_ref.bundle import KeyframeDatabase
-    from tsslam_ref.losses import RenderLossSettings
-
     current = global_ba.CurrentFrame(rays=None, timestamp=0.0, pose=torch.eye(4))
     with pytest.raises(ValueError, match=r"one entry per keyframe plus the current frame \(1\), got 2"):
         global_ba.coslam_global_ba(None, None, KeyframeDatabase(), torch.zeros(0, 4, 4), current,
@@ -370,8 +366,6 @@ def test_global_ba_names_a_fixed_mask_of_the_wrong_length():
 
 def test_parallel_tracking_lead_is_one_interval_of_the_trajectory_being_tracked():
     """Oracle: frames per interval counted by hand at 30 Hz (uniform 0.3 s: 9; a planned 0.1 s: 3)."""
-    from tsslam_ref.trajectory import BSplineTrajectory
-
     timestamps = np.arange(30) / 30.0
     trajectory = BSplineTrajectory.empty(0.0, 0.3, torch.zeros(1, dtype=torch.float64))
     for knots, expected in (("uniform", 9), ("adaptive", 3)):
@@ -641,3 +635,275 @@ def test_parallel_join_keeps_waiting_through_ctrl_c_then_raises_it():
     with pytest.raises(KeyboardInterrupt):
         parallel.join_through_interrupts(worker, stop)
     assert worker.joins == 2 and stop.is_set()
+
+
+# The loop's steps on small hand-built states, each stage replaced by a recorder (fast; no map)
+
+
+def hand_built_state(method: str, n_frames: int = 12, **changes):
+    """A state with frames every 0.125 s from t = 0 (exact in binary), distinct stored poses
+    (x = frame index in m) and the stages' inputs the loop reads; ``changes`` overrides config keys."""
+    cfg = config.apply_overrides(small_config(method), ["spline.dt=0.25"] + [f"{k}={v}" for k, v in changes.items()])
+    poses = torch.eye(4, dtype=torch.float64).repeat(n_frames, 1, 1)
+    poses[:, 0, 3] = torch.arange(n_frames, dtype=torch.float64)
+    poses[:, :3, :3] = so3_exp(torch.tensor([[0.1, -0.2, 0.3]], dtype=torch.float64) * torch.arange(n_frames)[:, None])
+    keyframes = KeyframeDatabase()
+    keyframes.frame_indices.append(0)
+    return SimpleNamespace(cfg=cfg, timestamps=np.arange(n_frames) * 0.125, frame_poses=poses, keyframes=keyframes,
+                           keyframe_of_frame={0: 0}, relative_to_keyframe={}, window_rays={}, tracking_output={},
+                           log=[], intervals_done=0, timings=Timings(), generator=None, field=None, map_optimizer=None,
+                           loss_settings=None, trajectory=BSplineTrajectory.empty(0.0, 0.25, poses))
+
+
+def frame_at(state, i: int):
+    return SimpleNamespace(index=i, timestamp=float(state.timestamps[i]), sampled_rays=lambda *a, **k: f"rays {i}",
+                           all_rays=lambda: f"all rays {i}")
+
+
+def record_keyframes(state, frame):
+    state.keyframes.frame_indices.append(frame.index)
+
+
+def test_coslam_schedule_runs_global_ba_every_map_every_frames_and_anchors_on_the_preceding_keyframe(monkeypatch):
+    """docs/system.md "The schedule", worked out by hand for map_every = 3, keyframe_every = 2 over
+    frames 1..7: global BA at 3 and 6; keyframes 2, 4, 6 (after BA); every other frame stores its pose
+    relative to the preceding keyframe such that relative @ T_keyframe = T_frame (export.py's rule)."""
+    state = hand_built_state("coslam", **{"mapping.map_every": 3, "mapping.keyframe_every": 2})
+    ba_calls = []
+    monkeypatch.setattr(slam, "discrete_global_ba", lambda state, frame: ba_calls.append(frame.index))
+    monkeypatch.setattr(slam, "add_keyframe", record_keyframes)
+    for i in range(1, 8):
+        slam.coslam_after_tracking(state, frame_at(state, i))
+    assert ba_calls == [3, 6] and state.keyframes.frame_indices == [0, 2, 4, 6]
+    assert state.keyframe_of_frame == {0: 0, 1: 0, 2: 2, 3: 2, 4: 4, 5: 4, 6: 6, 7: 6}
+    assert sorted(state.relative_to_keyframe) == [1, 3, 5, 7]
+    for i, relative in state.relative_to_keyframe.items():
+        assert torch.allclose(relative @ state.frame_poses[state.keyframe_of_frame[i]], state.frame_poses[i], atol=1e-12)
+
+
+def test_tsslam_schedule_maps_each_interval_on_the_frame_that_reaches_its_end(monkeypatch):
+    """docs/system.md "The schedule", worked out by hand for dt = 0.25 s and frames every 0.125 s
+    from t = 0: interval n is [0.25 n, 0.25 (n + 1)), so frames 2, 4, 6, 8 (exactly on an end) map
+    intervals 0..3; tsslam_map_every = 3 runs the map update on frames 3 and 9 (frame 6 maps an
+    interval); keyframe_every = 2 adds frames 2, 4, 6, 8."""
+    state = hand_built_state("tsslam", **{"mapping.tsslam_map_every": 3, "mapping.keyframe_every": 2})
+    mapped, updated = [], []
+
+    def map_interval(state, frame):
+        mapped.append((frame.index, state.intervals_done))
+        state.intervals_done += 1
+
+    monkeypatch.setattr(slam, "map_interval", map_interval)
+    monkeypatch.setattr(slam, "tsslam_map_update", lambda state, frame: updated.append(frame.index))
+    monkeypatch.setattr(slam, "add_keyframe", record_keyframes)
+    for i in range(1, 10):
+        slam.tsslam_after_tracking(state, frame_at(state, i))
+    assert mapped == [(2, 0), (4, 1), (6, 2), (8, 3)] and updated == [3, 9]
+    assert state.keyframes.frame_indices == [0, 2, 4, 6, 8]
+
+
+def test_the_last_frame_on_an_interval_start_gets_that_interval_mapped(monkeypatch):
+    """tsslam_finish: a spline mapped up to interval 1 covers [0, 0.5) (dt = 0.25 s, first frame at
+    0); a last frame at exactly 0.5 s is outside it, so interval 2 must be mapped; one at 0.375 s is
+    covered and nothing runs."""
+    mapped = []
+    monkeypatch.setattr(slam, "map_interval", lambda state, frame: mapped.append(frame.index))
+    monkeypatch.setattr(slam, "frame_to_device", lambda frame, device, dtype: frame)
+    for last, expected in ((4, [4]), (3, [])):
+        state = hand_built_state("tsslam", n_frames=last + 1)
+        state.trajectory = BSplineTrajectory.from_rotvecs(torch.zeros(5, 3, dtype=torch.float64),
+                                                          torch.zeros(5, 3, dtype=torch.float64), 0.25, -0.5)
+        state.intervals_done, state.done = 2, last + 1
+        sequence = [frame_at(state, i) for i in range(last + 1)]
+        mapped.clear()
+        slam.tsslam_finish(state, sequence, None, None)
+        assert mapped == expected and state.trajectory.covers([0.375]).all()
+
+
+def spline_with(n_ctrl: int):
+    """A uniform spline of ``n_ctrl`` points, dt = 0.25 s, t0 = -0.5 s: its domain is [0, 0.25 (n_ctrl - 3))."""
+    translations = torch.zeros(n_ctrl, 3, dtype=torch.float64)
+    translations[:, 0] = 0.25 * torch.arange(n_ctrl, dtype=torch.float64) - 0.5  # x = t along the curve
+    return BSplineTrajectory.from_rotvecs(torch.zeros(n_ctrl, 3, dtype=torch.float64), translations, 0.25, -0.5)
+
+
+def test_the_map_update_holds_keyframe_0_and_what_the_spline_reaches(monkeypatch):
+    """tsslam_map_update's fixed slots (keyframes 0, 2, 4, 6, then current frame 7), by hand: before
+    any interval only keyframe 0 is held (and the current frame without mapping.optim_cur); with the
+    spline covering [0, 0.5) keyframes 0 and 2 (t = 0, 0.25 s) are held, 4 and 6 (0.5, 0.75 s) move."""
+    fixed_masks = []
+    monkeypatch.setattr(slam, "discrete_global_ba", lambda state, frame, fixed, stage: fixed_masks.append(list(fixed)))
+    state = hand_built_state("tsslam")
+    state.keyframes.frame_indices.extend([2, 4, 6])
+    slam.tsslam_map_update(state, frame_at(state, 7))
+    state.cfg.mapping.optim_cur = False
+    slam.tsslam_map_update(state, frame_at(state, 7))
+    state.cfg.mapping.optim_cur, state.trajectory = True, spline_with(5)
+    slam.tsslam_map_update(state, frame_at(state, 7))
+    assert fixed_masks == [[True, False, False, False, False], [True, False, False, False, True],
+                           [True, True, False, False, False]]
+
+
+def test_old_tracking_rays_are_dropped_window_plus_two_intervals_before_the_interval_end():
+    """drop_old_rays after interval 7 with window 4 (dt = 0.25 s): the interval ends at 2.0 s and
+    window + 2 = 6 intervals before it is 0.5 s, so frames 0..3 (t < 0.5 s) lose their rays and
+    frames 4..16 keep them."""
+    state = hand_built_state("tsslam", n_frames=17, **{"local_ba.window": 4})
+    state.window_rays = {j: f"rays {j}" for j in range(17)}
+    slam.drop_old_rays(state, 7)
+    assert sorted(state.window_rays) == list(range(4, 17))
+
+
+def test_global_ba_frees_the_points_older_than_the_window_but_point_0(monkeypatch):
+    """8 control points, window 4: points 4..7 are the window, 0 is the gauge, so global BA frees
+    1, 2, 3; L_DR covers the time before the window, [t_2, t_3) = [0, 0.25) s (domain [0, 1.25))."""
+    calls = []
+
+    def recorder(field, optimizer, keyframes, poses, trajectory, free, current, mapping, dynamics, settings,
+                 dynamics_range, generator):
+        calls.append((free, dynamics_range))
+        return trajectory, None
+
+    monkeypatch.setattr(slam, "tsslam_global_ba", recorder)
+    state = hand_built_state("tsslam", **{"local_ba.window": 4})
+    slam.global_ba_outside_window(state, frame_at(state, 9), spline_with(8))
+    assert calls == [([1, 2, 3], (0.0, 0.25))]
+
+
+def test_commit_checks_the_interval_it_commits_and_stores_the_spline_poses_it_covers():
+    """commit_interval(n = 2) with a spline of 6 points (domain [0, 0.75) s): frames 4, 5 form
+    interval 2 ([0.5, 0.75) s).  Stored poses that leave the spline by 0.4 m (> max_deviation 0.3 m)
+    only in interval 2 stop the run, only in interval 1 they do not (that interval was checked when it
+    was committed); on success frames 0..5 take the spline's poses and frame 6 (t = 0.75) keeps its own."""
+    trajectory = spline_with(6)
+    for displaced, fails in ((4, True), (2, False)):
+        state = hand_built_state("tsslam", n_frames=7)
+        state.frame_poses[:6] = trajectory.poses(state.timestamps[:6])
+        kept = state.frame_poses[6].clone()
+        state.frame_poses[displaced, 1, 3] += 0.4
+        if fails:
+            with pytest.raises(slam.TrackingFailure, match="0.400 m away"):
+                slam.commit_interval(state, frame_at(state, 6), trajectory, 2)
+            continue
+        slam.commit_interval(state, frame_at(state, 6), trajectory, 2)
+        assert torch.allclose(state.frame_poses[:6], trajectory.poses(state.timestamps[:6]), atol=0)
+        assert torch.equal(state.frame_poses[6], kept) and state.trajectory is trajectory
+
+
+def test_the_spline_check_measures_the_largest_distance_of_one_frame():
+    """check_spline_follows_tracking: one of six frames 4.2 cm off in x and in y (6 cm from the
+    spline, the others on it) against a 5 cm limit must fail: the limit is on the worst frame's
+    distance, not on the mean (1 cm) nor per axis (4.2 cm).  A non-finite stored pose fails too."""
+    trajectory = spline_with(6)
+    state = hand_built_state("tsslam", n_frames=6, **{"local_ba.max_deviation": 0.05})
+    state.frame_poses[:] = trajectory.poses(state.timestamps)
+    frames = np.arange(6)
+    slam.check_spline_follows_tracking(state, trajectory, state.timestamps, frames)  # on the spline: no error
+    state.frame_poses[3, :2, 3] += 0.06 / np.sqrt(2.0)
+    with pytest.raises(slam.TrackingFailure, match="0.060 m away"):
+        slam.check_spline_follows_tracking(state, trajectory, state.timestamps, frames)
+    state.frame_poses[3, :2, 3] = float("nan")
+    with pytest.raises(slam.TrackingFailure, match="nan m away"):
+        slam.check_spline_follows_tracking(state, trajectory, state.timestamps, frames)
+
+
+def test_tracking_keeps_the_newest_two_outputs_and_judges_divergence_on_the_first_five_frames(monkeypatch):
+    """track with track_frame replaced by a stub returning pose T_i (x = 10 i m) and a chosen loss:
+    after frames 1..3 the outputs of frames 2 and 3 remain (the next motion prediction needs both).
+    Losses 1 on frames 1..5 and 40 on frames 6..10 set the divergence reference to the median of the
+    first five, 1: a loss of 60 (> 50 x 1, max_loss_ratio) on frame 11 ends the run."""
+    losses = {i: 1.0 if i <= 5 else 40.0 for i in range(1, 11)}
+    losses[11] = 60.0
+
+    def stub(field, rays, init, tracking, settings, generator):
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[0, 3] = 10.0 * int(rays.split()[1])
+        return TrackingResult(pose=pose, losses=[losses[int(rays.split()[1])]], best_iteration=0)
+
+    monkeypatch.setattr(slam, "track_frame", stub)
+    state = hand_built_state("tsslam")
+    state.tracking_output = {0: state.frame_poses[0].clone()}
+    for i in range(1, 4):
+        slam.track(state, frame_at(state, i))
+    assert sorted(state.tracking_output) == [2, 3] and float(state.tracking_output[3][0, 3]) == 30.0
+    for i in range(4, 11):
+        slam.track(state, frame_at(state, i))
+    with pytest.raises(slam.TrackingFailure, match="loss 60 is more than 50 x the median 1 "):
+        slam.track(state, frame_at(state, 11))
+
+
+def test_check_tracking_keeps_the_best_iterations_loss_and_compares_with_the_median():
+    """check_tracking: losses [5, 1, 3] with the best at iteration 1 give 1 (not the last, 3); a
+    reference [1, 1, 1, 1, 96] has median 1 (mean 20), so a loss of 60 > 50 x 1 is a divergence;
+    a finite pose with a NaN loss is a failure too."""
+    cfg, frame = small_config("tsslam"), SimpleNamespace(index=9, timestamp=0.3)
+    pose = torch.eye(4)
+    assert slam.check_tracking(TrackingResult(pose, [5.0, 1.0, 3.0], 1), [], cfg, frame) == 1.0
+    with pytest.raises(slam.TrackingFailure, match="diverged at frame 9"):
+        slam.check_tracking(TrackingResult(pose, [60.0], 0), [1.0, 1.0, 1.0, 1.0, 96.0], cfg, frame)
+    with pytest.raises(slam.TrackingFailure, match="non-finite pose or loss at frame 9"):
+        slam.check_tracking(TrackingResult(pose, [float("nan")], 0), [], cfg, frame)
+
+
+def test_the_second_frame_starts_from_the_first_frames_pose():
+    """motion_prediction(1): with one pose before it there is no motion to continue, so frame 1
+    starts at frame 0's pose (whatever the last row of frame_poses holds)."""
+    state = hand_built_state("tsslam")
+    assert torch.equal(slam.motion_prediction(state, 1), state.frame_poses[0])
+
+
+def test_an_interval_runs_its_stages_in_order_then_drops_the_rays_no_window_reaches(monkeypatch):
+    """map_interval for interval 7 (window 4, dt = 0.25 s), the stages replaced by recorders: curve
+    approximation, local BA, global BA, commit of interval 7, then the rays of frames before
+    2.0 - 6 x 0.25 = 0.5 s are dropped (frames 0..3), as drop_old_rays(7) does by hand."""
+    calls = []
+    for name in ("add_control_point", "local_ba_in_window", "global_ba_outside_window"):
+        monkeypatch.setattr(slam, name, lambda state, frame, *rest, name=name: calls.append(name) or state.trajectory)
+    monkeypatch.setattr(slam, "commit_interval", lambda state, frame, trajectory, n: calls.append(("commit", n)))
+    state = hand_built_state("tsslam", n_frames=17, **{"local_ba.window": 4})
+    state.window_rays, state.intervals_done = {j: f"rays {j}" for j in range(17)}, 7
+    slam.map_interval(state, frame_at(state, 16))
+    assert calls == ["add_control_point", "local_ba_in_window", "global_ba_outside_window", ("commit", 7)]
+    assert state.intervals_done == 8 and sorted(state.window_rays) == list(range(4, 17))
+
+
+def test_local_ba_refines_on_every_frame_from_the_window_start_on(monkeypatch):
+    """8 control points, window 4: the window shapes [t_3, t_7) = [0.25, 1.25) s, so the refinement
+    gets the rays of frames 2..9 (t = 0.25 .. 1.125 s), the frame exactly at the start included."""
+    seen = []
+
+    def refine_window(field, trajectory, times, rays, *rest):
+        seen.append(rays)
+        return trajectory, None
+
+    monkeypatch.setattr(local_ba, "refine_window", refine_window)
+    monkeypatch.setattr(local_ba, "joint_window", lambda field, optimizer, trajectory, *rest: (trajectory, None))
+    state = hand_built_state("tsslam", n_frames=13, **{"local_ba.window": 4})
+    state.window_rays = {j: f"rays {j}" for j in range(13)}
+    slam.local_ba_in_window(state, frame_at(state, 12), spline_with(8))
+    assert seen == [[f"rays {j}" for j in range(2, 10)]]
+
+
+def test_global_ba_results_replace_the_keyframe_and_current_frame_poses(monkeypatch):
+    """discrete_global_ba stores what coslam_global_ba returns for keyframes 0, 2 and current frame 3
+    (poses with x = 100 + slot), and leaves frame 1 as it was."""
+    def ba(field, optimizer, keyframes, keyframe_poses, current, *rest, fixed):
+        moved = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+        moved[:, 0, 3] = 100.0 + torch.arange(3)
+        return moved[:2], moved[2], None
+
+    monkeypatch.setattr(slam, "coslam_global_ba", ba)
+    state = hand_built_state("coslam")
+    state.keyframes.frame_indices.append(2)
+    before = state.frame_poses[1].clone()
+    slam.discrete_global_ba(state, frame_at(state, 3))
+    assert state.frame_poses[[0, 2, 3], 0, 3].tolist() == [100.0, 101.0, 102.0]
+    assert torch.equal(state.frame_poses[1], before)
+
+
+def test_a_run_refuses_repeated_timestamps():
+    """prepare_run: timestamps must be strictly increasing; two frames at the same time are refused
+    before any frame is read."""
+    sequence = type("Frames", (), {"timestamps": np.array([0.0, 0.1, 0.1, 0.2]), "__len__": lambda self: 4})()
+    with pytest.raises(ValueError, match="strictly increasing"):
+        slam.prepare_run(sequence, small_config("tsslam"), torch.device("cpu"), None)
