@@ -907,3 +907,12 @@ def test_a_run_refuses_repeated_timestamps():
     sequence = type("Frames", (), {"timestamps": np.array([0.0, 0.1, 0.1, 0.2]), "__len__": lambda self: 4})()
     with pytest.raises(ValueError, match="strictly increasing"):
         slam.prepare_run(sequence, small_config("tsslam"), torch.device("cpu"), None)
+
+
+def test_a_map_bound_of_zero_extent_is_refused_by_the_loop_too():
+    """initial_state, called from Python past the config's own check: a box with xmin = xmax has no
+    volume to normalise the grid by (min < max, docs/cli.md), so it is refused naming the value."""
+    cfg = small_config("tsslam")
+    cfg.field.bound = [[0.0, 0.0], [0.0, 1.0], [0.0, 1.0]]
+    with pytest.raises(ValueError, match=r"min < max, got \[\[0.0, 0.0\]"):
+        slam.initial_state([SimpleNamespace(pose_c2w=None)], cfg, torch.device("cpu"))
