@@ -3,7 +3,9 @@
 Oracles: the ground truth of a synthetic sequence rendered from the analytic room and of the real TUM
 frames (motion capture), the spline's own definition for TS-SLAM outputs, and file round trips.
 Sizes are tiny (64x48 images, the `tiny` preset) so the whole file runs in a few minutes on 2 cores;
-the figures reached at the CPU presets are in the README and docs/system.md.
+the figures reached at the CPU presets are in the README and docs/system.md. The last part checks
+the loop's steps and the two-thread loop on small hand-built states with each stage replaced by a
+recorder, against the schedule of docs/system.md worked out by hand.
 """
 
 import json
