@@ -79,3 +79,51 @@ def test_peak_memory_matches_the_kernels_high_water_mark_and_sees_a_new_peak():
     if parent < before_own:  # a small parent (a shell, a small test process): the probe's own peak
         assert after == pytest.approx(after_own, rel=0.02)
     assert probe["keys"] == ["peak_rss_mib"]  # no GPU figure for a CPU device
+
+
+PLOTS_PROBE = """
+import json
+from pathlib import Path
+from types import SimpleNamespace
+import numpy as np
+import torch
+from tsslam_ref import run_outputs
+from test_timings import _high_water_mib
+
+seen = {}
+
+def plots_that_take_memory(out, *rest):
+    block = np.ones(256 * 2**17)  # 256 MiB of float64, every page touched
+    seen["during_plots"] = _high_water_mib()
+
+run_outputs.save_plots = plots_that_take_memory
+run_outputs.trajectory_metrics = lambda *args: {}
+run_outputs.run_environment = lambda *args: {}
+seen["before_plots"] = _high_water_mib()
+two_frames = type("Frames", (list,), {"name": "probe", "gt_poses": None})([None, None])
+plan = SimpleNamespace(args=SimpleNamespace(no_mesh=True, export_rate=None, checkpoint_every=0),
+                       cfg=SimpleNamespace(method="tsslam"), sequence=two_frames, out=Path("."),
+                       environment=None, device=torch.device("cpu"))
+result = SimpleNamespace(timestamps=np.array([0.0, 0.1]), poses=np.repeat(np.eye(4)[None], 2, axis=0),
+                         frames_per_second=1.0, frames_processed=2,
+                         state=SimpleNamespace(timings=SimpleNamespace(table=lambda: {}), field=None))
+run_outputs.write_outputs(plan, result)
+seen["reported"] = json.load(open("metrics.json"))["peak_rss_mib"]
+print(json.dumps(seen))
+"""
+
+
+def test_the_reported_peak_memory_includes_the_plots(tmp_path):
+    """metrics.json's ``peak_rss_mib`` is taken after everything a finished run does before writing
+    it, the plots included: a stand-in for the plots touches 256 MiB more in a fresh process, and the
+    reported peak must reach the high-water mark Linux's /proc/self/status showed inside them."""
+    if not Path("/proc/self/status").exists():
+        pytest.skip("needs Linux's /proc/self/status as the oracle")
+    root = Path(__file__).resolve().parents[1]
+    search_path = os.pathsep.join([str(root), str(root / "tests")])
+    result = subprocess.run([sys.executable, "-c", PLOTS_PROBE], env=dict(os.environ, PYTHONPATH=search_path),
+                            cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    seen = json.loads(result.stdout.strip().splitlines()[-1])
+    assert seen["during_plots"] >= seen["before_plots"] + 250  # the oracle sees the plots' peak
+    assert seen["reported"] >= 0.98 * seen["during_plots"], seen

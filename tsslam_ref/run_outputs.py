@@ -158,8 +158,8 @@ def write_outputs(plan, result) -> None:
         metrics.update(mesh_outputs(plan, result.state.field))
     if args.export_rate is not None:
         export_continuous(result.state, args.export_rate, out / export_file_name(args.export_rate))
-    metrics.update(peak_memory(plan.device))  # after the mesh: the run's and the mesh's peak
     save_plots(out, sequence, result.timestamps, result.poses, metrics)
+    metrics.update(peak_memory(plan.device))  # after the mesh and the plots: the whole run's peak
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))  # last: it marks a finished run
     checkpoint_path = out / "checkpoint.pt"
     if checkpoint_path.exists() and not args.checkpoint_every:
