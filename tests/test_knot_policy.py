@@ -235,3 +235,16 @@ def test_plan_next_interval_reads_the_stored_poses_of_the_last_two_intervals():
     assert len(planned) == 1 and planned[0][0] == 2
     assert planned[0][1] == pytest.approx(23.25 / 30, abs=1e-9)
     assert planned[0][2] == pytest.approx(23.25 / 30 - 0.6, abs=1e-9)
+
+
+def test_last_interval_end_is_a_quarter_frame_after_the_last_frame_and_never_later_than_planned():
+    """Frames every 1/30 s; the last interval is [0.6, 0.9).  By hand: a last frame at 19/30 s gives
+    19.25/30 s; one at 26.8/30 s would give 27.05/30 s > 0.9, so the planned 0.9 s stays."""
+    times = np.arange(20) / 30.0
+    assert knot_policy.last_interval_end(times, 0.6, 0.9) == pytest.approx(19.25 / 30.0, abs=1e-12)
+    late = np.append(np.arange(26) / 30.0, 26.8 / 30.0)
+    assert knot_policy.last_interval_end(late, 0.6, 0.9) == 0.9
+    with pytest.raises(ValueError, match=r"last frame time .* must lie in the interval"):
+        knot_policy.last_interval_end(times, 0.7, 0.9)
+    with pytest.raises(ValueError, match="at least 2 frame times"):
+        knot_policy.last_interval_end(times[:1], 0.0, 0.3)

@@ -93,6 +93,24 @@ def test_adaptive_knots_run_end_to_end_with_uneven_intervals(synthetic_sequence)
     assert metrics["ate_rmse_m"] < 0.03, metrics
 
 
+@pytest.mark.parametrize("knots", ["uniform", "adaptive"])
+def test_a_run_whose_last_interval_ends_at_its_last_frame_still_follows_the_ground_truth(synthetic_sequence, knots):
+    """spline.last_interval = last_frame end to end: the spline ends a quarter frame spacing after
+    the last frame (24 frames at 30 Hz, dt = 0.2 s: without the rule it would end at 0.8 s, u = 0.83
+    of the last interval), covers every frame, the outputs are its poses and they follow the
+    ground truth as the default run does."""
+    cfg = config.apply_overrides(small_config("tsslam"), [f"spline.knots={knots}", "spline.last_interval=last_frame"])
+    sequence = data.load_sequence(synthetic_sequence)
+    result = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+    times, trajectory = np.asarray(sequence.timestamps, dtype=np.float64), result.state.trajectory
+    quarter = 0.25 * float(np.median(np.diff(times)))
+    assert trajectory.domain()[1] == pytest.approx(times[-1] + quarter, abs=1e-9)
+    assert trajectory.covers(times).all()
+    assert np.allclose(result.poses, trajectory.poses(times).double().numpy(), atol=1e-6)
+    metrics = evaluation.evaluate_trajectory(times, sequence.gt_poses, result.timestamps, result.poses)
+    assert metrics["ate_rmse_m"] < 0.03, metrics
+
+
 def test_adaptive_knot_settings_that_cannot_run_are_named(synthetic_sequence):
     sequence = data.load_sequence(synthetic_sequence)
     cfg = config.apply_overrides(small_config("tsslam"), ["spline.knots=adaptive", "spline.dt_min=0.5", "spline.dt_max=0.2"])
@@ -720,6 +738,26 @@ def test_the_last_frame_on_an_interval_start_gets_that_interval_mapped(monkeypat
         mapped.clear()
         slam.tsslam_finish(state, sequence, None, None)
         assert mapped == expected and state.trajectory.covers([0.375]).all()
+
+
+def test_the_last_interval_ends_just_after_the_last_frame_when_asked(monkeypatch):
+    """spline.last_interval = last_frame, by hand: the spline covers [0, 0.5) (dt = 0.25 s), frames
+    every 0.125 s.  A last frame at 0.625 s is mapped with interval 2 ending at 0.625 + 0.125 / 4 =
+    0.65625 s instead of 0.75 s, the assumed knot after it 0.25 s later; one at 0.5 s, exactly on
+    the interval's start, at 0.53125 s.  With the default ("planned") interval 2 keeps [0.5, 0.75)."""
+    seen = []
+    monkeypatch.setattr(slam, "map_interval", lambda state, frame: seen.append(
+        (frame.index, state.trajectory.interval(2), state.trajectory.interval(3)[1])))
+    monkeypatch.setattr(slam, "frame_to_device", lambda frame, device, dtype: frame)
+    for rule, last, expected in (("last_frame", 5, (0.5, 0.65625, 0.90625)), ("last_frame", 4, (0.5, 0.53125, 0.78125)),
+                                 ("planned", 5, (0.5, 0.75, 1.0))):
+        state = hand_built_state("tsslam", n_frames=last + 1, **{"spline.last_interval": rule})
+        state.trajectory = spline_with(5)
+        state.intervals_done, state.done = 2, last + 1
+        seen.clear()
+        slam.tsslam_finish(state, [frame_at(state, i) for i in range(last + 1)], None, None)
+        assert len(seen) == 1 and seen[0][0] == last
+        assert np.allclose([*seen[0][1], seen[0][2]], expected, atol=1e-12), (rule, last, seen)
 
 
 def spline_with(n_ctrl: int):

@@ -189,3 +189,23 @@ def snap_after_frame(recent_times, end: float, target: float) -> float:
         first_candidate += spacing
     steps = max(0, int(np.round((target - first_candidate) / spacing)))
     return first_candidate + steps * spacing
+
+
+def last_interval_end(times, start: float, end: float) -> float:
+    """Where the run's last, incomplete interval [start, end) should end once no frame will close it:
+    a quarter frame spacing after its last frame (the spacing: the median of ``times``), never
+    later than ``end``.  The last frames then sit near u = 1 of the interval instead of where the
+    planned end leaves them (u ≈ 0.55 for 60 frames at 30 Hz with 0.3 s intervals, weight
+    B_3 = 0.03), so the new control point is fitted through a weight near the uniform 1/6
+    (module docstring).  times (K,) increasing float64 s, K >= 2, the last one in [start, end).
+    Returns a time in (t_last, end]."""
+    times = np.asarray(times, dtype=np.float64)
+    if times.ndim != 1 or times.shape[0] < 2:
+        raise ValueError(f"times must be a 1-D array of at least 2 frame times, got shape {times.shape}")
+    spacing = float(np.median(np.diff(times)))
+    if not spacing > 0:
+        raise ValueError(f"times must be strictly increasing, got median spacing {spacing!r} s")
+    last = float(times[-1])
+    if not start <= last < end:
+        raise ValueError(f"the last frame time {last!r} s must lie in the interval [{start!r}, {end!r}) s")
+    return min(float(end), last + SNAP_FRACTION * spacing)

@@ -7,7 +7,8 @@ that interval's control point is added: the end of interval n + 1 is set on the 
 (:meth:`trajectory.BSplineTrajectory.plan_interval_end`) from the motion tracked over intervals
 n - 1 and n (:mod:`tsslam_ref.knot_policy`).  So the next mapping step is triggered, and its
 control point placed, by the motion; the first interval is ``spline.dt`` long.  With the default
-``"uniform"`` nothing here runs.
+``"uniform"`` nothing here runs.  With ``spline.last_interval = "last_frame"`` (either knot type)
+:func:`end_last_interval` ends the run's last interval just after its last frame.
 
 Layer 4 (system support): reads the loop's state (``slam.SLAMState``) and its config; imports
 ``knot_policy``.  User doc: docs/system.md, "Adaptive knots".
@@ -35,6 +36,22 @@ def plan_next_interval(state, frame_index: int, n: int) -> None:
                                              previous_start, start, end, spline_cfg.dt_min, spline_cfg.dt_max,
                                              spline_cfg.rotation_tolerance, spline_cfg.position_tolerance)
     trajectory.plan_interval_end(n + 1, next_end, assumed_spacing=next_end - end)
+
+
+def end_last_interval(state, last: int) -> None:
+    """``spline.last_interval = "last_frame"``: before the run's last, incomplete interval is mapped
+    (``slam.tsslam_finish``), end it a quarter frame spacing after the last frame ``last``
+    (:func:`knot_policy.last_interval_end`); the knots after it stay assumed at its planned length.
+    With ``"planned"`` (the default), without the spline, or when the last frame is not inside
+    the interval, nothing changes.  Why: docs/system.md, "The run's last interval"."""
+    if state.cfg.spline.last_interval != "last_frame" or not state.cfg.local_ba.use_spline or last < 1:
+        return
+    n, times = state.intervals_done, state.timestamps[: last + 1]
+    start, end = state.trajectory.interval(n)
+    if start <= times[-1] < end:
+        new_end = knot_policy.last_interval_end(times, start, end)
+        if new_end < end:
+            state.trajectory.plan_interval_end(n, new_end, assumed_spacing=end - start)
 
 
 def check_frame_spacing(cfg: Config, timestamps) -> None:

@@ -510,8 +510,10 @@ def tsslam_map_update(state: SLAMState, frame: FrameTensors) -> None:
 
 
 def tsslam_finish(state: SLAMState, sequence, device: torch.device, dtype: torch.dtype) -> None:
-    """Map the last, incomplete interval so that the spline covers every frame."""
+    """Map the last, incomplete interval so that the spline covers every frame (where it ends:
+    ``spline.last_interval``, :func:`knot_schedule.end_last_interval`)."""
     last = state.done - 1
     start, _ = state.trajectory.interval(state.intervals_done)
     if state.timestamps[last] >= start or state.trajectory.n_ctrl < 4:
+        knot_schedule.end_last_interval(state, last)
         map_interval(state, frame_to_device(sequence[last], device, dtype))
