@@ -170,6 +170,15 @@ inside its interval, close enough that the frame's weight on the newest control 
 its largest, 1/6 (module docstring)."""
 
 
+def median_frame_spacing(times: np.ndarray, name: str) -> float:
+    """The median spacing (s) of increasing frame times (K,), K >= 2; ValueError naming ``name``
+    when it is not positive."""
+    spacing = float(np.median(np.diff(times)))
+    if not spacing > 0:
+        raise ValueError(f"{name} must be strictly increasing, got median spacing {spacing!r} s")
+    return spacing
+
+
 def snap_after_frame(recent_times, end: float, target: float) -> float:
     """The knot time (s) nearest ``target`` of the form t_last + (j + 1/4) Δ, j >= 1 (t_last: the
     last of ``recent_times`` before ``end``; Δ: their median spacing), so that the interval
@@ -180,9 +189,7 @@ def snap_after_frame(recent_times, end: float, target: float) -> float:
     recent_times = recent_times[recent_times < end]
     if recent_times.shape[0] < 2:
         return float(target)
-    spacing = float(np.median(np.diff(recent_times)))
-    if not spacing > 0:
-        raise ValueError(f"recent_times must be strictly increasing, got median spacing {spacing!r} s")
+    spacing = median_frame_spacing(recent_times, "recent_times")
     last = float(recent_times[-1])
     first_candidate = last + (1.0 + SNAP_FRACTION) * spacing
     while first_candidate <= end:  # a gap in the recent frames: predicted frames start after end
@@ -202,9 +209,7 @@ def last_interval_end(times, start: float, end: float) -> float:
     times = np.asarray(times, dtype=np.float64)
     if times.ndim != 1 or times.shape[0] < 2:
         raise ValueError(f"times must be a 1-D array of at least 2 frame times, got shape {times.shape}")
-    spacing = float(np.median(np.diff(times)))
-    if not spacing > 0:
-        raise ValueError(f"times must be strictly increasing, got median spacing {spacing!r} s")
+    spacing = median_frame_spacing(times, "times")
     last = float(times[-1])
     if not start <= last < end:
         raise ValueError(f"the last frame time {last!r} s must lie in the interval [{start!r}, {end!r}) s")
