@@ -83,6 +83,32 @@ def test_the_loop_runs_on_an_accelerator_stand_in_with_the_cpu_trajectory(small_
     np.testing.assert_array_equal(checked.poses, plain.poses)
 
 
+def test_the_curve_approximation_fits_on_the_cpu_and_hands_back_control_points_on_the_device(small_sequence,
+                                                                                             monkeypatch):
+    """Oracle: the devices the fit is called with (a spy on ``spline_fit.fit_control_points``) and the
+    plain CPU run's trajectory, which the stand-in run must equal (nothing is moved, only marked)."""
+    from tsslam_ref import spline_fit
+    fitted_on = []
+    real_fit = spline_fit.fit_control_points
+
+    def spy(times, poses, *args, **kwargs):
+        fitted_on.append((on_virtual(poses), on_virtual(kwargs["init_rotations"]), on_virtual(kwargs["init_translations"])))
+        return real_fit(times, poses, *args, **kwargs)
+
+    monkeypatch.setattr(spline_fit, "fit_control_points", spy)
+    sequence = data.load_sequence(small_sequence)
+    cfg = small_config("tsslam")
+    plain = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+    n_plain_fits, fitted_on[:] = len(fitted_on), []
+    states = []
+    with VirtualDevice():
+        checked = slam.run_slam(sequence, cfg, device=VIRTUAL, on_frame=states.append)
+        trajectory = states[-1].trajectory
+        assert on_virtual(trajectory.control_rotations) and on_virtual(trajectory.control_translations)
+    assert len(fitted_on) == n_plain_fits > 0 and not any(any(flags) for flags in fitted_on)
+    np.testing.assert_array_equal(checked.poses, plain.poses)
+
+
 @pytest.mark.parametrize("method", ["tsslam", "coslam"])
 def test_the_command_line_in_two_threads_runs_on_the_stand_in(small_sequence, tmp_path, monkeypatch, method):
     monkeypatch.setattr(device_module, "resolve_device", lambda name: VIRTUAL)

@@ -18,7 +18,10 @@ Deviations (ours; measurements in docs/system.md, "Choices the paper leaves open
 * a new point starts at the extrapolated control polygon and the ``local_ba.fit_controls`` newest
   points are fitted, not the new one alone ("The curve approximation rings");
 * control point 0 follows points 1 and 2 (:data:`N_ANCHOR_CONTROLS`), the gauge;
-* stage 3 is off by default, ``local_ba.joint_iters = 0`` ("TS-SLAM's ATE on clean synthetic data").
+* stage 3 is off by default, ``local_ba.joint_iters = 0`` ("TS-SLAM's ATE on clean synthetic data");
+* the curve approximation's Levenberg-Marquardt fit runs on the CPU whatever the map's device: its
+  many small float64 operations are each a kernel launch on a GPU (one H200: 655 ms per fit, against
+  about 130-180 ms on two CPU cores; README, "On a GPU").
 
 Index convention: the paper's (:mod:`tsslam_ref.trajectory`).  Control point k sits at t0 + k dt
 and shapes times [t_{k-1}, t_{k+3}); the window of the ``M`` newest points N-M..N-1 therefore
@@ -206,13 +209,14 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
             fixed = torch.ones(rotations.shape[0], dtype=torch.bool)
             fixed[-(local_ba.fit_controls if free_controls is None else free_controls):] = False
             fixed[:N_ANCHOR_CONTROLS] = True
+            device = rotations.device  # fitted on the CPU (module docstring); nothing moves on a CPU run
             rotations, translations = spline_fit.fit_control_points(
-                np.asarray(times, dtype=np.float64), poses, trajectory.dt, trajectory.t0, rotations.shape[0],
-                init_rotations=rotations, init_translations=translations, fixed=fixed,
+                np.asarray(times, dtype=np.float64), poses.cpu(), trajectory.dt, trajectory.t0, rotations.shape[0],
+                init_rotations=rotations.cpu(), init_translations=translations.cpu(), fixed=fixed,
                 iters=local_ba.fit_iters, convention=trajectory.convention,
                 knots=None if trajectory.uniform else trajectory.knot_vector(rotations.shape[0]), report=report)
-            rotations, translations = spline_fit.pin_first_control_point(rotations, translations, start_pose,
-                                                                         trajectory.start_weights())
+            rotations, translations = spline_fit.pin_first_control_point(rotations.to(device), translations.to(device),
+                                                                         start_pose, trajectory.start_weights())
     return BSplineTrajectory(rotations.detach().to(poses.dtype), translations.detach().to(poses.dtype),
                              trajectory.dt, trajectory.t0, trajectory.convention, start_pose, **trajectory.timing())
 
