@@ -92,7 +92,7 @@ def test_the_curve_approximation_fits_on_the_cpu_and_hands_back_control_points_o
     real_fit = spline_fit.fit_control_points
 
     def spy(times, poses, *args, **kwargs):
-        fitted_on.append((on_virtual(poses), on_virtual(kwargs["init_rotations"]), on_virtual(kwargs["init_translations"])))
+        fitted_on.append([on_virtual(value) for value in (poses, kwargs["init_rotations"], kwargs["init_translations"])])
         return real_fit(times, poses, *args, **kwargs)
 
     monkeypatch.setattr(spline_fit, "fit_control_points", spy)
