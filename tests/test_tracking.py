@@ -16,6 +16,7 @@ from tsslam_ref import config, spline
 from tsslam_ref.analytic import AnalyticField
 from tsslam_ref.bundle import (DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, dynamics_term, frozen,
                                iteration_loss, joint_optimization)
+from tsslam_ref.bundle import draw_rays as bundle_draw
 from tsslam_ref.dynamics import trajectory_dynamics_loss
 from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
 from tsslam_ref.render import RayBatch, frame_rays, sample_pixels
@@ -248,6 +249,40 @@ def test_the_dynamics_term_is_added_to_the_ba_loss_and_its_gradients(scene_setup
                                         generator=torch.Generator().manual_seed(5), optimise_map=False,
                                         extra_loss=dynamics_of(model) if use_dynamics else None)
     assert runs["with"].losses[0] == pytest.approx(runs["without"].losses[0] + oracle, rel=1e-6)
+
+
+def test_a_pose_model_with_nothing_to_optimise_leaves_the_map_gradient_and_the_loss_bit_for_bit(scene_setup,
+                                                                                                  compiled_kernel):
+    """With every slot fixed, iteration_loss renders with constant poses (no point gradient is
+    computed).  Oracle: render_loss on the same rays and generator state with poses that carry a
+    gradient, the graph the loop used to build: the loss and every map gradient must be equal bit
+    for bit, on the compiled kernel and the MLPs' part-wise first layer, which take other paths then."""
+    from tsslam_ref.field import SceneField
+    _, intrinsics, pose, rgb, depth, cfg = scene_setup
+    settings = RenderLossSettings.from_config(cfg)
+    sources = [(RayBatch.cat([_rays(rgb, depth, intrinsics, 60, seed, frame_id=slot) for slot, seed in ((0, 1), (1, 2))]),
+                80)]
+    pose = torch.as_tensor(pose, dtype=torch.float64)
+    poses = torch.stack([pose, _perturb(pose, [0.01, 0.0, 0.02], [0.02, 0.0, -0.01])]).float()
+    model = DiscretePoses(poses, torch.ones(2, dtype=torch.bool), 1e-2, 1e-2)
+    assert model.parameter_groups() == []
+    results = []
+    for detached in (True, False):
+        field = SceneField(cfg.field, [[-1.0, 4.0], [-1.0, 4.0], [-1.0, 4.0]], generator=torch.Generator().manual_seed(0))
+        assert field.grid.uses_compiled_kernel(torch.zeros(1, 3))
+        generator = torch.Generator().manual_seed(7)
+        if detached:  # the loop's path
+            loss, _ = iteration_loss(field, sources, model, settings, generator, None, smoothness=True)
+        else:  # the oracle: the same draws, poses with a gradient
+            rays = RayBatch.cat([bundle_draw(pool, n, generator) for pool, n in sources])
+            c2w = model.poses()[rays.frame_ids]
+            assert c2w.requires_grad
+            loss, _ = render_loss(field, rays, c2w, settings, generator=generator, smoothness=True)
+        loss.backward()
+        assert (model.increments.translation.grad is None) == detached  # the loop built no pose graph
+        results.append([loss.detach()] + [p.grad for p in field.parameters()])
+    assert all(torch.equal(a, b) for a, b in zip(*results))
+    assert float(results[0][1].abs().max()) > 0
 
 
 def test_keyframe_database_relabels_slots():

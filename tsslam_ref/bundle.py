@@ -276,6 +276,8 @@ def iteration_loss(
     pose.  Returns the scalar loss and its weighted terms as floats (``dynamics`` for the extra)."""
     rays = RayBatch.cat([draw_rays(pool, n, generator) for pool, n in ray_sources if n > 0 and len(pool) > 0])
     c2w = poses.poses()[rays.frame_ids]  # (R, 4, 4)
+    if not poses.parameter_groups():  # nothing to optimise: no point gradient to compute (the map's is the same)
+        c2w = c2w.detach()
     loss, terms = render_loss(field_model, rays, c2w, loss_settings, generator=generator, smoothness=smoothness)
     if extra_loss is not None:
         regulariser = extra_loss()
