@@ -253,33 +253,39 @@ def test_the_dynamics_term_is_added_to_the_ba_loss_and_its_gradients(scene_setup
 
 def test_a_pose_model_with_nothing_to_optimise_leaves_the_map_gradient_and_the_loss_bit_for_bit(scene_setup,
                                                                                                   compiled_kernel):
-    """With every slot fixed, iteration_loss renders with constant poses (no point gradient is
-    computed).  Oracle: render_loss on the same rays and generator state with poses that carry a
-    gradient, the graph the loop used to build: the loss and every map gradient must be equal bit
-    for bit, on the compiled kernel and the MLPs' part-wise first layer, which take other paths then."""
+    """With nothing to optimise (every slot fixed; a spline with no free control point) a pose
+    model's poses are constants, so iteration_loss computes no point gradient.  Oracle: render_loss
+    on the same rays and generator state with the same poses as a leaf that carries a gradient, the
+    graph the loop used to build: the loss and every map gradient must be equal bit for bit, on the
+    compiled kernel and the MLPs' part-wise first layer, which take other paths then."""
     from tsslam_ref.field import SceneField
     _, intrinsics, pose, rgb, depth, cfg = scene_setup
     settings = RenderLossSettings.from_config(cfg)
-    sources = [(RayBatch.cat([_rays(rgb, depth, intrinsics, 60, seed, frame_id=slot) for slot, seed in ((0, 1), (1, 2))]),
-                80)]
+    rays_of_two_frames = [_rays(rgb, depth, intrinsics, 60, seed, frame_id=slot) for slot, seed in ((0, 1), (1, 2))]
+    sources = [(RayBatch.cat(rays_of_two_frames), 80)]
     pose = torch.as_tensor(pose, dtype=torch.float64)
     poses = torch.stack([pose, _perturb(pose, [0.01, 0.0, 0.02], [0.02, 0.0, -0.01])]).float()
     model = DiscretePoses(poses, torch.ones(2, dtype=torch.bool), 1e-2, 1e-2)
-    assert model.parameter_groups() == []
+    assert model.parameter_groups() == [] and torch.equal(model.poses(), poses)
+    translations = torch.rand(6, 3, generator=torch.Generator().manual_seed(1))
+    spline = BSplineTrajectory.from_rotvecs(torch.zeros(6, 3), translations, 0.25, -0.5)  # domain [0, 0.75) s
+    no_free, with_free = (SplinePoses(spline, free, np.array([0.1, 0.3]), torch.eye(4).repeat(2, 1, 1), 1e-2, 1e-2)
+                          for free in ([], [3]))
+    assert no_free.parameter_groups() == [] and not no_free.poses().requires_grad
+    assert with_free.poses().requires_grad and torch.equal(no_free.poses(), with_free.poses().detach())
     results = []
     for detached in (True, False):
-        field = SceneField(cfg.field, [[-1.0, 4.0], [-1.0, 4.0], [-1.0, 4.0]], generator=torch.Generator().manual_seed(0))
+        field = SceneField(cfg.field, [[-1.0, 4.0]] * 3, generator=torch.Generator().manual_seed(0))
         assert field.grid.uses_compiled_kernel(torch.zeros(1, 3))
         generator = torch.Generator().manual_seed(7)
         if detached:  # the loop's path
             loss, _ = iteration_loss(field, sources, model, settings, generator, None, smoothness=True)
-        else:  # the oracle: the same draws, poses with a gradient
+        else:  # the oracle: the same draws, the same poses as a leaf that carries a gradient
             rays = RayBatch.cat([bundle_draw(pool, n, generator) for pool, n in sources])
-            c2w = model.poses()[rays.frame_ids]
-            assert c2w.requires_grad
+            c2w = poses[rays.frame_ids].clone().requires_grad_(True)
             loss, _ = render_loss(field, rays, c2w, settings, generator=generator, smoothness=True)
         loss.backward()
-        assert (model.increments.translation.grad is None) == detached  # the loop built no pose graph
+        assert not model.poses().requires_grad and model.increments.translation.grad is None  # no pose graph
         results.append([loss.detach()] + [p.grad for p in field.parameters()])
     assert all(torch.equal(a, b) for a, b in zip(*results))
     assert float(results[0][1].abs().max()) > 0

@@ -85,7 +85,8 @@ class PoseModel(Protocol):
         """Adam parameter groups (empty: nothing to optimise)."""
 
     def poses(self) -> torch.Tensor:
-        """(P, 4, 4) differentiable camera-to-world poses, one per ray slot."""
+        """(P, 4, 4) camera-to-world poses, one per ray slot: differentiable in the parameters, and
+        constants (no graph, so no point gradient downstream) when there is nothing to optimise."""
 
 
 class DiscretePoses(torch.nn.Module):
@@ -103,10 +104,11 @@ class DiscretePoses(torch.nn.Module):
         self.increments = PoseIncrement(poses)
         self.register_buffer("fixed", fixed.to(device=poses.device, dtype=torch.bool))
         self.register_buffer("initial", poses.detach().clone())
+        self.moves = not bool(self.fixed.all())  # any slot to optimise
         self.lr_rot, self.lr_trans = lr_rot, lr_trans
 
     def parameter_groups(self) -> List[dict]:
-        if bool(self.fixed.all()):
+        if not self.moves:
             return []
         return [
             {"params": [self.increments.rotation_delta], "lr": self.lr_rot},
@@ -114,8 +116,9 @@ class DiscretePoses(torch.nn.Module):
         ]
 
     def poses(self) -> torch.Tensor:
-        free_poses = self.increments()
-        return torch.where(self.fixed[:, None, None], self.initial, free_poses)
+        with contextlib.nullcontext() if self.moves else torch.no_grad():
+            free_poses = self.increments()
+            return torch.where(self.fixed[:, None, None], self.initial, free_poses)
 
 
 class SplinePoses(torch.nn.Module):
@@ -160,10 +163,11 @@ class SplinePoses(torch.nn.Module):
         self.slot_times = np.asarray(slot_times, dtype=np.float64)
         self.slot_valid = trajectory.covers(self.slot_times)
         self.register_buffer("fallback", fallback_poses.detach().clone())
+        self.moves = bool(free_mask.any())  # any control point to optimise
         self.lr_rot, self.lr_trans = lr_rot, lr_trans
 
     def parameter_groups(self) -> List[dict]:
-        if not bool(self.free_mask.any()):
+        if not self.moves:
             return []
         return [{"params": [self.rotation_delta], "lr": self.lr_rot},
                 {"params": [self.translation_delta], "lr": self.lr_trans}]
@@ -185,12 +189,14 @@ class SplinePoses(torch.nn.Module):
                                  **self.knot_timing)
 
     def poses(self) -> torch.Tensor:
-        """(P, 4, 4) slot poses: the spline's where it covers the slot's time, the fallback elsewhere."""
+        """(P, 4, 4) slot poses: the spline's where it covers the slot's time, the fallback elsewhere
+        (constants when no control point is free)."""
         if not self.slot_valid.any():
             return self.fallback
         inside = torch.as_tensor(self.slot_valid, device=self.fallback.device)
         spline_poses = self.fallback.clone()
-        spline_poses[inside] = self.trajectory().poses(self.slot_times[self.slot_valid]).to(self.fallback.dtype)
+        with contextlib.nullcontext() if self.moves else torch.no_grad():
+            spline_poses[inside] = self.trajectory().poses(self.slot_times[self.slot_valid]).to(self.fallback.dtype)
         return spline_poses
 
 
@@ -275,9 +281,7 @@ def iteration_loss(
     Draws ``n`` rays from every ``(pool, n)`` of ``ray_sources`` and renders each with its slot's
     pose.  Returns the scalar loss and its weighted terms as floats (``dynamics`` for the extra)."""
     rays = RayBatch.cat([draw_rays(pool, n, generator) for pool, n in ray_sources if n > 0 and len(pool) > 0])
-    c2w = poses.poses()[rays.frame_ids]  # (R, 4, 4)
-    if not poses.parameter_groups():  # nothing to optimise: no point gradient to compute (the map's is the same)
-        c2w = c2w.detach()
+    c2w = poses.poses()[rays.frame_ids]  # (R, 4, 4); constants when nothing is optimised (no point gradient)
     loss, terms = render_loss(field_model, rays, c2w, loss_settings, generator=generator, smoothness=smoothness)
     if extra_loss is not None:
         regulariser = extra_loss()
