@@ -538,7 +538,9 @@ def test_float32_matches_float64():
 
 
 @pytest.mark.parametrize("times", [torch.tensor([1.5e9 + 0.05, 1.5e9 + 0.2], dtype=torch.float32),
-                                   np.array([1.5e9 + 0.05, 1.5e9 + 0.2], dtype=np.float32)])
+                                   np.array([1.5e9 + 0.05, 1.5e9 + 0.2], dtype=np.float32),
+                                   np.float32(1.5e9 + 0.05), [np.float32(1.5e9 + 0.05), np.float32(1.5e9 + 0.2)]],
+                         ids=["tensor", "array", "numpy_scalar", "list_of_numpy_scalars"])
 def test_float32_times_are_refused_not_rounded_to_one_instant(times):
     R, P = random_spline(26, n_ctrl=8)
     with pytest.raises(TypeError, match="float64"):  # float32 puts both stamps at 1.5e9 s

@@ -200,15 +200,13 @@ def _times_float64(times: TimesLike) -> torch.Tensor:
         TypeError: floating times narrower than float64 (float32 holds about 7 digits: at a
             1.5e9 s stamp its spacing is 128 s, so the cast would come too late).
     """
-    dtype = times.dtype if isinstance(times, (torch.Tensor, np.ndarray)) else None
-    narrow = (dtype.is_floating_point and dtype.itemsize < 8) if isinstance(times, torch.Tensor) else (
-        dtype is not None and dtype.kind == "f" and dtype.itemsize < 8)
-    if narrow:
+    values = times if isinstance(times, torch.Tensor) else np.asarray(times)  # NumPy scalars and lists too
+    dtype = values.dtype
+    narrow = dtype.is_floating_point if isinstance(values, torch.Tensor) else dtype.kind == "f"
+    if narrow and dtype.itemsize < 8:
         raise TypeError(f"times must be float64 seconds (or Python floats), got {dtype}: it cannot hold "
                         f"absolute stamps (float32 spacing at 1.5e9 s is 128 s)")
-    if isinstance(times, torch.Tensor):
-        return times.to(torch.float64)
-    return torch.as_tensor(np.asarray(times, dtype=np.float64))
+    return values.to(torch.float64) if isinstance(values, torch.Tensor) else torch.as_tensor(values.astype(np.float64))
 
 
 def _end_tolerance(t_end: float, t0: float) -> float:
