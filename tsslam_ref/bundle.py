@@ -19,7 +19,7 @@ stages run.
 
 Rays carry a *slot* in ``frame_ids``; a pose model returns one (4, 4) pose per slot.
 
-Layer 2.5 (shared optimisation pieces): imports config, geometry, render, losses, spline,
+Layer 2.5 (shared optimisation pieces): imports config, geometry, render, losses, spline_fit,
 trajectory, dynamics; never the optimisers (tracking, local_ba, global_ba) or the system.
 """
 

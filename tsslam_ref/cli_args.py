@@ -1,7 +1,7 @@
 """Pieces the command lines share: one-line usage errors and checked numeric options.
 
 Every command line of the package reports bad input as one line naming the option and what was
-expected, with exit status 2 (docs/cli.md).  Side layer: standard library only.
+expected, with exit status 2 (docs/cli.md).  Layer 0 (base): standard library only.
 """
 
 import argparse

@@ -314,7 +314,8 @@ class MeshConfig:
     voxel_final: float = ranged(0.03, ">", 0)
     """Voxel size (m) of the final mesh (Co-SLAM: 0.02 Replica/Synthetic, 0.03 ScanNet/TUM)."""
     sdf_cutoff: float = ranged(3.0, ">", 0)
-    """Skip cells whose corners all have |normalised SDF| >= this (Co-SLAM NumpyMarchingCubes)."""
+    """Skip cells where any of the 8 corners has |normalised SDF| >= this; a cell is kept only
+    when all its corners are below it (Co-SLAM NumpyMarchingCubes)."""
 
 
 @dataclass

@@ -3,8 +3,9 @@
 TS-SLAM §IV-A "Datasets" (TUM RGB-D, ScanNet and the NeuralRGBD synthetic scenes; "we assumed a
 constant frame rate of 30 FPS" where a dataset has no timestamps), Eq. (2) ``eq:cal_ray`` for
 :func:`back_project`, and Co-SLAM's ``datasets/dataset.py`` @3bb904e (differences in docs/data.md;
-Replica is supported because Co-SLAM evaluates on it).  Side layer: imports layer 0 only (the ``synthesize`` command
-imports :mod:`tsslam_ref.synthetic` lazily).  Documented in docs/data.md; taught in
+Replica is supported because Co-SLAM evaluates on it).  Side layer: imports ``cli_args`` (layer 0)
+and ``datasets.*`` (side layer); the ``synthesize`` command and :func:`default_synthetic_path` import
+:mod:`tsslam_ref.synthetic` (side layer) lazily.  Documented in docs/data.md; taught in
 notebooks/00_data_and_cameras.ipynb.
 
 This module is the public entry point; the readers live in :mod:`tsslam_ref.datasets`.

@@ -9,7 +9,7 @@ Every pose is camera-to-world, OpenCV axes; times are float64 seconds.  The func
 ``slam.SLAMState`` (fields ``cfg``, ``done``, ``timestamps``, ``frame_poses``, ``trajectory``,
 ``keyframe_of_frame``, ``relative_to_keyframe``) and change nothing in it.
 
-Layer 4 (system support): imports ``geometry`` only; used by ``slam`` and ``run``.
+Layer 4 (system support): imports ``geometry`` and ``files`` only; used by ``slam`` and ``run``.
 """
 
 

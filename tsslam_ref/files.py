@@ -13,7 +13,7 @@ helpers built on it, :func:`atomic_write_text` and :func:`atomic_write_bytes`):
 * when writing fails or is interrupted, the temporary file is removed; a file left by a killed
   process is removed by :func:`remove_stray_temporaries` the next time a run uses the folder.
 
-Side layer: standard library only.
+Layer 0 (base): standard library only.
 """
 
 import contextlib

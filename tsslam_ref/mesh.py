@@ -6,8 +6,8 @@ marching cubes extracts the iso-0 surface; cells where a corner has |s| >= 3 (3 
 which removes spurious surfaces far from anything observed.  Vertex colours come from the
 colour head at the vertices.  Not an equation of TS-SLAM; it produces the meshes of §IV (Table III).
 
-Layer 2: imports no package module; needs only ``field.sdf`` (and ``field(points)`` for colours)
-and ``field.bound`` of the field it is given.
+Layer 2: imports only :mod:`tsslam_ref.files` (atomic writes of the .ply file); needs only
+``field.sdf`` (and ``field(points)`` for colours) and ``field.bound`` of the field it is given.
 Taught in notebooks/04_rendering_and_losses.ipynb.
 
 Differs from: Co-SLAM uses NeuralRGBD's C++ ``NumpyMarchingCubes``; we use scikit-image's

@@ -5,7 +5,8 @@
 :func:`first_control_point` / :func:`pin_first_control_point` hold the curve's start pose fixed
 (the gauge of local and global BA).
 
-Layer 1 (math).  Imports :mod:`tsslam_ref.spline` (the curve) and :mod:`tsslam_ref.geometry`.
+Layer 1 (math).  Imports :mod:`tsslam_ref.spline` (the curve), :mod:`tsslam_ref.knots` (non-uniform
+knots), :mod:`tsslam_ref.trajectory` and :mod:`tsslam_ref.geometry`.
 Taught in notebooks/01_bspline_trajectory.ipynb; docs/spline.md is the user doc.
 """
 

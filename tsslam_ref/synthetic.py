@@ -22,8 +22,9 @@ notebooks/00_data_and_cameras.ipynb.
 * **Trajectories.** A TUM-format file (real hand-held motion) is resampled at the frame times
   (positions linear, rotations slerp) and moved into the room by ONE rigid transform applied on
   the left, T_wc'(t) = T_place T_wc(t) with T_place chosen so that the first pose becomes
-  ``START_POSE`` (room centre, 1.3 m high, looking along +x).  The motion (speeds, accelerations,
-  body-frame rotation rates) is unchanged.  For TUM-VI (IMU body frame) pass ``body_to_camera``.
+  ``START_POSITION`` (room centre, 1.3 m high) and ``START_ROTATION`` (looking along +x, tilted
+  down by atan(0.15) = 8.5 deg).  The motion (speeds, accelerations, body-frame rotation rates)
+  is unchanged.  For TUM-VI (IMU body frame) pass ``body_to_camera``.
 
 | symbol | variable | shape | frame / unit |
 |---|---|---|---|
