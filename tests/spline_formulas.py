@@ -110,7 +110,12 @@ def evaluate(data, dtype=np.float64, mistake=None):
     mistake: None, "float32" (all arithmetic in float32), "world_frame" (ω, ω̇ world),
     "no_dt" (v, a not divided by Δt, Δt²), "transposed_basis" (Cᵀ for the translation),
     "snap_knots" (segment = floor(s + 1e-4): a time up to 1e-4 segments before a knot is put
-    in the next one).
+    in the next one), "other_convention" (the other convention's control points, the segment
+    clamped to the valid ones as code that never checks its domain does), "transposed_R" (R stored
+    world-to-body), "nanoseconds" (correct code on int64 nanoseconds, as basalt-headers: t, t0 and
+    Δt each rounded to whole ns, u from the integers), "world_increments" (d_j = Log(R_{k+j} R_{k+j-1}ᵀ),
+    the increment in the world frame, composed on the right as if it were the body one), "old_omega"
+    (ω̇'s cross product with ω^(j), before its update and rotation by A_jᵀ).
     """
     if data.get("representation", "split") == "se3":
         return evaluate_se3(data)
@@ -123,12 +128,22 @@ def evaluate(data, dtype=np.float64, mistake=None):
     n = len(rotations)
     out = {key: [] for key in ("R", "p", "v", "a", "omega_body", "omegadot_body")}
     basis_p = C.T if mistake == "transposed_basis" else C
+    offset = OFFSET[convention]
+    if mistake == "other_convention":
+        offset = OFFSET["basalt" if convention == "paper" else "paper"]
+    if mistake == "nanoseconds":
+        t0_ns, dt_ns = round(Fraction(float(t0)) * 10**9), round(Fraction(float(dt)) * 10**9)
+        dt = dt_ns * 1e-9
     for t in data["times"]:
-        s_float = (t - t0) / dt - OFFSET[convention]
+        s_float = (t - t0) / dt - offset
         if mistake == "snap_knots":
             i = min(max(math.floor(s_float + 1e-4), 0), n - 4)
+        elif mistake == "nanoseconds":
+            relative_ns = round(Fraction(float(t)) * 10**9) - t0_ns - offset * dt_ns
+            i = min(max(relative_ns // dt_ns, 0), n - 4)
+            s_float = i + (relative_ns - i * dt_ns) / dt_ns
         else:
-            i = exact_segment(t, t0, dt, OFFSET[convention], n)
+            i = exact_segment(t, t0, dt, offset, n)
         u = dtype(s_float - i)
         B = (C @ np.array([1, u, u * u, u * u * u], dtype=np.float64)).astype(dtype)
         Bd = (C @ np.array([0, 1, 2 * u, 3 * u * u], dtype=np.float64)).astype(dtype)
@@ -145,13 +160,19 @@ def evaluate(data, dtype=np.float64, mistake=None):
             p = p + Bp[j] * delta
             v = v + Bpd[j] * delta / scale_v
             a = a + Bpdd[j] * delta / scale_a
-            d = log_so3((rotations[i + j - 1].T @ rotations[i + j]).astype(np.float64)).astype(dtype)
+            increment = rotations[i + j] @ rotations[i + j - 1].T if mistake == "world_increments" else (
+                rotations[i + j - 1].T @ rotations[i + j])
+            d = log_so3(increment.astype(np.float64)).astype(dtype)
             A = exp_so3(B[j] * d.astype(np.float64)).astype(dtype)
             R = R @ A
+            previous = omega
             omega = A.T @ omega + Bd[j] / scale_v * d
-            omega_dot = Bd[j] / scale_v * np.cross(omega, d) + A.T @ omega_dot + Bdd[j] / scale_a * d
+            crossed = previous if mistake == "old_omega" else omega  # (A_jᵀ ω^(j)) × d_j would equal ω^(j+1) × d_j
+            omega_dot = Bd[j] / scale_v * np.cross(crossed, d) + A.T @ omega_dot + Bdd[j] / scale_a * d
         if mistake == "world_frame":
             omega, omega_dot = R @ omega, R @ omega_dot
+        if mistake == "transposed_R":
+            R = R.T
         for key, value in zip(out, (R, p, v, a, omega, omega_dot)):
             out[key].append(np.asarray(value, dtype=np.float64))
     return {key: np.stack(value) for key, value in out.items()}

@@ -16,7 +16,7 @@ import scipy.interpolate
 import torch
 
 import spline_formulas
-from tsslam_ref import conformance, knots, se3_spline, spline, spline_jacobians, spline_kit
+from tsslam_ref import conformance, conformance_hints, knots, se3_spline, spline, spline_jacobians, spline_kit
 from tsslam_ref.geometry import so3_exp, so3_log
 
 VECTOR_PATHS = spline_kit.shipped_vectors()
@@ -67,11 +67,11 @@ def ours_in_float32(data):
 def test_a_float32_candidate_fails_every_quantity_at_the_defaults_and_passes_at_the_documented_rtol(path, make):
     data = load(path)
     candidate = as_candidate(data, make(data))
-    report = conformance.compare(data, candidate)
+    report = conformance_hints.check(data, candidate)
     assert not any(row["ok"] for row in report["rows"]), spline_kit.format_report(report)
     assert min(row["error"] / row["bound"] for row in report["rows"]) > 20  # far from the bound, not by luck
     assert any("errors at the float32 level" in hint for hint in report["hints"]), report["hints"]
-    loose = conformance.compare(data, candidate, conformance.DEFAULT_ATOL, FLOAT32_RTOL)
+    loose = conformance_hints.check(data, candidate, conformance.DEFAULT_ATOL, FLOAT32_RTOL)
     assert loose["ok"], spline_kit.format_report(loose)
 
 
@@ -198,20 +198,29 @@ def test_compare_matches_large_times_by_relative_gap_lists_left_out_times_and_pl
     assert (row["index"], row["segment"]) == (1, 3) and row["u"] == pytest.approx(0.2, abs=1e-12)
 
 
-def test_report_lists_every_left_out_time_and_marks_only_more_with_an_ellipsis():
-    """A candidate without the reference's last distinct times: with 3 left out the note names all
-    3 (no '...'); with 4 it names the first 3 and ends them with '...'.  Oracle: the reference's own
-    last distinct times, taken with np.unique."""
+def test_a_candidate_may_leave_out_t_max_alone_and_fails_when_it_leaves_out_any_other_time():
+    """A half-open domain drops t_max: that candidate passes with a note naming it.  Leaving out
+    more fails, even when the times it gives are right, with a line naming the left-out times (all
+    3 of 3 with no '...'; the first 3 of 4 and '...'), because wrong values could hide there.  A
+    candidate giving one time in 256, with wrong values at all the others, fails the same way.
+    Oracle: the reference's own distinct times, taken with np.unique."""
     reference = load(VECTOR_PATHS[1])
     distinct = np.unique(reference["times"])
-    for left_out, ellipsis in ((3, False), (4, True)):
+    keys = ("times",) + conformance.OUTPUT_KEYS
+    no_t_max = np.asarray(reference["times"]) < distinct[-1]
+    report = conformance_hints.check(reference, {key: np.asarray(reference[key])[no_t_max] for key in keys})
+    text = spline_kit.format_report(report)
+    assert report["ok"] and f"leaves out t_max = {float(distinct[-1])!r} s" in text, text
+    for left_out, ellipsis in ((4, False), (5, True)):  # t_max and 3 or 4 times before it
         keep = np.asarray(reference["times"]) < distinct[-left_out]
-        candidate = {key: np.asarray(reference[key])[keep] for key in ("times",) + conformance.OUTPUT_KEYS}
-        report = spline_kit.format_report(conformance.compare(reference, candidate))
-        note = next(line for line in report.splitlines() if "leaves out" in line)
-        shown = ", ".join(repr(float(t)) for t in distinct[-left_out:][:3])
-        assert f"leaves out {left_out} reference time(s)" in note and f"(missing: {shown}" in note, note
-        assert (" ...;" in note) == ellipsis, note
+        report = conformance_hints.check(reference, {key: np.asarray(reference[key])[keep] for key in keys})
+        line = next(line for line in spline_kit.format_report(report).splitlines() if "before t_max" in line)
+        shown = ", ".join(repr(float(t)) for t in distinct[-left_out:-1][:3])
+        assert not report["ok"] and f"leaves out {left_out - 1} reference time(s) before t_max (missing: {shown}" in line
+        assert (" ...)" in line) == ellipsis, line
+    one = {key: np.asarray(reference[key])[:1] for key in keys}
+    report = conformance_hints.check(reference, one)
+    assert not report["ok"] and all(row["ok"] for row in report["rows"])  # its one time is right
 
 
 def _user_folder(tmp_path, leave_out=(), break_one=None):
@@ -286,3 +295,26 @@ def test_check_all_of_a_folder_without_any_vector_is_bad_input(tmp_path, capsys)
     (tmp_path / "empty").mkdir()
     code, _, err = _check_all(capsys, tmp_path / "empty", "--allow-missing")
     assert code == 2 and "holds none of the shipped names" in err
+
+
+def test_check_all_counts_a_file_still_holding_the_input_as_missing(tmp_path, capsys):
+    """The documented workflow writes the inputs into FOLDER and the user's outputs over them; a
+    file nobody evaluated is missing (named as the input), so --allow-missing still makes a partial
+    check pass, and without it the check fails."""
+    folder = _user_folder(tmp_path, leave_out={"knots_uneven_tum_stamps"})
+    inputs = tmp_path / "inputs"
+    assert spline_kit.main(["inputs", str(inputs)]) == 0
+    shutil.copyfile(inputs / "knots_uneven_tum_stamps.json", folder / "knots_uneven_tum_stamps.json")
+    capsys.readouterr()
+    total = len(VECTOR_PATHS)
+    code, lines, _ = _check_all(capsys, folder, "--allow-missing")
+    assert code == 0 and lines[-1] == (f"PASS (partial, --allow-missing): {total - 1} of {total} shipped vectors "
+                                       f"passed, 0 failed, 0 malformed, 1 missing"), lines
+    assert any("knots_uneven_tum_stamps" in line and "is still the input" in line for line in lines), lines
+    code, lines, _ = _check_all(capsys, folder)
+    assert code == 1 and "1 missing" in lines[-1], lines
+
+
+def test_check_all_of_a_folder_that_does_not_exist_says_so(tmp_path, capsys):
+    code, _, err = _check_all(capsys, tmp_path / "nowhere")
+    assert code == 2 and "no such folder" in err and "nowhere" in err, err

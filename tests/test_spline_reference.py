@@ -112,6 +112,13 @@ def run_check(capsys, reference, candidate, tmp_path, *extra):
     ("paper_dt0.25_large_rot", "no_dt", "dt^1"),
     ("basalt_dt1_large_rot", "transposed_basis", "TRANSPOSED basis"),
     ("paper_dt0.03_tum_stamps", "snap_knots", "errors only at times within 1e-4 segments of a knot"),
+    ("paper_dt0.25_large_rot", "other_convention", "index convention shifted by 2"),
+    ("basalt_dt1_large_rot", "other_convention", "index convention shifted by 2"),
+    ("paper_dt0.03_tum_stamps", "other_convention", "index convention shifted by 2"),
+    ("paper_dt0.25_large_rot", "transposed_R", "TRANSPOSE, world-to-body"),
+    ("paper_dt0.03_tum_stamps", "nanoseconds", "rounded to whole nanoseconds"),
+    ("paper_dt0.25_large_rot", "world_increments", "the rotation's composition"),
+    ("basalt_dt1_large_rot", "old_omega", "only omegadot fails"),
 ])
 def test_each_planted_mistake_triggers_its_hint(capsys, tmp_path, vector, mistake, expected):
     data = load(spline_kit.VECTOR_DIR / f"{vector}.json")
@@ -119,6 +126,23 @@ def test_each_planted_mistake_triggers_its_hint(capsys, tmp_path, vector, mistak
     code, out = run_check(capsys, data, candidate, tmp_path)
     assert code == 1 and "FAIL" in out and expected in out, out
     assert "worst at index" in out and "u = " in out and "ref " in out and "cand " in out
+
+
+UNIFORM_SPLIT = [path.stem for path in spline_kit.shipped_vectors()
+                 if "knots" not in load(path) and load(path).get("representation", "split") == "split"]
+
+
+@pytest.mark.parametrize("vector", UNIFORM_SPLIT)
+def test_code_on_whole_nanoseconds_passes_at_the_documented_rtol_and_is_named_where_it_fails(capsys, tmp_path, vector):
+    """docs/spline.md: times rounded to whole nanoseconds (basalt-headers' int64 ns) check with
+    --rtol 1e-7.  The candidate is spline_formulas' numpy code on integer nanoseconds; where the
+    default tolerances fail it, the hint must say why (not blame float32)."""
+    data = load(spline_kit.VECTOR_DIR / f"{vector}.json")
+    candidate = as_candidate(data, spline_formulas.evaluate(data, mistake="nanoseconds"))
+    code, out = run_check(capsys, data, candidate, tmp_path, "--rtol", "1e-7")
+    assert code == 0 and "PASS" in out, out
+    code, out = run_check(capsys, data, candidate, tmp_path)
+    assert code == 0 or "rounded to whole nanoseconds" in out, out
 
 
 def test_a_one_segment_shift_is_named_as_an_index_convention(capsys, tmp_path):

@@ -17,7 +17,7 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
 * 1.5 side, beside the stack (they import layers 0-1 and each other; the command line imports
   them): ``data`` and ``datasets.*`` (loaders), ``synthetic`` (procedural scenes),
   ``trajectory_metrics`` (ATE, RPE), ``reconstruction_metrics`` (culling, Acc/Comp, Depth L1),
-  ``eval`` (their command line), ``conformance`` and ``spline_kit`` (spline conformance kit),
+  ``eval`` (their command line), ``conformance``, ``conformance_hints`` and ``spline_kit`` (spline conformance kit),
   ``analytic`` (an exact stand-in map for the chapters and tests), ``view3d`` (interactive 3-D
   figures with a static picture)
 * 2 objective: ``losses`` (Eq. 4), ``mapping`` (map fitting with known poses), ``mesh``
@@ -65,6 +65,7 @@ LAYERS = {
     "reconstruction_metrics": 1.5,
     "eval": 1.5,
     "conformance": 1.5,
+    "conformance_hints": 1.5,
     "spline_kit": 1.5,
     "analytic": 1.5,
     "view3d": 1.5,

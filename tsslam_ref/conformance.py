@@ -4,7 +4,9 @@ TS-SLAM §III-B/§III-C, Eq. (5)-(9): lets another implementation (C++, JAX, a p
 check itself against ours with shared test vectors (tsslam_ref/assets/spline_vectors).  The command
 line is :mod:`tsslam_ref.spline_kit` (it imports this module; this module never imports it).
 
-Side module.  Imports ``spline``, ``knots`` and ``geometry``.
+Side module.  Imports ``spline``, ``knots`` and ``geometry`` (``se3_spline`` and ``spline_jacobians``
+inside the functions that need them).  What a failed check probably means (hints) is
+:mod:`tsslam_ref.conformance_hints`, which imports this module.
 
 Input keys: ``convention`` ("paper" | "basalt"), ``dt`` and ``t0`` (s), ``rotvecs`` (N x 3, rad),
 ``translations`` (N x 3, m), ``times`` (M, s); optional ``representation`` ("split", the default,
@@ -20,12 +22,13 @@ output keys together.
 Error definition (one, used everywhere): per quantity q, error = max over times and components of
 |cand − ref|; scale = max |ref| over the quantity; the quantity passes when
 error ≤ atol + rtol · scale (defaults :data:`DEFAULT_ATOL`, :data:`DEFAULT_RTOL`: between float64
-and float32 rounding).  "scaled error" = error / scale.  :func:`diagnose` recognises common mistakes.
+and float32 rounding).  "scaled error" = error / scale.  A candidate may leave out the reference's
+last time (t_max, which a half-open domain drops) and no other.
 """
 
 import json
 import math
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, Optional, Sequence
 
 import numpy as np
 import torch
@@ -43,7 +46,6 @@ DEFAULT_RTOL = 1e-10
 """Default tolerances, far from both roundings (measured on the shipped vectors, docs/spline.md): correct
 float64 formulations differ from ours by at most 4e-14 of the scale; float32 arithmetic by 7e-8 to 9e-7
 and float64 values stored as float32 by 3e-8 to 6e-8 (rtol 1e-7 would pass the latter)."""
-FLOAT32_LEVEL = 1e-8  # a failing candidate's largest scaled error from here to 3e-5: float32-level, say so
 ROTATION_STEP_LIMIT = math.pi - 1e-6
 """Largest relative rotation (rad) between consecutive control points the kit accepts.  At π the
 principal Log is ambiguous (Log(R) and −Log(R) are both valid; two correct implementations then
@@ -260,7 +262,7 @@ def match_times(ref_times: np.ndarray, cand_times: np.ndarray, candidate_name: s
     """(M_cand,) index into the reference times of each candidate time.
 
     Every candidate time must equal a reference time up to :data:`TIME_MATCH` (relative);
-    the candidate may leave reference times out (e.g. t_max, for a half-open domain).
+    the candidate may leave reference times out (:func:`compare` accepts only t_max, for a half-open domain).
     Raises ConformanceError naming the first candidate time without a partner.
     """
     order = np.argsort(ref_times, kind="stable")
@@ -280,7 +282,7 @@ def match_times(ref_times: np.ndarray, cand_times: np.ndarray, candidate_name: s
     return order[nearest]
 
 
-def _segment_and_u(parsed: Optional[dict], times: np.ndarray):
+def segment_and_u(parsed: Optional[dict], times: np.ndarray):
     """(segment index (M,), u (M,)) of times in the reference spline, or (None, None)."""
     if parsed is None:
         return None, None
@@ -294,18 +296,40 @@ def _segment_and_u(parsed: Optional[dict], times: np.ndarray):
     return first + offset, s - first
 
 
+def _jacobians_to_check(reference: dict, candidate: dict, index: np.ndarray, times: np.ndarray,
+                        reference_name: str, candidate_name: str):
+    """(quantity -> row shape to compare, the first time of another active window or None, notes):
+    the Jacobians are checked when both files hold them; a note says so when only one does."""
+    shapes, window, notes = dict(OUTPUT_SHAPES), None, []
+    cand_has, ref_has = (all(key in data for key in JACOBIAN_KEYS + ("J_first",)) for data in (candidate, reference))
+    if cand_has and ref_has:
+        shapes.update({key: JACOBIAN_SHAPE for key in JACOBIAN_KEYS})
+        window = _window_mismatch(_rows_of(reference, "J_first", (), reference_name, len(reference["times"]))[index],
+                                  _rows_of(candidate, "J_first", (), candidate_name, len(times)), times)
+    elif cand_has:
+        notes.append(f"{reference_name} holds no Jacobians; the candidate's were not checked (the shipped "
+                     f"vector with Jacobians is jacobians_paper_dt0.25)")
+    elif ref_has:
+        notes.append(f"{candidate_name} holds no Jacobians ({', '.join(('J_first',) + JACOBIAN_KEYS)}); only the "
+                     f"pose and its derivatives were checked")
+    return shapes, window, notes
+
+
 def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: float = DEFAULT_RTOL,
             reference_name: str = "reference", candidate_name: str = "candidate") -> dict:
     """Compare a candidate's outputs with a reference's at the candidate's times.
 
     Returns a report dict: ``rows`` (per quantity: quantity, error, scale, scaled, bound, ok and, at
     the worst time: index, time, segment, u, ref, cand), ``matched`` (candidate index -> reference
-    index), ``missing`` (reference times the candidate left out), ``window`` (None, or the first
-    time whose ``J_first`` differs: index, time, ref, cand), ``notes`` (list of str: Jacobians not
-    checked and why), ``atol``, ``rtol``, ``knots`` (the reference's knot vector, None when uniform or
-    unknown), ``hints`` (list of str, from :func:`diagnose`), ``ok``.  Times are the reference's at the
-    matched indices (equal to the candidate's up to :data:`TIME_MATCH`).  Raises ConformanceError on
-    malformed files or bad tolerances.
+    index), ``missing`` (reference times the candidate left out), ``dropped`` (those before the
+    reference's last time: any fails the check), ``window`` (None, or the first time whose
+    ``J_first`` differs: index, time, ref, cand), ``notes`` (list of str: Jacobians not checked and
+    why), ``atol``, ``rtol``, ``knots`` (the reference's knot vector, None when uniform or unknown),
+    ``refs`` and ``cands`` (quantity -> (M, ...) arrays at the matched times), ``parsed`` (the
+    reference's parsed input, None for a bare output file), ``ok``.  Times are the reference's at
+    the matched indices (equal to the candidate's up to :data:`TIME_MATCH`).  Hints for a failed
+    check: :func:`tsslam_ref.conformance_hints.check`.  Raises ConformanceError on malformed files
+    or bad tolerances.
     """
     check_tolerances(atol, rtol)
     ref_times = _array(reference, "times", (), reference_name)
@@ -314,26 +338,15 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
         raise ConformanceError(f"{candidate_name}: key 'times' is empty")
     index = match_times(ref_times, cand_times, candidate_name)
     missing = np.setdiff1d(np.unique(ref_times), ref_times[index])  # reference times the candidate left out
+    dropped = missing[missing < ref_times.max()]  # only t_max may be left out (a half-open domain)
     times = ref_times[index]  # in the reference's domain even where a candidate time is a few eps outside
     try:
         parsed = parse_input(reference, reference_name)
     except ConformanceError:
         parsed = None  # a bare output file: no segment / u, fewer hints
-    segment, u = _segment_and_u(parsed, times)
+    segment, u = segment_and_u(parsed, times)
     refs, cands, rows = {}, {}, []
-    shapes = dict(OUTPUT_SHAPES)
-    window, notes = None, []
-    cand_has, ref_has = (all(key in data for key in JACOBIAN_KEYS + ("J_first",)) for data in (candidate, reference))
-    if cand_has and ref_has:  # Jacobians are checked when both files hold them
-        shapes.update({key: JACOBIAN_SHAPE for key in JACOBIAN_KEYS})
-        window = _window_mismatch(_rows_of(reference, "J_first", (), reference_name, len(ref_times))[index],
-                                  _rows_of(candidate, "J_first", (), candidate_name, len(cand_times)), times)
-    elif cand_has:
-        notes.append(f"{reference_name} holds no Jacobians; the candidate's were not checked (the shipped "
-                     f"vector with Jacobians is jacobians_paper_dt0.25)")
-    elif ref_has:
-        notes.append(f"{candidate_name} holds no Jacobians ({', '.join(('J_first',) + JACOBIAN_KEYS)}); only the "
-                     f"pose and its derivatives were checked")
+    shapes, window, notes = _jacobians_to_check(reference, candidate, index, times, reference_name, candidate_name)
     for key, shape_tail in shapes.items():
         ref = _rows_of(reference, key, shape_tail, reference_name, len(ref_times))
         cand = _rows_of(candidate, key, shape_tail, candidate_name, len(cand_times))
@@ -349,11 +362,10 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
                      "segment": None if segment is None else int(segment[worst]),
                      "u": None if u is None else float(u[worst]),
                      "ref": ref[worst].tolist(), "cand": cand[worst].tolist(), "per_time": per_time})
-    report = {"rows": rows, "matched": index, "missing": missing, "times": times, "window": window,
-              "notes": notes, "atol": atol, "rtol": rtol, "knots": None if parsed is None else parsed["knots"],
-              "ok": window is None and all(row["ok"] for row in rows)}
-    report["hints"] = [] if report["ok"] else diagnose(report, refs, cands, parsed, atol, rtol)
-    return report
+    return {"rows": rows, "matched": index, "missing": missing, "dropped": dropped, "times": times,
+            "window": window, "notes": notes, "atol": atol, "rtol": rtol,
+            "knots": None if parsed is None else parsed["knots"], "refs": refs, "cands": cands, "parsed": parsed,
+            "ok": window is None and not dropped.size and all(row["ok"] for row in rows)}
 
 
 def _rows_of(data: dict, key: str, shape_tail: tuple, source: str, n_times: int) -> np.ndarray:
@@ -373,148 +385,3 @@ def _window_mismatch(first_ref: np.ndarray, first_cand: np.ndarray, times: np.nd
     m = int(differ[0])
     return {"index": m, "time": float(times[m]), "ref": int(first_ref[m]), "cand": int(first_cand[m]),
             "count": int(differ.size)}
-
-
-def _close(candidate: np.ndarray, model: np.ndarray, tolerance: float = 1e-6) -> bool:
-    """candidate equals model up to ``tolerance`` of max |model| (and they are not both zero)."""
-    scale = max(float(np.abs(model).max(initial=0.0)), 1e-300)
-    return candidate.shape == model.shape and float(np.abs(candidate - model).max(initial=0.0)) <= tolerance * scale
-
-
-def _transposed_basis_translation(parsed: dict, times: np.ndarray) -> np.ndarray:
-    """p(t) with the basis matrix transposed (B = Cᵀ [1, u, u², u³]ᵀ), the common typo; (M, 3)."""
-    first = spline.active_control_indices(times, parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
-                                          parsed["convention"])[..., 0].numpy()
-    offset = 2 if parsed["convention"] == "paper" else 0
-    u = (times - parsed["t0"]) / parsed["dt"] - offset - first
-    monomials = np.stack([np.ones_like(u), u, u * u, u * u * u], -1)  # (M, 4)
-    weights = monomials @ (np.asarray(spline._C) / 6.0)  # (M, 4): Cᵀ applied instead of C
-    points = parsed["translations"]
-    deltas = points[first[:, None] + np.arange(1, 4)] - points[first[:, None] + np.arange(0, 3)]  # (M, 3, 3)
-    return points[first] + (weights[:, 1:, None] * deltas).sum(1)
-
-
-def _frame_hints(failing: set, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndarray]) -> List[str]:
-    """Angular rates given in the world frame instead of the body frame."""
-    hints = []
-    for key in ("omega_body", "omegadot_body"):
-        if key in failing and _close(cands[key], np.einsum("mij,mj->mi", refs["R"], refs[key])):
-            hints.append(f"{key}: the candidate equals R @ {key}, the WORLD-frame value; the kit wants the body "
-                         f"frame ([omega]x = R^T dR/dt), i.e. omega_body = R^T omega_world")
-    return hints
-
-
-def _time_scale_hints(failing: set, refs, cands, parsed: Optional[dict]) -> List[str]:
-    """v, a (and omega, omegadot) off by a power of dt (uniform knots only)."""
-    if parsed is None or parsed["dt"] is None:
-        return []
-    hints, dt = [], parsed["dt"]
-    for key, order in (("v", 1), ("a", 2), ("omega_body", 1), ("omegadot_body", 2)):
-        if key not in failing:
-            continue
-        for power in (-2, -1, 1, 2):
-            if dt != 1.0 and _close(cands[key], refs[key] * dt ** power):
-                hints.append(f"{key}: the candidate is the reference times dt^{power} (dt = {dt}); a time "
-                             f"derivative of order {order} needs 1/dt^{order} (chain rule, du/dt = 1/dt)")
-                break
-    return hints
-
-
-def _precision_hint(failing: set, rows: dict) -> List[str]:
-    """Every quantity off by rounding-sized errors: float32 level, or between float64 and float32."""
-    scaled = [row["scaled"] for row in rows.values()]
-    largest = max(scaled)
-    if not failing or largest >= 3e-5 or sum(value > 1e-12 for value in scaled) < 4:
-        return []
-    if largest >= FLOAT32_LEVEL:
-        return [f"errors at the float32 level across the quantities (largest {largest:.1e} of the scale; float32 "
-                f"keeps about 6e-8, float64 1e-16): float32 arithmetic or float32 outputs?, or float64 that loses "
-                f"digits to large absolute times (knots or t0 near 1e9 s keep about 1e-7 s: form t - t0 before "
-                f"anything else); compute in float64, or check with --rtol 1e-5 if float32 is intended"]
-    return [f"errors between float64 rounding (1e-14 of the scale) and float32's (6e-8) across the quantities "
-            f"(largest {largest:.1e}): times rounded before evaluation (whole nanoseconds, as basalt-headers' "
-            f"int64 ns, give up to 2e-8 on the shipped vectors; check those with --rtol 1e-7)?, or a small-angle "
-            f"series (Exp, Log, J_r) used up to too large an angle?"]
-
-
-def _representation_hint(failing: set, cands, parsed: Optional[dict], times: np.ndarray) -> List[str]:
-    """Joint SE(3) instead of split (or the reverse): only p, v, a differ."""
-    if not (failing and failing <= {"p", "v", "a"} and {"p", "v", "a"} & failing):
-        return []
-    other = None
-    if parsed is not None and parsed["knots"] is None:
-        swapped = dict(parsed, representation="split" if parsed["representation"] == "se3" else "se3")
-        other = evaluate_parsed(swapped, times)
-    if other is not None:  # the other representation evaluated: a hint only if the candidate is it
-        if not _close(cands["p"], other["p"]):
-            return []
-        return ["p equals the JOINT SE(3) spline of the same control points (PyPose pp.bspline, Sophus) "
-                "but this vector is split SO(3) x R^3" if parsed["representation"] == "split" else
-                "p equals the SPLIT SO(3) x R^3 spline but this vector is JOINT SE(3) "
-                "(\"representation\": \"se3\")"]
-    if failing != {"p", "v", "a"}:
-        return []
-    return ["p, v and a differ while R, omega, omegadot agree: the translation may be coupled "
-            "differently, e.g. a JOINT SE(3) spline (PyPose, Sophus) against a split one"]
-
-
-def _knot_rule_hint(failing: set, rows: dict, parsed: dict, times: np.ndarray) -> List[str]:
-    """Errors only at times next to a knot."""
-    _, u = _segment_and_u(parsed, times)
-    near_knot = np.minimum(np.abs(u), np.abs(1.0 - u)) < 1e-4
-    if not (failing and near_knot.any()):
-        return []
-    bad_anywhere = np.zeros(len(times), dtype=bool)
-    for key in failing:
-        bad_anywhere |= rows[key]["per_time"] > rows[key]["bound"]
-    if bad_anywhere.any() and not (bad_anywhere & ~near_knot).any():
-        return [f"errors only at times within 1e-4 segments of a knot ({int(bad_anywhere.sum())} of "
-                f"{int(near_knot.sum())} such times, nowhere else): the knot rule; the segment of t is floor((t - t0)/dt) of the "
-                f"exact float64 values (a time 1e-6 segments before a knot is in the earlier segment), "
-                f"t_max is the end of the last segment"]
-    return []
-
-
-def _convention_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
-    """An index convention shifted by whole segments (uniform knots only)."""
-    if parsed["knots"] is not None or "p" not in failing:
-        return []
-    n, dt, t0 = parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"]
-    t_min, t_max = spline.valid_time_range(n, dt, t0, parsed["convention"])
-    for shift in (-2, -1, 1, 2):
-        shifted = times + shift * dt
-        inside = (shifted >= t_min) & (shifted <= t_max)
-        if inside.sum() < max(3, len(times) // 4):
-            continue
-        model = evaluate_parsed(parsed, shifted[inside])
-        if _close(cands["p"][inside], model["p"]) and _close(cands["R"][inside], model["R"]):
-            return [f"the candidate at t equals the reference at t {'+' if shift > 0 else '-'} {abs(shift)} dt: "
-                    f"an index convention shifted by {abs(shift)} segment(s) (paper: segment [t_i, t_i+1) uses "
-                    f"control points i-2..i+1; basalt and Sommer et al.: i..i+3; Lovegrove-style: i-1..i+2)"]
-    return []
-
-
-def _transposed_basis_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
-    """The basis matrix transposed (uniform knots, split representation)."""
-    if "p" in failing and parsed["representation"] == "split" and parsed["knots"] is None:
-        if _close(cands["p"], _transposed_basis_translation(parsed, times)):
-            return ["p equals the spline with the TRANSPOSED basis matrix: B(u) = C [1, u, u^2, u^3]^T with "
-                    "rows of C = (6,0,0,0), (5,3,-3,1), (1,3,3,-2), (0,0,0,1) over 6"]
-    return []
-
-
-def diagnose(report: dict, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndarray], parsed: Optional[dict],
-             atol: float, rtol: float) -> List[str]:
-    """Hints naming the likely mistake from the pattern of errors (list of one-line strings).
-
-    ``parsed`` is the reference's parsed input, or None for a bare output file (fewer hints).
-    """
-    rows = {row["quantity"]: row for row in report["rows"]}
-    failing = {key for key, row in rows.items() if not row["ok"]}
-    times = report["times"]
-    hints = _frame_hints(failing, refs, cands) + _time_scale_hints(failing, refs, cands, parsed)
-    hints += _precision_hint(failing, rows) + _representation_hint(failing, cands, parsed, times)
-    if parsed is None:
-        return hints
-    hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)
-    return hints + _transposed_basis_hint(failing, cands, parsed, times)

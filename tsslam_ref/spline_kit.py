@@ -1,7 +1,7 @@
 """Spline conformance kit, the command line (TS-SLAM §III-B/§III-C, Eq. (5)-(9)).
 
-Side module (CLI), on top of :mod:`tsslam_ref.conformance` (the maths) and :mod:`tsslam_ref.spline`;
-:func:`format_report` prints a comparison.
+Side module (CLI), on top of :mod:`tsslam_ref.conformance` (the maths), :mod:`tsslam_ref.conformance_hints`
+(what a failure probably means) and :mod:`tsslam_ref.spline`; :func:`format_report` prints a comparison.
 Everything it needs ships inside the package: the test vectors (assets/spline_vectors/*.json) and
 the reference (assets/spline_kit.md: conventions, formulas, golden values and their provenance).
 
@@ -30,7 +30,7 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 
-from tsslam_ref import conformance
+from tsslam_ref import conformance, conformance_hints
 from tsslam_ref.files import atomic_write_text
 from tsslam_ref.cli_args import OneLineParser
 
@@ -50,6 +50,17 @@ def resolve_reference(name: str) -> str:
         return name
     candidate = VECTOR_DIR / (name if name.endswith(".json") else name + ".json")
     return str(candidate) if candidate.exists() else name
+
+
+def _still_the_input(path: str) -> bool:
+    """A file 'inputs' wrote and nobody evaluated: written by this kit, no output keys."""
+    try:
+        with open(path, "r", encoding="utf-8") as handle:
+            data = json.load(handle)
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and data.get("written_by") == WRITTEN_BY and not (
+        set(conformance.OUTPUT_KEYS) & set(data))
 
 
 def _written_by_kit(path: str) -> bool:
@@ -166,11 +177,15 @@ def format_report(report: dict, reference_name: str = "reference", candidate_nam
         lines.append(f"J_first        FAIL: {window['count']} time(s) with another active window; first at index "
                      f"{window['index']}, t = {window['time']!r} s: candidate {window['cand']}, reference "
                      f"{window['ref']} (index convention or knot rule)")
-    matched, missing = len(report["times"]), report["missing"]
-    if missing.size:
-        shown = ", ".join(repr(float(t)) for t in missing[:3]) + (" ..." if missing.size > 3 else "")
-        lines.append(f"note: {candidate_name} leaves out {missing.size} reference time(s); checked on its {matched} "
-                     f"times (missing: {shown}; a half-open domain drops t_max)")
+    matched, missing, dropped = len(report["times"]), report["missing"], report["dropped"]
+    if dropped.size:
+        shown = ", ".join(repr(float(t)) for t in dropped[:3]) + (" ..." if dropped.size > 3 else "")
+        lines.append(f"times          FAIL: {candidate_name} leaves out {dropped.size} reference time(s) before t_max "
+                     f"(missing: {shown}); evaluate at every reference time (only t_max, which a half-open "
+                     f"domain drops, may be left out)")
+    if missing.size > dropped.size:
+        lines.append(f"note: {candidate_name} leaves out t_max = {float(missing[-1])!r} s (a half-open domain drops "
+                     f"it); checked on its {matched} times")
     for note in report["notes"]:
         lines.append(f"note: {note}")
     for hint in report["hints"]:
@@ -187,8 +202,8 @@ def _segment_label(segment: int, knot_vector: Optional[np.ndarray]) -> str:
 
 
 def _check(reference_path: str, candidate_path: str, atol: float, rtol: float) -> bool:
-    report = conformance.compare(conformance.load_json(reference_path), conformance.load_json(candidate_path),
-                                 atol, rtol, reference_path, candidate_path)
+    report = conformance_hints.check(conformance.load_json(reference_path), conformance.load_json(candidate_path),
+                                     atol, rtol, reference_path, candidate_path)
     print(format_report(report, reference_path, candidate_path))
     print("PASS" if report["ok"] else "FAIL")
     return report["ok"]
@@ -199,10 +214,13 @@ def _check_all(folder: str, atol: float, rtol: float, allow_missing: bool = Fals
     last line with the counts.  Returns 0 only when every shipped vector was there and passed (with
     ``allow_missing``: every one that was there), 1 otherwise, 2 when FOLDER holds none of them."""
     conformance.check_tolerances(atol, rtol)
+    if not os.path.isdir(folder):
+        raise conformance.ConformanceError(f"{folder}: no such folder (check-all wants the folder of your "
+                                           f"outputs, FOLDER/<name>.json)")
     results = {}
     for path in shipped_vectors():
         candidate = os.path.join(folder, path.name)
-        if not os.path.exists(candidate):
+        if not os.path.exists(candidate) or _still_the_input(candidate):
             results[path.stem] = "missing"
             continue
         print(f"== {path.stem}")
@@ -213,7 +231,9 @@ def _check_all(folder: str, atol: float, rtol: float, allow_missing: bool = Fals
             results[path.stem] = "error"
     print("== summary")
     for name, result in results.items():
-        shown = f"missing (no {os.path.join(folder, name + '.json')})" if result == "missing" else result
+        path = os.path.join(folder, name + ".json")
+        shown = (result if result != "missing" else f"missing (no {path})" if not os.path.exists(path) else
+                 f"missing ({path} is still the input 'inputs' wrote: no outputs)")
         print(f"  {name:<28} {shown}")
     counts = {key: sum(result == key for result in results.values()) for key in ("PASS", "FAIL", "error", "missing")}
     if counts["missing"] == len(results):

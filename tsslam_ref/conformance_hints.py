@@ -1,0 +1,223 @@
+"""Spline conformance kit, the diagnosis: what a failed check probably means.
+
+TS-SLAM §III-B/§III-C, Eq. (5)-(9), as compared by :mod:`tsslam_ref.conformance`.  From the pattern
+of a failed comparison's errors, name the likely mistake, mostly by evaluating the reference with
+that mistake made on purpose and asking whether the candidate equals it: angular rates in the
+world frame, rotations stored transposed, derivatives off by a power of Δt, the joint SE(3) spline
+instead of the split one, the transposed basis matrix, an index convention shifted by whole
+segments, times rounded to whole nanoseconds (basalt-headers' int64 ns); otherwise the size of the
+errors (float32 or float64 rounding) and where they sit (only next to knots).
+
+Side module.  Imports ``conformance`` and ``spline``.
+"""
+
+from fractions import Fraction
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from tsslam_ref import conformance, spline
+
+FLOAT32_LEVEL = 1e-8  # a failing candidate's largest scaled error from here to 3e-5: float32-level, say so
+NANOSECOND_MATCH = 1e-11
+"""A candidate equals the reference at nanosecond-rounded times when every quantity agrees with that
+evaluation to this fraction of its scale: far below the rounding's own effect (up to about 1e-7 of
+the scale on the shipped vectors) and far above float64 noise (1e-14)."""
+
+
+def check(reference: dict, candidate: dict, atol: float = conformance.DEFAULT_ATOL,
+          rtol: float = conformance.DEFAULT_RTOL, reference_name: str = "reference",
+          candidate_name: str = "candidate") -> dict:
+    """:func:`conformance.compare`, plus ``hints`` (list of one-line str; empty when it passed)."""
+    report = conformance.compare(reference, candidate, atol, rtol, reference_name, candidate_name)
+    report["hints"] = [] if report["ok"] else diagnose(report)
+    return report
+
+
+def _close(candidate: np.ndarray, model: np.ndarray, tolerance: float = 1e-6) -> bool:
+    """candidate equals model up to ``tolerance`` of max |model| (and they are not both zero)."""
+    scale = max(float(np.abs(model).max(initial=0.0)), 1e-300)
+    return candidate.shape == model.shape and float(np.abs(candidate - model).max(initial=0.0)) <= tolerance * scale
+
+
+def _close_rows(candidate: np.ndarray, model: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:
+    """(M,) bool: each time's row of candidate equals model's up to ``tolerance`` of max |model|."""
+    scale = max(float(np.abs(model).max(initial=0.0)), 1e-300)
+    return np.abs(candidate - model).reshape(len(model), -1).max(axis=1, initial=0.0) <= tolerance * scale
+
+
+def _transposed_basis_translation(parsed: dict, times: np.ndarray) -> np.ndarray:
+    """p(t) with the basis matrix transposed (B = Cᵀ [1, u, u², u³]ᵀ), the common typo; (M, 3)."""
+    first = spline.active_control_indices(times, parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
+                                          parsed["convention"])[..., 0].numpy()
+    offset = 2 if parsed["convention"] == "paper" else 0
+    u = (times - parsed["t0"]) / parsed["dt"] - offset - first
+    monomials = np.stack([np.ones_like(u), u, u * u, u * u * u], -1)  # (M, 4)
+    weights = monomials @ (np.asarray(spline._C) / 6.0)  # (M, 4): Cᵀ applied instead of C
+    points = parsed["translations"]
+    deltas = points[first[:, None] + np.arange(1, 4)] - points[first[:, None] + np.arange(0, 3)]  # (M, 3, 3)
+    return points[first] + (weights[:, 1:, None] * deltas).sum(1)
+
+
+def _frame_hints(failing: set, refs: Dict[str, np.ndarray], cands: Dict[str, np.ndarray]) -> List[str]:
+    """Angular rates given in the world frame instead of the body frame; rotations transposed."""
+    hints = []
+    for key in ("omega_body", "omegadot_body"):
+        if key in failing and _close(cands[key], np.einsum("mij,mj->mi", refs["R"], refs[key])):
+            hints.append(f"{key}: the candidate equals R @ {key}, the WORLD-frame value; the kit wants the body "
+                         f"frame ([omega]x = R^T dR/dt), i.e. omega_body = R^T omega_world")
+    if "R" in failing and _close(cands["R"], np.swapaxes(refs["R"], 1, 2)):
+        hints.append("R: the candidate is the reference's TRANSPOSE, world-to-body; the kit wants body-to-world "
+                     "(camera-to-world) rotations, R = Exp(rotvecs) as given")
+    return hints
+
+
+def _time_scale_hints(failing: set, refs, cands, parsed: Optional[dict]) -> List[str]:
+    """v, a (and omega, omegadot) off by a power of dt (uniform knots only)."""
+    if parsed is None or parsed["dt"] is None:
+        return []
+    hints, dt = [], parsed["dt"]
+    for key, order in (("v", 1), ("a", 2), ("omega_body", 1), ("omegadot_body", 2)):
+        if key not in failing:
+            continue
+        for power in (-2, -1, 1, 2):
+            if dt != 1.0 and _close(cands[key], refs[key] * dt ** power):
+                hints.append(f"{key}: the candidate is the reference times dt^{power} (dt = {dt}); a time "
+                             f"derivative of order {order} needs 1/dt^{order} (chain rule, du/dt = 1/dt)")
+                break
+    return hints
+
+
+def _precision_hint(failing: set, rows: dict) -> List[str]:
+    """Every quantity off by rounding-sized errors: float32 level, or between float64 and float32."""
+    scaled = [row["scaled"] for row in rows.values()]
+    largest = max(scaled)
+    if not failing or largest >= 3e-5 or sum(value > 1e-12 for value in scaled) < 4:
+        return []
+    if largest >= FLOAT32_LEVEL:
+        return [f"errors at the float32 level across the quantities (largest {largest:.1e} of the scale; float32 "
+                f"keeps about 6e-8, float64 1e-16): float32 arithmetic or float32 outputs?, or float64 that loses "
+                f"digits to large absolute times (knots or t0 near 1e9 s keep about 1e-7 s: form t - t0 before "
+                f"anything else); compute in float64, or check with --rtol 1e-5 if float32 is intended"]
+    return [f"errors between float64 rounding (1e-14 of the scale) and float32's (6e-8) across the quantities "
+            f"(largest {largest:.1e}): times rounded before evaluation (whole nanoseconds, as basalt-headers' "
+            f"int64 ns, give up to 5e-8 on the shipped vectors; check those with --rtol 1e-7)?, or a small-angle "
+            f"series (Exp, Log, J_r) used up to too large an angle?"]
+
+
+def _representation_hint(failing: set, cands, parsed: Optional[dict], times: np.ndarray) -> List[str]:
+    """Joint SE(3) instead of split (or the reverse): only p, v, a differ."""
+    if not (failing and failing <= {"p", "v", "a"} and {"p", "v", "a"} & failing):
+        return []
+    other = None
+    if parsed is not None and parsed["knots"] is None:
+        swapped = dict(parsed, representation="split" if parsed["representation"] == "se3" else "se3")
+        other = conformance.evaluate_parsed(swapped, times)
+    if other is not None:  # the other representation evaluated: a hint only if the candidate is it
+        if not _close(cands["p"], other["p"]):
+            return []
+        return ["p equals the JOINT SE(3) spline of the same control points (PyPose pp.bspline, Sophus) "
+                "but this vector is split SO(3) x R^3" if parsed["representation"] == "split" else
+                "p equals the SPLIT SO(3) x R^3 spline but this vector is JOINT SE(3) "
+                "(\"representation\": \"se3\")"]
+    if failing != {"p", "v", "a"}:
+        return []
+    return ["p, v and a differ while R, omega, omegadot agree: the translation may be coupled "
+            "differently, e.g. a JOINT SE(3) spline (PyPose, Sophus) against a split one"]
+
+
+def _knot_rule_hint(failing: set, rows: dict, parsed: dict, times: np.ndarray) -> List[str]:
+    """Errors only at times next to a knot."""
+    _, u = conformance.segment_and_u(parsed, times)
+    near_knot = np.minimum(np.abs(u), np.abs(1.0 - u)) < 1e-4
+    if not (failing and near_knot.any()):
+        return []
+    bad_anywhere = np.zeros(len(times), dtype=bool)
+    for key in failing:
+        bad_anywhere |= rows[key]["per_time"] > rows[key]["bound"]
+    if bad_anywhere.any() and not (bad_anywhere & ~near_knot).any():
+        return [f"errors only at times within 1e-4 segments of a knot ({int(bad_anywhere.sum())} of "
+                f"{int(near_knot.sum())} such times, nowhere else): the knot rule; the segment of t is floor((t - t0)/dt) of the "
+                f"exact float64 values (a time 1e-6 segments before a knot is in the earlier segment), "
+                f"t_max is the end of the last segment"]
+    return []
+
+
+def _convention_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
+    """An index convention shifted by whole segments (uniform knots only)."""
+    if parsed["knots"] is not None or "p" not in failing:
+        return []
+    n, dt, t0 = parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"]
+    t_min, t_max = spline.valid_time_range(n, dt, t0, parsed["convention"])
+    for shift in (-2, -1, 1, 2):
+        shifted = times + shift * dt
+        inside = (shifted >= t_min) & (shifted <= t_max)
+        if inside.sum() < max(3, len(times) // 4):
+            continue
+        model = conformance.evaluate_parsed(parsed, shifted[inside])
+        same = _close_rows(cands["p"][inside], model["p"]) & _close_rows(cands["R"][inside], model["R"])
+        if same.mean() >= 0.9:  # most times: a clamped index at a domain end breaks the shift at a few
+            return [f"the candidate at t equals the reference at t {'+' if shift > 0 else '-'} {abs(shift)} dt "
+                    f"({int(same.sum())} of {same.size} times where that is inside the domain): "
+                    f"an index convention shifted by {abs(shift)} segment(s) (paper: segment [t_i, t_i+1) uses "
+                    f"control points i-2..i+1; basalt and Sommer et al.: i..i+3; Lovegrove-style: i-1..i+2)"]
+    return []
+
+
+def _transposed_basis_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
+    """The basis matrix transposed (uniform knots, split representation)."""
+    if "p" in failing and parsed["representation"] == "split" and parsed["knots"] is None:
+        if _close(cands["p"], _transposed_basis_translation(parsed, times)):
+            return ["p equals the spline with the TRANSPOSED basis matrix: B(u) = C [1, u, u^2, u^3]^T with "
+                    "rows of C = (6,0,0,0), (5,3,-3,1), (1,3,3,-2), (0,0,0,1) over 6"]
+    return []
+
+
+def _rotation_part_hints(failing: set) -> List[str]:
+    """Patterns of the rotation's recursion (Eq. 6 and 9): which of R, omega, omegadot fail."""
+    if failing == {"R", "omega_body", "omegadot_body"}:
+        return ["R, omega and omegadot fail while p, v and a pass: the rotation's composition; R(t) = R_k "
+                "A_1 A_2 A_3 with A_j = Exp(B_j d_j) and d_j = Log(R_{k+j-1}^T R_{k+j}): increments on the RIGHT "
+                "(body side), not Exp(B_j d_j) R on the left, and d_j in this order"]
+    if failing == {"omegadot_body"}:
+        return ["only omegadot fails: its recursion uses the UPDATED omega, omega^(j+1) = A_j^T omega^(j) + "
+                "Bdot_j d_j, then omegadot^(j+1) = Bdot_j omega^(j+1) x d_j + A_j^T omegadot^(j) + Bddot_j d_j"]
+    return []
+
+
+def _whole_nanoseconds(seconds: float) -> int:
+    """The float64 value of ``seconds`` rounded to whole nanoseconds, exactly (no float64 product)."""
+    return round(Fraction(float(seconds)) * 10**9)
+
+
+def _nanosecond_hint(failing: set, cands, parsed: Optional[dict], times: np.ndarray) -> List[str]:
+    """Times held as int64 nanoseconds (basalt-headers): t, t0 and dt each rounded to whole ns."""
+    if not failing or parsed is None or parsed["knots"] is not None:
+        return []
+    t0_ns, dt = _whole_nanoseconds(parsed["t0"]), _whole_nanoseconds(parsed["dt"]) * 1e-9
+    relative = np.array([_whole_nanoseconds(t) - t0_ns for t in times], dtype=np.float64) * 1e-9
+    t_min, t_max = spline.valid_time_range(parsed["rotvecs"].shape[0], dt, 0.0, parsed["convention"])
+    inside = (relative >= t_min) & (relative <= t_max)  # stamps a few ulps outside are extrapolated: left out
+    if inside.sum() < len(times) // 2:
+        return []
+    model = conformance.evaluate_parsed(dict(parsed, t0=0.0, dt=dt), relative[inside])
+    if not all(_close(cands[key][inside], model[key], NANOSECOND_MATCH) for key in conformance.OUTPUT_KEYS):
+        return []
+    return ["the candidate equals the reference evaluated with t, t0 and dt rounded to whole nanoseconds "
+            "(int64 ns, as basalt-headers): correct for such code, whose u moves by up to 0.5 ns / dt; check it "
+            "with --rtol 1e-7"]
+
+
+def diagnose(report: dict) -> List[str]:
+    """Hints naming the likely mistake from the pattern of errors of a :func:`conformance.compare`
+    report (list of one-line strings; fewer for a bare output file as reference)."""
+    rows = {row["quantity"]: row for row in report["rows"]}
+    failing = {key for key, row in rows.items() if not row["ok"]}
+    times, refs, cands, parsed = report["times"], report["refs"], report["cands"], report["parsed"]
+    hints = _frame_hints(failing, refs, cands) + _time_scale_hints(failing, refs, cands, parsed)
+    hints += _nanosecond_hint(failing, cands, parsed, times) or _precision_hint(failing, rows)
+    hints += _representation_hint(failing, cands, parsed, times) + _rotation_part_hints(failing)
+    if parsed is None:
+        return hints
+    hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)
+    return hints + _transposed_basis_hint(failing, cands, parsed, times)
