@@ -318,3 +318,13 @@ def test_check_all_counts_a_file_still_holding_the_input_as_missing(tmp_path, ca
 def test_check_all_of_a_folder_that_does_not_exist_says_so(tmp_path, capsys):
     code, _, err = _check_all(capsys, tmp_path / "nowhere")
     assert code == 2 and "no such folder" in err and "nowhere" in err, err
+
+
+def test_a_non_finite_candidate_value_is_refused_naming_its_row_and_time():
+    reference = load(VECTOR_PATHS[1])
+    candidate = {key: reference[key] for key in ("times",) + conformance.OUTPUT_KEYS}
+    candidate["omega_body"] = [list(row) for row in candidate["omega_body"]]
+    candidate["omega_body"][17][1] = float("nan")
+    with pytest.raises(conformance.ConformanceError, match=rf"'omega_body' contains non-finite values \(first at "
+                                                           rf"row 17, t = {reference['times'][17]!r} s\)"):
+        conformance.compare(reference, candidate)

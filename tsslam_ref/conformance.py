@@ -71,7 +71,9 @@ def _array(data: dict, key: str, shape_tail: Sequence[int], source: str) -> np.n
         raise ConformanceError(f"{source}: key {key!r} must be {wanted}, got shape {value.shape}")
     if not np.all(np.isfinite(value)):
         row = int(np.flatnonzero(~np.isfinite(value.reshape(value.shape[0], -1)).all(axis=1))[0])
-        raise ConformanceError(f"{source}: key {key!r} contains non-finite values (first at row {row})")
+        times = data.get("times") if key != "times" else None
+        at = f", t = {times[row]!r} s" if isinstance(times, list) and row < len(times) else ""
+        raise ConformanceError(f"{source}: key {key!r} contains non-finite values (first at row {row}{at})")
     return value
 
 
