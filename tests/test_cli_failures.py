@@ -454,6 +454,23 @@ def test_resume_of_a_finished_run_without_a_checkpoint_says_it_is_finished(runs)
     again = cli("run", "--data", "room", "--out", finished.name, *CHEAP, "--resume", cwd=root)
     assert again.returncode == 0 and "finished run" in again.stdout, again.stdout + again.stderr
     assert snapshot(finished) == before
+    # other settings are refused as with a checkpoint, against the run's config.json
+    other = cli("run", "--data", "room", "--out", finished.name, *CHEAP, "--seed", "1", "--resume", cwd=root)
+    refused(other, "--resume refused", "config.json", "seed was 0 in config.json, this command gives 1")
+    assert snapshot(finished) == before
+
+
+def test_the_dataset_folder_itself_is_refused_as_output_folder(runs):
+    """The folder layout reads trajectory.txt as ground truth and a run writes trajectory.txt:
+    --out on the data folder is refused before anything is written, --overwrite or not."""
+    root = runs["root"]
+    data = root / "room_as_out"
+    shutil.copytree(root / "room", data)
+    before = snapshot(data)
+    for extra in ([], ["--overwrite"]):
+        refused(cli("run", "--data", data.name, "--out", data.name, *CHEAP, *extra, cwd=root),
+                "is the dataset folder itself")
+        assert snapshot(data) == before
 
 
 def test_ctrl_c_in_a_resumed_run_without_checkpoints_points_to_the_checkpoint_it_resumed_from(runs):
@@ -500,8 +517,8 @@ def test_user_data_without_ground_truth_or_with_a_bad_frame_mid_run(runs):
 def test_a_users_own_folder_gets_its_own_layout_and_depth_scale_not_the_presets(tmp_path):
     """The default preset is TUM's (layout tum, depth 5000 per metre); with --data the folder's
     layout is detected and its depth scale comes from its calibration file or layout standard
-    (a ScanNet folder read at 5000 would put every depth 5x too near). --dataset, --set and a
-    config file of the user's still decide."""
+    (a ScanNet folder read at 5000 would put every depth 5x too near), also when --dataset names
+    the layout.  --set and a config file of the user's still decide."""
     def resolved(*arguments):
         return run.resolve_config(run.build_parser().parse_args(list(arguments))).data
 
@@ -510,7 +527,9 @@ def test_a_users_own_folder_gets_its_own_layout_and_depth_scale_not_the_presets(
         mine = resolved("--data", str(tmp_path), *preset)
         assert (mine.dataset, mine.depth_scale) == ("auto", None), preset
     assert resolved("--data", str(tmp_path), "--set", "data.depth_scale=4000").depth_scale == 4000.0
-    assert resolved("--data", str(tmp_path), "--dataset", "scannet").dataset == "scannet"
+    for layout in ("scannet", "folder", "tum"):  # naming the layout gives its standard scale, not the preset's 5000
+        mine = resolved("--data", str(tmp_path), "--dataset", layout)
+        assert (mine.dataset, mine.depth_scale) == (layout, None), layout
     config_file = tmp_path / "mine.json"
     config_file.write_text(json.dumps({"data": {"dataset": "tum", "depth_scale": 5000.0}}))
     mine = resolved("--data", str(tmp_path), "--config", str(config_file))

@@ -135,6 +135,11 @@ def test_a_partial_config_file_starts_from_the_preset_it_names(tmp_path):
     saved = tmp_path / "saved.json"
     config.save(config.synthetic_cpu(), str(saved))
     assert config.load(str(saved)) == config.synthetic_cpu()
+    config.save(config.Config(), str(saved))  # the defaults save as "name": "default" and load back
+    assert config.load(str(saved)) == config.Config()
+    path.write_text(json.dumps({"name": "tinyy", "tracking": {"iters": 10}}))  # a misspelt preset
+    with pytest.raises(ValueError, match=r"mine.json: \"name\": 'tinyy' is no preset.*tiny"):
+        config.load(str(path))
 
 
 def _inclusive_ends(comparison, bound):

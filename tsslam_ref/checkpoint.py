@@ -184,8 +184,9 @@ def _data_folder(path: str) -> str:
     return str(Path(path).resolve()) if path else str(default_sequence_path())
 
 
-def config_differences(saved: Dict[str, Any], cfg: config_module.Config) -> List[str]:
-    """'key: saved -> now' for every config value that differs from the checkpoint's config."""
+def config_differences(saved: Dict[str, Any], cfg: config_module.Config, saved_in: str = "the checkpoint") -> List[str]:
+    """'key: saved -> now' for every config value that differs from the saved config (``saved_in``
+    names where it was saved, for the message)."""
     old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))
     changes = []
     for key in sorted(set(old) | set(new)):
@@ -195,7 +196,7 @@ def config_differences(saved: Dict[str, Any], cfg: config_module.Config) -> List
         else:
             same = json.dumps(before) == json.dumps(after)
         if not same:
-            changes.append(f"{key} was {json.dumps(before)} in the checkpoint, this command gives {json.dumps(after)}")
+            changes.append(f"{key} was {json.dumps(before)} in {saved_in}, this command gives {json.dumps(after)}")
     return changes
 
 

@@ -417,7 +417,8 @@ def load(name_or_file: str) -> Config:
 
     A file's values are set on the preset its ``"name"`` names (a saved config names the preset it
     started from), so ``{"name": "tum-cpu", "tracking": {"iters": 10}}`` is tum-cpu with 10
-    tracking iterations; a file without a preset name starts from :class:`Config`'s defaults.
+    tracking iterations; a file without a name, or named ``"default"``, starts from
+    :class:`Config`'s defaults; any other name is refused (a misspelt preset).
     """
     if name_or_file in PRESETS:
         return PRESETS[name_or_file]()
@@ -426,6 +427,10 @@ def load(name_or_file: str) -> Config:
         base = values.get("name")
         if isinstance(base, str) and base in PRESETS:
             return validate(set_values(PRESETS[base](), values, name_or_file), name_or_file)
+        if isinstance(base, str) and base != Config.name:  # a misspelt preset would run on the defaults
+            raise ValueError(f"{name_or_file}: \"name\": {base!r} is no preset; a config file's name says "
+                             f"which preset its values start from: {', '.join(PRESETS)}, or "
+                             f"{Config.name!r} (or no name) for the built-in defaults")
         return from_dict(values, source=name_or_file)
     raise ValueError(
         f"config '{name_or_file}' is neither a preset ({', '.join(PRESETS)}) nor an existing JSON file"

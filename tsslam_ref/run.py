@@ -35,8 +35,6 @@ Layer 4 (system).
 
 import argparse
 import json
-import os
-import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,14 +51,11 @@ from . import knot_schedule, tracking
 from .cli_args import OneLineParser, number_in, silence_stdout
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
-from .run_outputs import write_outputs, write_partial_trajectory
+from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
+from .run_outputs import check_output_folder, write_outputs, write_partial_trajectory
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
 
-OUTPUT_NAMES = ("trajectory.txt", "metrics.json", "mesh.ply", "config.json", "trajectory.png", "errors.png",
-                "checkpoint.pt")
-"""Files a run writes into its folder (plus ``trajectory_<rate>hz.txt``); ``--overwrite`` removes only these."""
-_EXPORT_NAME = re.compile(r"trajectory_[0-9.e+-]+hz\.txt")
 MAX_EXPORT_RATE = 1000.0
 """Largest --export-rate (Hz): far above any camera's frame rate, and it bounds the file size."""
 RESULT_NEUTRAL = ("--checkpoint-every", "--export-rate", "--no-mesh", "--quiet")
@@ -69,11 +64,6 @@ RESULT_NEUTRAL = ("--checkpoint-every", "--export-rate", "--no-mesh", "--quiet")
 
 class BadInput(ValueError):
     """Bad command-line input; the message names the option, key, file or value."""
-
-
-def is_output_name(name: str) -> bool:
-    """Whether ``name`` is a file that a run of ours writes (see :data:`OUTPUT_NAMES`)."""
-    return name in OUTPUT_NAMES or _EXPORT_NAME.fullmatch(name) is not None
 
 
 def parse_frames(text: Optional[str]):
@@ -160,12 +150,12 @@ def resolve_config(args) -> config_module.Config:
         cfg.data.path = args.data
     if args.parallel:
         cfg.parallel = True
+    if args.data and (args.config is None or args.config in config_module.PRESETS):
+        # the user's own folder: its layout, and its own depth scale (calibration file, else the
+        # layout's standard), not the preset's dataset's; --dataset and --set data.* still decide
+        cfg.data.dataset, cfg.data.depth_scale = "auto", None
     if args.dataset:
         cfg.data.dataset = "tum" if args.dataset == "synthetic" else args.dataset
-    elif args.data and (args.config is None or args.config in config_module.PRESETS):
-        # the user's own folder: its layout, and its own depth scale (calibration file, else the
-        # layout's standard), not the preset's dataset's; --set data.* still decides (applied below)
-        cfg.data.dataset, cfg.data.depth_scale = "auto", None
     frames = parse_frames(args.frames)
     if frames is not None:
         cfg.data.frame_start, cfg.data.frame_stop, cfg.data.frame_step = frames
@@ -201,36 +191,6 @@ def _warn_if_depth_beyond_range(cfg, sequence, depth: np.ndarray) -> None:
         print(f"warning: {100 * np.mean(measured >= limit):.0f} % of frame 0's measured depth lies beyond {limit:g} m "
               f"(data.depth_trunc, render.far; median {np.median(measured):.2f} m); check the depth scale "
               f"(data.depth_scale = {sequence.depth_scale:g} PNG values per metre)", file=sys.stderr)
-
-
-def _check_output_folder(out: Path, overwrite: bool, resume: bool) -> None:
-    """Refuse an unusable ``--out`` before anything is written (see :func:`prepare`)."""
-    if out.is_symlink() and not out.exists():
-        raise BadInput(f"output folder {out} is a symbolic link to a missing target ({out.readlink()}); "
-                       f"expected a folder or a new name")
-    if out.exists() and not out.is_dir():
-        raise BadInput(f"output path {out} exists and is not a folder; expected a folder or a new name")
-    if not out.exists():
-        if resume:
-            raise BadInput(f"--resume given but the output folder {out} does not exist")
-        parent = out.parent
-        while not parent.exists() and parent != parent.parent:
-            parent = parent.parent
-        if not parent.is_dir():
-            raise BadInput(f"cannot create the output folder {out}: {parent} is not a folder")
-        if not os.access(parent, os.W_OK | os.X_OK):
-            raise BadInput(f"cannot create the output folder {out}: no permission to write in {parent}")
-        return
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise BadInput(f"output folder {out}: no permission to write in it")
-    names = [entry.name for entry in out.iterdir()]
-    if names and not (overwrite or resume):
-        raise BadInput(f"output folder {out} is not empty; pass --overwrite to replace the files of an earlier run "
-                       f"or --resume to continue it")
-    for name in names:
-        entry = out / name
-        if is_output_name(name) and entry.is_dir() and not entry.is_symlink():
-            raise BadInput(f"{entry} is a folder; a run writes a file of that name, so move it away first")
 
 
 @dataclass
@@ -293,40 +253,57 @@ def prepare(args: argparse.Namespace) -> Plan:
         raise BadInput(f"device {cfg.device!r} cannot be used ({error})") from None
     sequence = _checked_sequence(cfg, args.frames)
     out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
-    _check_output_folder(out, args.overwrite, args.resume)
+    check_output_folder(out, args.overwrite, args.resume, sequence.path)
     plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)
     gt_mesh_path = Path(sequence.path) / "gt_mesh.ply"
     if not args.no_mesh and gt_mesh_path.exists() and sequence.gt_poses is not None:  # culling needs GT cameras
         plan.gt_mesh = _read_gt_mesh(gt_mesh_path)  # a broken file is named now, not after the run
     if args.resume:
-        path = out / "checkpoint.pt"
-        if not path.is_file() and _finished_run(out):  # a finished run made with --checkpoint-every 0
-            plan.finished = True
-            return plan
-        if not path.is_file():
-            raise BadInput(f"--resume given but {path} does not exist (no checkpoint was written: the run stopped "
-                           f"before its first checkpoint, or ran with --checkpoint-every 0)")
-        values = checkpoint_module.read(path)
-        changes = checkpoint_module.config_differences(checkpoint_module.config_of(values), cfg)
-        if changes:
-            raise BadInput(f"--resume refused, {path} was made with other settings: {changes[0]}"
-                           + (f" (and {len(changes) - 1} more)" if len(changes) > 1 else "")
-                           + f"; only {', '.join(RESULT_NEUTRAL)} may change on --resume")
-        saved_times = values["timestamps"].numpy()
-        if saved_times.shape != sequence.timestamps.shape or not np.array_equal(saved_times, sequence.timestamps):
-            common = min(len(saved_times), len(sequence))
-            differ = np.flatnonzero(saved_times[:common] != sequence.timestamps[:common])
-            first = int(differ[0]) if differ.size else common
-            raise BadInput(f"--resume refused: the frames of {sequence.path} differ from those in {path} "
-                           f"({len(saved_times)} frames saved, {len(sequence)} now; the first difference at frame {first})")
-        plan.finished = _finished_run(out)
-        if not plan.finished:
-            try:
-                plan.state = checkpoint_module.from_plain(values, device)
-            except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as error:
-                raise checkpoint_module.CheckpointError(f"{path}: the checkpoint's content does not fit ({error})") from None
-            plan.environment = _resume_environment(values.get("environment"), plan)
+        _prepare_resume(plan)
     return plan
+
+
+def _prepare_resume(plan: Plan) -> None:
+    """Check ``--resume`` against what ``plan.out`` holds (the same settings and frames) and load its
+    checkpoint into ``plan``; a finished run without a checkpoint is compared with its config.json."""
+    path, cfg, sequence = plan.out / "checkpoint.pt", plan.cfg, plan.sequence
+    if not path.is_file() and _finished_run(plan.out):  # a finished run made with --checkpoint-every 0
+        saved = plan.out / "config.json"
+        try:
+            saved_config = json.loads(saved.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            saved_config = None  # nothing to compare with: the run is done either way
+        if isinstance(saved_config, dict):
+            _refuse_other_settings(checkpoint_module.config_differences(saved_config, cfg, saved.name), saved)
+        plan.finished = True
+        return
+    if not path.is_file():
+        raise BadInput(f"--resume given but {path} does not exist (no checkpoint was written: the run stopped "
+                       f"before its first checkpoint, or ran with --checkpoint-every 0)")
+    values = checkpoint_module.read(path)
+    _refuse_other_settings(checkpoint_module.config_differences(checkpoint_module.config_of(values), cfg), path)
+    saved_times = values["timestamps"].numpy()
+    if saved_times.shape != sequence.timestamps.shape or not np.array_equal(saved_times, sequence.timestamps):
+        common = min(len(saved_times), len(sequence))
+        differ = np.flatnonzero(saved_times[:common] != sequence.timestamps[:common])
+        first = int(differ[0]) if differ.size else common
+        raise BadInput(f"--resume refused: the frames of {sequence.path} differ from those in {path} "
+                       f"({len(saved_times)} frames saved, {len(sequence)} now; the first difference at frame {first})")
+    plan.finished = _finished_run(plan.out)
+    if not plan.finished:
+        try:
+            plan.state = checkpoint_module.from_plain(values, plan.device)
+        except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as error:
+            raise checkpoint_module.CheckpointError(f"{path}: the checkpoint's content does not fit ({error})") from None
+        plan.environment = _resume_environment(values.get("environment"), plan)
+
+
+def _refuse_other_settings(changes: List[str], path: Path) -> None:
+    """BadInput naming the first setting that differs from the run saved in ``path`` (if any does)."""
+    if changes:
+        raise BadInput(f"--resume refused, {path} was made with other settings: {changes[0]}"
+                       + (f" (and {len(changes) - 1} more)" if len(changes) > 1 else "")
+                       + f"; only {', '.join(RESULT_NEUTRAL)} may change on --resume")
 
 
 def _resume_environment(saved: Optional[dict], plan: Plan) -> dict:
@@ -339,17 +316,6 @@ def _resume_environment(saved: Optional[dict], plan: Plan) -> dict:
               f"frames from {plan.state.done} on will not match an uninterrupted run bit for bit, and metrics.json "
               f"records both (environment_at_start)", file=sys.stderr)
     return saved if isinstance(saved, dict) else now
-
-
-def remove_previous_outputs(out: Path) -> List[Path]:
-    """Remove the files an earlier run of ours wrote in ``out`` (:func:`is_output_name`), links
-    included (the link, never its target); every other file stays.  Returns what was removed."""
-    removed = []
-    for entry in sorted(out.iterdir()):
-        if is_output_name(entry.name) and (entry.is_symlink() or entry.is_file()):
-            entry.unlink()
-            removed.append(entry)
-    return removed
 
 
 def save_checkpoint(state, path: Path, environment: Optional[dict] = None) -> None:

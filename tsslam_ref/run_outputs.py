@@ -4,13 +4,18 @@ Layer 4 (system support).  :func:`write_outputs` writes ``trajectory.txt``, ``me
 RPE against the ground truth, the runtime table, the peak memory, and the reconstruction metrics
 after Co-SLAM-style culling when a ground-truth mesh is known), ``mesh.ply``, the continuous export
 and the plots of a finished run; :func:`write_partial_trajectory` writes the trajectory so far
-while the run goes.  Every file is written atomically (``files.py``).  ``run.py`` prepares the run
-and calls these.
+while the run goes.  Every file is written atomically (``files.py``).  Which names are a run's
+(:func:`is_output_name`), the checks on an output folder before a run (:func:`check_output_folder`)
+and the removal of an earlier run's files (``--overwrite``) live here too.  ``run.py`` prepares the
+run and calls these.
 """
 
 import json
+import os
+import re
 import sys
 from pathlib import Path
+from typing import List
 
 import numpy as np
 
@@ -18,6 +23,60 @@ from . import data as data_module
 from . import trajectory_metrics as trajectory_metrics_module
 from .device import peak_memory, run_environment
 from .files import atomic_path, atomic_write_text
+
+OUTPUT_NAMES = ("trajectory.txt", "metrics.json", "mesh.ply", "config.json", "trajectory.png", "errors.png",
+                "checkpoint.pt")
+"""Files a run writes into its folder (plus ``trajectory_<rate>hz.txt``); ``--overwrite`` removes only these."""
+_EXPORT_NAME = re.compile(r"trajectory_[0-9.e+-]+hz\.txt")
+
+
+def is_output_name(name: str) -> bool:
+    """Whether ``name`` is a file that a run of ours writes (see :data:`OUTPUT_NAMES`)."""
+    return name in OUTPUT_NAMES or _EXPORT_NAME.fullmatch(name) is not None
+
+
+def check_output_folder(out: Path, overwrite: bool, resume: bool, data_folder: str) -> None:
+    """Refuse an unusable ``--out`` before anything is written (``run.prepare`` calls it); ValueError naming the folder."""
+    if out.exists() and out.resolve() == Path(data_folder).resolve():  # e.g. trajectory.txt is a layout's GT
+        raise ValueError(f"--out {out} is the dataset folder itself: the run's files would mix with the data's "
+                       f"(and --overwrite would replace files of the same name); choose another folder")
+    if out.is_symlink() and not out.exists():
+        raise ValueError(f"output folder {out} is a symbolic link to a missing target ({out.readlink()}); "
+                       f"expected a folder or a new name")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output path {out} exists and is not a folder; expected a folder or a new name")
+    if not out.exists():
+        if resume:
+            raise ValueError(f"--resume given but the output folder {out} does not exist")
+        parent = out.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise ValueError(f"cannot create the output folder {out}: {parent} is not a folder")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise ValueError(f"cannot create the output folder {out}: no permission to write in {parent}")
+        return
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ValueError(f"output folder {out}: no permission to write in it")
+    names = [entry.name for entry in out.iterdir()]
+    if names and not (overwrite or resume):
+        raise ValueError(f"output folder {out} is not empty; pass --overwrite to replace the files of an earlier run "
+                       f"or --resume to continue it")
+    for name in names:
+        entry = out / name
+        if is_output_name(name) and entry.is_dir() and not entry.is_symlink():
+            raise ValueError(f"{entry} is a folder; a run writes a file of that name, so move it away first")
+
+
+def remove_previous_outputs(out: Path) -> List[Path]:
+    """Remove the files an earlier run of ours wrote in ``out`` (:func:`is_output_name`), links
+    included (the link, never its target); every other file stays.  Returns what was removed."""
+    removed = []
+    for entry in sorted(out.iterdir()):
+        if is_output_name(entry.name) and (entry.is_symlink() or entry.is_file()):
+            entry.unlink()
+            removed.append(entry)
+    return removed
 
 
 def write_partial_trajectory(state, out: Path) -> None:
