@@ -489,6 +489,36 @@ def test_ctrl_c_in_a_resumed_run_without_checkpoints_points_to_the_checkpoint_it
     assert run.load_checkpoint(root / "twice" / "checkpoint.pt").done == 4
 
 
+def _shifted_ground_truth(folder: Path, shift: float, drop_first: int = 0) -> None:
+    """Rewrite folder/groundtruth.txt with every time moved by ``shift`` s and its first rows dropped."""
+    lines = (folder / "groundtruth.txt").read_text().splitlines()
+    rows = [line.split() for line in lines if line.strip() and not line.startswith("#")][drop_first:]
+    (folder / "groundtruth.txt").write_text("".join(f"{float(row[0]) + shift:.6f} {' '.join(row[1:])}\n" for row in rows))
+
+
+def test_ground_truth_on_another_clock_is_named_and_can_be_set_aside(runs):
+    """Ground truth 1000 s off every frame: refused naming both time spans and the setting that runs
+    without it; with --set data.require_gt=false the run completes without ATE.  Ground truth that
+    misses the first frames: the run leaves them out and says how many."""
+    root = runs["root"]
+    other_clock = root / "room_other_clock"
+    shutil.copytree(root / "room", other_clock)
+    _shifted_ground_truth(other_clock, 1000.0)
+    refused(cli("run", "--data", other_clock.name, "--out", "clock_out", *CHEAP, cwd=root),
+            "no frame has a ground-truth pose", "the frames span", "the ground truth 10", "data.require_gt=false")
+    assert not (root / "clock_out").exists()
+    result = cli("run", "--data", other_clock.name, "--out", "clock_out", *CHEAP, "--set", "data.require_gt=false",
+                 cwd=root)
+    assert result.returncode == 0, result.stderr
+    assert "ate_rmse_m" not in json.loads((root / "clock_out" / "metrics.json").read_text())
+    late = root / "room_late_gt"
+    shutil.copytree(root / "room", late)
+    _shifted_ground_truth(late, 0.0, drop_first=3)
+    result = cli("run", "--data", late.name, "--out", "late_out", *CHEAP, cwd=root)
+    assert result.returncode == 0 and "note: 3 frame(s)" in result.stdout and "require_gt=false" in result.stdout, (
+        result.stdout + result.stderr)
+
+
 def test_user_data_without_ground_truth_or_with_a_bad_frame_mid_run(runs):
     """A ground-truth mesh beside data without ground-truth poses cannot be culled: the run skips
     the reconstruction metrics (it crashed after the run). A frame that turns out unreadable mid-run

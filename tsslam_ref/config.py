@@ -63,6 +63,9 @@ class DataConfig:
     """One past the last frame index used; None = all (ours)."""
     frame_step: int = ranged(1, ">=", 1)
     """Use every n-th frame (ours)."""
+    require_gt: bool = True
+    """Use only the frames with a ground-truth pose (as Co-SLAM); false keeps every frame, for data
+    whose ground truth covers part of the sequence or none of it (ours)."""
 
 
 @dataclass

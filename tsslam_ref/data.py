@@ -151,16 +151,21 @@ def _parse_layout(folder: Path, kind: str, fps: float, max_time_diff: float):
     return parse_folder(folder, fps, max_time_diff)
 
 
-def _keep_frames_with_gt(index, folder: Path, max_time_diff: float) -> None:
-    """Drop, in place, the frames of ``index`` whose ground-truth pose is unknown (not finite);
-    ValueError when none is left."""
+def _keep_frames_with_gt(index, folder: Path, max_time_diff: float) -> int:
+    """Drop, in place, the frames of ``index`` whose ground-truth pose is unknown (not finite) and
+    return how many; ValueError when none is left."""
     known = np.flatnonzero(np.isfinite(index.gt_poses).all(axis=(1, 2)))
     if len(known) == 0:
-        raise ValueError(f"{folder}: no frame has a ground-truth pose within {max_time_diff} s (pass require_gt=False to keep them)")
+        span = "" if index.gt_span is None else f", the ground truth {index.gt_span[0]:.6f}-{index.gt_span[1]:.6f} s"
+        raise ValueError(f"{folder}: no frame has a ground-truth pose within {max_time_diff} s (the frames span "
+                         f"{index.timestamps[0]:.6f}-{index.timestamps[-1]:.6f} s{span}): check that both use the "
+                         f"same clock and unit, or run without ground truth (no ATE / RPE) with "
+                         f"--set data.require_gt=false (require_gt=False in load_sequence)")
     index.rgb_paths = [index.rgb_paths[i] for i in known]
     index.depth_paths = [index.depth_paths[i] for i in known]
     index.timestamps = index.timestamps[known]
-    index.gt_poses = index.gt_poses[known]
+    dropped, index.gt_poses = len(index.gt_poses) - len(known), index.gt_poses[known]
+    return dropped
 
 
 def load_sequence(
@@ -205,8 +210,7 @@ def load_sequence(
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
     index = _parse_layout(folder, kind, fps, max_time_diff)
-    if require_gt and index.gt_poses is not None:
-        _keep_frames_with_gt(index, folder, max_time_diff)
+    without_gt = _keep_frames_with_gt(index, folder, max_time_diff) if require_gt and index.gt_poses is not None else 0
     chosen = _select(index, frame_start, frame_stop, frame_step, folder)
     depth_scale = _depth_scale(depth_scale, index.depth_scale, kind, folder)
     return RGBDSequence(
@@ -222,6 +226,7 @@ def load_sequence(
         crop_edge=crop_edge,
         resize_width=resize_width,
         depth_trunc=depth_trunc,
+        frames_without_gt=without_gt,
     )
 
 
@@ -264,6 +269,7 @@ def load_from_config(data_cfg) -> RGBDSequence:
         frame_stop=data_cfg.frame_stop,
         frame_step=data_cfg.frame_step,
         fps=data_cfg.fps,
+        require_gt=data_cfg.require_gt,
     )
 
 

@@ -14,7 +14,7 @@ frames and builds the lazy sequence.  Bad input raises an error naming the file 
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -53,6 +53,7 @@ class LayoutIndex:
     gt_poses: Optional[np.ndarray]  # (N, 4, 4) float64, NaN rows unknown; None = no GT in the dataset
     intrinsics: Intrinsics  # of the stored depth images
     depth_scale: Optional[float]  # from a calibration file, else None (use DEPTH_SCALES)
+    gt_span: Optional[Tuple[float, float]] = None  # first and last time of the ground-truth file, s
 
 
 def natural_key(name: str):
@@ -162,10 +163,11 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     gt_file = folder / "groundtruth.txt"
     if not gt_file.is_file() and (folder / "pose.txt").is_file():
         gt_file = folder / "pose.txt"
-    gt_poses = None
+    gt_poses, gt_span = None, None
     if gt_file.is_file():
         gt_times, gt_all = read_tum_trajectory(gt_file)
         gt_poses = ground_truth_at(timestamps, gt_times, gt_all, max_time_diff)
+        gt_span = (gt_times[0], gt_times[-1])
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
     if calibrated is not None:
         intrinsics, depth_scale = calibrated
@@ -177,7 +179,7 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
                 f"{depth_paths[0]}: {size[0]}x{size[1]} image but no intrinsics.json/calibration.txt in {folder}; "
                 f"the published TUM values are for 640x480"
             )
-    return LayoutIndex("tum", rgb_paths, depth_paths, timestamps, gt_poses, intrinsics, depth_scale)
+    return LayoutIndex("tum", rgb_paths, depth_paths, timestamps, gt_poses, intrinsics, depth_scale, gt_span)
 
 
 def _read_matrix_lines(path: Path, per_line: int, what: str):
@@ -374,13 +376,14 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     if np.any(np.diff(timestamps) <= 0):
         repeated = rgb_paths[int(np.flatnonzero(np.diff(timestamps) <= 0)[0]) + 1].name
         raise ValueError(f"{folder / 'rgb'}: two file names give the same time ({repeated}); each frame needs its own")
-    gt_poses = None
+    gt_poses, gt_span = None, None
     for name in ("groundtruth.txt", "trajectory.txt"):
         if (folder / name).is_file():
             gt_times, gt_all = read_tum_trajectory(folder / name)
             gt_poses = ground_truth_at(timestamps, gt_times, gt_all, max_time_diff)
+            gt_span = (gt_times[0], gt_times[-1])
             break
-    return LayoutIndex("folder", rgb_paths, depth_paths, timestamps, gt_poses, calibrated[0], calibrated[1])
+    return LayoutIndex("folder", rgb_paths, depth_paths, timestamps, gt_poses, calibrated[0], calibrated[1], gt_span)
 
 
 def folder_timestamps(stems, fps: float, folder: Path = Path(".")) -> np.ndarray:

@@ -53,6 +53,8 @@ class RGBDSequence:
         depth_trunc: carried for the losses; the loader never zeroes depth beyond it.
         native_intrinsics: camera of the stored depth images before crop/resize.
         rgb_paths, depth_paths: the files, one per frame.
+        frames_without_gt: frames of the folder left out before the selection because their
+        ground-truth pose is unknown (``require_gt``).
     """
 
     def __init__(
@@ -69,6 +71,7 @@ class RGBDSequence:
         crop_edge: int = 0,
         resize_width: Optional[int] = None,
         depth_trunc: Optional[float] = None,
+        frames_without_gt: int = 0,
     ):
         if not (len(rgb_paths) == len(depth_paths) == len(timestamps)):
             raise ValueError(
@@ -92,6 +95,7 @@ class RGBDSequence:
         self.crop_edge = int(crop_edge)
         self.resize_width = resize_width
         self.depth_trunc = depth_trunc
+        self.frames_without_gt = int(frames_without_gt)
         width, height = output_size(native_intrinsics.width, native_intrinsics.height, self.crop_edge, resize_width)
         edge = self.crop_edge
         self.intrinsics = native_intrinsics.cropped(edge, edge, edge, edge).resized(width, height)
