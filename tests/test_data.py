@@ -726,6 +726,14 @@ def test_resized_height_is_the_nearest_whole_pixel_to_the_aspect_ratio():
     assert output_size(1200, 680, 10, 160) == (160, 89)
 
 
+def test_a_resize_width_above_the_image_width_keeps_the_native_size_instead_of_enlarging():
+    """The CPU presets' 160 on images of 80x60 of the user's own: no enlargement (it would only add
+    cost, and a huge value would take the memory without bound); the same width is no change."""
+    assert output_size(80, 60, 0, 160) == (80, 60)
+    assert output_size(80, 60, 2, 100000) == (76, 56)  # cropped, not enlarged
+    assert output_size(160, 120, 0, 160) == (160, 120)
+
+
 def test_crop_edge_removes_that_many_pixels_from_every_side(tmp_path):
     """crop_edge=2 on a 16x12 depth whose value encodes its pixel (row * 16 + column + 1, in mm at
     scale 1000): frame.depth must be the input's rows 2..9 and columns 2..13, i.e. depth[2:-2, 2:-2]."""

@@ -47,8 +47,8 @@ class DataConfig:
     path: str = ""
     """Dataset folder; empty means the bundled default sequence (ours)."""
     resize_width: Optional[int] = ranged(None, ">=", 8)
-    """Resize colour and depth to this width in pixels (aspect kept, intrinsics scaled exactly);
-    None keeps the native size (ours)."""
+    """Shrink colour and depth to this width in pixels (aspect kept, intrinsics scaled exactly);
+    narrower images keep their size, never enlarged; None keeps the native size (ours)."""
     crop_edge: int = ranged(0, ">=", 0)
     """Pixels cropped from every side before resizing (Co-SLAM ``crop_edge``: ScanNet 10, TUM 8)."""
     depth_scale: Optional[float] = ranged(None, ">", 0)

@@ -191,7 +191,8 @@ def load_sequence(
 
     Args:
         path: dataset folder.  dataset: 'auto' or one of :data:`LAYOUTS`.
-        resize_width: output width in px; None keeps the native size.
+        resize_width: output width in px, at most the cropped width (never enlarged); None keeps
+            the native size.
         crop_edge: pixels removed from every side before resizing.
         depth_scale: PNG value per metre; None = the calibration file's (never overridden: a
             different value is refused), else the layout's standard.

@@ -156,7 +156,8 @@ def crop(image: np.ndarray, edge: int) -> np.ndarray:
 
 
 def output_size(width: int, height: int, crop_edge: int, resize_width: Optional[int]) -> Tuple[int, int]:
-    """Size after cropping ``crop_edge`` per side, then resizing to ``resize_width`` (aspect kept).
+    """Size after cropping ``crop_edge`` per side, then shrinking to ``resize_width`` (aspect kept;
+    images no wider than that keep their size).
 
     Raises:
         ValueError: naming the values when the crop or the width leave no pixels.
@@ -168,4 +169,6 @@ def output_size(width: int, height: int, crop_edge: int, resize_width: Optional[
         return cropped_w, cropped_h
     if resize_width < 1:
         raise ValueError(f"resize_width must be >= 1, got {resize_width}")
+    if resize_width >= cropped_w:  # never enlarge: no information gained, only cost (and memory without bound)
+        return cropped_w, cropped_h
     return int(resize_width), max(1, int(round(cropped_h * resize_width / cropped_w)))
