@@ -158,6 +158,11 @@ def test_frames_further_apart_than_the_uniform_knot_spacing_are_refused():
         section = other if key == "method" else other.local_ba if key == "use_spline" else other.spline
         setattr(section, key, value)
         knot_schedule.check_frame_spacing(other, times)
+    milliseconds = np.array([0.0, 33.0, 67.0, 100.0])  # stamps in ms read as s: no dt can span 33 s
+    with pytest.raises(ValueError, match=r"34\.000 s apart.*spline\.dt at most 10 s\): check the time stamps "
+                                         r"\(milliseconds read as seconds\?\)") as refused:
+        knot_schedule.check_frame_spacing(config.tiny(), milliseconds)
+    assert "--set spline.dt=" not in str(refused.value)  # not a value the config would refuse in turn
 
 
 def test_unevenly_spaced_samples_recover_a_known_acceleration():

@@ -14,12 +14,16 @@ Layer 4 (system support): reads the loop's state (``slam.SLAMState``) and its co
 ``knot_policy``.  User doc: docs/system.md, "Adaptive knots".
 """
 
+import dataclasses
 import math
 
 import numpy as np
 
 from . import knot_policy
-from .config import Config
+from .config import Config, SplineConfig
+
+LONGEST_DT = {field.name: field for field in dataclasses.fields(SplineConfig)}["dt"].metadata["range"][1][1]
+"""The longest ``spline.dt`` the config allows, s."""
 
 
 def plan_next_interval(state, frame_index: int, n: int) -> None:
@@ -82,10 +86,13 @@ def check_frame_spacing(cfg: Config, timestamps) -> None:
         which, fix = ((f"spline.dt = {cfg.spline.dt} s", f"--set spline.dt={suggestion:g} (or more)") if uniform else
                       (f"the shortest adaptive interval, min(spline.dt, spline.dt_min) = {shortest} s",
                        f"--set spline.dt_min={suggestion:g} --set spline.dt={max(suggestion, cfg.spline.dt):g} (or more)"))
+        fix = f"use {fix}, or --method coslam"
+        if suggestion > LONGEST_DT:  # beyond any interval the config allows
+            fix = (f"no spline interval may be that long (spline.dt at most {LONGEST_DT:g} s): check the time stamps "
+                   f"(milliseconds read as seconds?), cut the sequence at the gap, or use --method coslam")
         raise ValueError(
             f"frames {worst} and {worst + 1} (t = {times[worst]:.6f} s, {times[worst + 1]:.6f} s) are {gaps[worst]:.3f} s "
-            f"apart, more than {which}, so a spline interval would hold no frame to fit its control point; "
-            f"use {fix}, or --method coslam")
+            f"apart, more than {which}, so a spline interval would hold no frame to fit its control point; {fix}")
     typical = float(np.median(gaps))
     if uniform and typical > cfg.spline.dt / 2.0 * (1.0 + 1e-6):  # fewer than two frames per interval (stamps' rounding aside)
         suggestion = math.ceil(2.0 * typical * 20.0 - 1e-6) / 20.0
