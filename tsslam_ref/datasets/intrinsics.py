@@ -185,6 +185,11 @@ def read_calibration(folder: Path) -> Optional[dict]:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
         if missing:
             raise ValueError(f"{json_path}: missing keys {missing} (expected fx, fy, cx, cy[, width, height, depth_scale])")
+        unknown = sorted(set(values) - {"fx", "fy", "cx", "cy", "width", "height", "depth_scale", "note"})
+        if unknown:  # a misspelt depth_scale would fall back to the layout's silently
+            raise ValueError(f"{json_path}: unknown key(s) {', '.join(map(repr, unknown))}; expected fx, fy, cx, cy and "
+                             f"optionally width, height, depth_scale, with free text under 'note' (lens distortion "
+                             f"is not modelled: undistort the images first)")
         out = {}
         for key in ("fx", "fy", "cx", "cy", "width", "height", "depth_scale"):
             if key in values:
