@@ -310,6 +310,22 @@ def test_listed_file_absent_names_list_and_line(tum_folder):
         data.load_sequence(folder)
 
 
+@pytest.mark.parametrize("entry, words", [
+    ("{stamp} {name} depth/other.png", "got 3 field(s)"),  # another column would be ignored
+    ("{stamp} rgb/my frame.png", "a file name cannot hold spaces here"),  # once 'rgb/my' not found
+    ("{stamp}", "got 1 field(s)"),
+])
+def test_a_list_line_without_exactly_two_fields_is_refused_naming_the_line(tum_folder, entry, words):
+    folder = tum_folder[0]
+    lines = (folder / "rgb.txt").read_text().splitlines()
+    stamp, name = lines[4].split()  # line 5
+    lines[4] = entry.format(stamp=stamp, name=name)
+    (folder / "rgb.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"rgb\.txt:5: expected 'timestamp filename'") as error:
+        data.load_sequence(folder)
+    assert words in str(error.value), str(error.value)
+
+
 def test_malformed_line_names_file_and_line(tum_folder):
     folder = tum_folder[0]
     lines = (folder / "depth.txt").read_text().splitlines()

@@ -57,7 +57,7 @@ def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
         timestamps (N,) float64 s, file names relative to the list's folder, line numbers (1-based).
 
     Raises:
-        ValueError: '<file>:<line>: ...' for a malformed line, an empty list, a non-finite
+        ValueError: '<file>:<line>: ...' for a malformed line (other than two fields), an empty list, a non-finite
             timestamp, or a timestamp not larger than the previous one (a repeated stamp would
             make two frames of one instant).
     """
@@ -65,8 +65,10 @@ def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
     for number, fields in _data_lines(path, commas=False):
         if "," in fields[0]:  # a comma-separated line; otherwise a comma belongs to the file name
             fields = " ".join(fields).replace(",", " ").split()
-        if len(fields) < 2:
-            raise ValueError(f"{path}:{number}: expected 'timestamp filename', got '{' '.join(fields)}'")
+        if len(fields) != 2:  # a third field is either another column or a file name with a space: neither is read
+            raise ValueError(f"{path}:{number}: expected 'timestamp filename', got {len(fields)} field(s) "
+                             f"'{' '.join(fields)}'" + (" (a file name cannot hold spaces here, and no other column "
+                                                        "is read)" if len(fields) > 2 else ""))
         try:
             stamp = float(fields[0])
         except ValueError:
