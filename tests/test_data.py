@@ -496,6 +496,15 @@ def _folder_layout(folder, stems, depth_mm=800):
     return folder
 
 
+def test_folder_layout_refuses_two_images_of_one_frame(tmp_path):
+    """rgb/000001.png and rgb/000001.jpg: one stem, two files (the stem lists then differed by
+    nothing and the error read 'unmatched: []')."""
+    folder = _folder_layout(tmp_path / "capture", ["000000", "000001", "000002"])
+    iio.imwrite(folder / "rgb/000001.jpg", _rgb(8, 6, 1))
+    with pytest.raises(ValueError, match=r"rgb: 000001\.(png|jpg), 000001\.(png|jpg) share a file name stem"):
+        data.load_sequence(folder)
+
+
 @pytest.mark.parametrize("stems, seconds", [
     (["000000", "000001", "000003"], [0.0, 1 / 15, 3 / 15]),  # frame numbers at fps 15, the gap kept
     (["1520530328189680000", "1520530328223013000"], [1520530328.18968, 1520530328.223013]),  # nanoseconds

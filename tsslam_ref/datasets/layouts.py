@@ -80,6 +80,11 @@ def _require_dir(path: Path) -> None:
 def _stems_match(rgb_paths: List[Path], depth_paths: List[Path], rgb_dir: Path, depth_dir: Path) -> None:
     rgb_stems = [p.stem for p in rgb_paths]
     depth_stems = [p.stem for p in depth_paths]
+    for paths, stems in ((rgb_paths, rgb_stems), (depth_paths, depth_stems)):
+        twice = [path.name for path in paths if stems.count(path.stem) > 1][:4]
+        if twice:  # x.png and x.jpg: two images for one frame
+            raise ValueError(f"{paths[0].parent}: {', '.join(twice)} share a file name stem; each frame needs one "
+                             f"image per folder (remove or rename the others)")
     if rgb_stems != depth_stems:
         missing = sorted(set(rgb_stems) ^ set(depth_stems), key=natural_key)[:5]
         raise ValueError(
