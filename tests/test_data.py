@@ -525,6 +525,8 @@ def test_folder_layout_reads_frame_numbers_nanoseconds_and_seconds(tmp_path, ste
     ({"fx": 9, "fy": 9, "cx": 3.5, "cy": 2.5, "depth_scale": 0}, ["intrinsics.json", "'depth_scale' must be > 0"]),
     ({"fx": 9, "fy": 9, "cx": 3.5, "cy": 2.5, "depth-scale": 1000, "k1": 0.1},  # a misspelt key would fall back silently
      ["intrinsics.json", "unknown key(s) 'depth-scale', 'k1'", "lens distortion is not modelled"]),
+    ({"fx": 9, "fy": 9, "cx": 796.5, "cy": 2.5}, ["capture", "cx = 796.5 lies outside the 8x6 images"]),
+    ({"fx": 0.5, "fy": 0.5, "cx": 0.5, "cy": 0.5}, ["capture", "fx = 0.5 is under a tenth", "normalised"]),
 ])
 def test_bad_calibration_values_name_the_file(tmp_path, calibration, words):
     folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])

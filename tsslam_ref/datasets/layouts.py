@@ -104,8 +104,23 @@ def _calibrated_intrinsics(folder: Path, first_depth: Path) -> Optional[tuple]:
             f"{folder}: calibration is for {calibration['width']}x{calibration['height']} images but "
             f"{first_depth} is {width}x{height}"
         )
+    _check_plausible(calibration, width, height, folder)
     k = Intrinsics(calibration["fx"], calibration["fy"], calibration["cx"], calibration["cy"], width, height)
     return k, calibration.get("depth_scale")
+
+
+def _check_plausible(calibration: dict, width: int, height: int, folder: Path) -> None:
+    """ValueError for a calibration no pinhole image of ``width`` x ``height`` has: the principal
+    point outside the image, or a focal length under a tenth of the image size (a field of view
+    over 157 deg; normalised intrinsics, fx = 0.5-1.5, are the usual cause)."""
+    for focal, centre, size in (("fx", "cx", width), ("fy", "cy", height)):
+        if not -0.5 <= calibration[centre] <= size - 0.5:
+            raise ValueError(f"{folder}: calibration {centre} = {calibration[centre]:g} lies outside the {width}x{height} "
+                             f"images (pixels [-0.5, {size - 0.5:g}]); expected the principal point in pixels")
+        if calibration[focal] < size / 10:
+            raise ValueError(f"{folder}: calibration {focal} = {calibration[focal]:g} is under a tenth of the image size "
+                             f"({size} px): a field of view over 157 deg; expected the focal length in pixels, not "
+                             f"normalised by the image size")
 
 
 def listed_file(folder: Path, listing: Path, line: int, name: str) -> Path:
