@@ -601,7 +601,7 @@ def test_an_output_folder_that_cannot_be_written_is_one_line_and_exit_2(tmp_path
     (tmp_path / "empty").mkdir()
     before = snapshot(tmp_path)
     with monkeypatch.context() as patch:
-        patch.setattr(run.os, "access", lambda path, mode: False)
+        patch.setattr(run_outputs.os, "access", lambda path, mode: False)
         refused_in_process(capsys, run.main, ["--out", tmp_path / "new" / "run"], "cannot create the output folder",
                            "no permission to write in")
         refused_in_process(capsys, run.main, ["--out", tmp_path / "empty"], "empty", "no permission to write in it")
