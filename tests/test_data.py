@@ -496,6 +496,13 @@ def _folder_layout(folder, stems, depth_mm=800):
     return folder
 
 
+def test_a_first_depth_image_that_is_no_image_is_named_with_what_was_expected(tmp_path):
+    folder = _folder_layout(tmp_path / "capture", ["000000", "000001"])
+    (folder / "depth/000000.png").write_bytes(b"not an image")
+    with pytest.raises(ValueError, match=r"000000\.png: cannot read it as an image .*expected a PNG"):
+        data.load_sequence(folder)
+
+
 def test_folder_layout_refuses_two_images_of_one_frame(tmp_path):
     """rgb/000001.png and rgb/000001.jpg: one stem, two files (the stem lists then differed by
     nothing and the error read 'unmatched: []')."""

@@ -68,8 +68,12 @@ def image_size(path) -> Tuple[int, int]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: image not found")
-    with Image.open(path) as image:
-        return image.size
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (OSError, ValueError) as error:  # PIL's UnidentifiedImageError is an OSError
+        raise ValueError(f"{path}: cannot read it as an image ({error}); expected a PNG (depth: 16-bit) or JPEG "
+                         f"file") from None
 
 
 DEPTH_MODES = ("I;16", "I;16L", "I;16B")
