@@ -412,6 +412,9 @@ def test_overwrite_replaces_only_our_files_never_through_a_link(runs):
         assert not (planted / name).is_symlink() and (planted / name).is_file()
     metrics = json.loads((planted / "metrics.json").read_text())
     assert metrics["frames"] == 10
+    calibration = json.loads((runs["root"] / "room" / "intrinsics.json").read_text())  # 64x48, no crop or resize
+    assert metrics["camera"] == {key: calibration[key] for key in ("fx", "fy", "cx", "cy", "width", "height",
+                                                                   "depth_scale")}
     assert 50 < metrics["peak_rss_mib"] < 64 * 1024  # importing torch alone takes more than 50 MiB
     assert run.load_checkpoint(planted / "checkpoint.pt").done == 10  # a new checkpoint, not the planted bytes
     mode = files.normal_mode()

@@ -206,8 +206,11 @@ def write_outputs(plan, result) -> None:
     from .export import export_continuous
 
     data_module.write_tum_trajectory(out / "trajectory.txt", result.timestamps, result.poses, overwrite=True)
+    camera = sequence.intrinsics  # as the run used it: after crop and resize
     metrics = {"method": cfg.method, "sequence": sequence.name, "frames": int(len(sequence)),
-               "frames_per_second": result.frames_per_second}
+               "frames_per_second": result.frames_per_second,
+               "camera": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy, "width": camera.width,
+                          "height": camera.height, "depth_scale": sequence.depth_scale}}
     metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
     metrics["runtime"] = result.state.timings.table()
     metrics["environment"] = run_environment(plan.device, result.state.field)
