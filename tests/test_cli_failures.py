@@ -154,7 +154,12 @@ def test_config_files_and_output_paths_are_named(tmp_path, capsys):
                        "broken.json", "not valid JSON")
     refused(cli("run", "--out", "dangling", cwd=tmp_path), "dangling", "symbolic link to a missing target")
     refused_in_process(capsys, run.main, ["--out", tmp_path / "a_file"], "a_file", "is not a folder")
-    refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "taken", "not empty", "--overwrite")
+    refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "taken", "not empty", "--overwrite",
+                       "none of its 1 entries is a file a run writes")
+    (tmp_path / "taken" / "config.json").write_text("{}")  # the user's own config.json, say
+    refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "not empty",
+                       "it would replace config.json and keep the other 1 entries")
+    (tmp_path / "taken" / "config.json").unlink()
     assert snapshot(tmp_path) == before
 
 

@@ -36,13 +36,14 @@ def is_output_name(name: str) -> bool:
 
 
 def check_output_folder(out: Path, overwrite: bool, resume: bool, data_folder: str) -> None:
-    """Refuse an unusable ``--out`` before anything is written (``run.prepare`` calls it); ValueError naming the folder."""
+    """Refuse an unusable ``--out`` before anything is written (``run.prepare`` calls it): ValueError
+    naming the folder and what to do."""
     if out.exists() and out.resolve() == Path(data_folder).resolve():  # e.g. trajectory.txt is a layout's GT
         raise ValueError(f"--out {out} is the dataset folder itself: the run's files would mix with the data's "
-                       f"(and --overwrite would replace files of the same name); choose another folder")
+                         f"(and --overwrite would replace files of the same name); choose another folder")
     if out.is_symlink() and not out.exists():
         raise ValueError(f"output folder {out} is a symbolic link to a missing target ({out.readlink()}); "
-                       f"expected a folder or a new name")
+                         f"expected a folder or a new name")
     if out.exists() and not out.is_dir():
         raise ValueError(f"output path {out} exists and is not a folder; expected a folder or a new name")
     if not out.exists():
@@ -60,8 +61,11 @@ def check_output_folder(out: Path, overwrite: bool, resume: bool, data_folder: s
         raise ValueError(f"output folder {out}: no permission to write in it")
     names = [entry.name for entry in out.iterdir()]
     if names and not (overwrite or resume):
+        ours = sorted(name for name in names if is_output_name(name))
+        replaced = (f"it would replace {', '.join(ours)} and keep the other {len(names) - len(ours)} entries" if ours
+                    else f"none of its {len(names)} entries is a file a run writes")
         raise ValueError(f"output folder {out} is not empty; pass --overwrite to replace the files of an earlier run "
-                       f"or --resume to continue it")
+                         f"({replaced}) or --resume to continue it")
     for name in names:
         entry = out / name
         if is_output_name(name) and entry.is_dir() and not entry.is_symlink():
