@@ -21,8 +21,8 @@ from tsslam_ref import conformance, spline
 FLOAT32_LEVEL = 1e-8  # a failing candidate's largest scaled error from here to 3e-5: float32-level, say so
 NANOSECOND_MATCH = 1e-11
 """A candidate equals the reference at nanosecond-rounded times when every quantity agrees with that
-evaluation to this fraction of its scale: far below the rounding's own effect (up to about 1e-7 of
-the scale on the shipped vectors) and far above float64 noise (1e-14)."""
+evaluation to this fraction of its scale: below the rounding's own effect on the shipped vectors
+(per quantity 1.9e-10 to 4.3e-8 of the scale) and far above float64 noise (1e-14)."""
 
 
 def check(reference: dict, candidate: dict, atol: float = conformance.DEFAULT_ATOL,
@@ -101,7 +101,7 @@ def _precision_hint(failing: set, rows: dict) -> List[str]:
                 f"anything else); compute in float64, or check with --rtol 1e-5 if float32 is intended"]
     return [f"errors between float64 rounding (1e-14 of the scale) and float32's (6e-8) across the quantities "
             f"(largest {largest:.1e}): times rounded before evaluation (whole nanoseconds, as basalt-headers' "
-            f"int64 ns, give up to 5e-8 on the shipped vectors; check those with --rtol 1e-7)?, or a small-angle "
+            f"int64 ns, give up to 4.3e-8 on the shipped vectors; check those with --rtol 1e-7)?, or a small-angle "
             f"series (Exp, Log, J_r) used up to too large an angle?"]
 
 

@@ -213,7 +213,6 @@ def load_sequence(
     index = _parse_layout(folder, kind, fps, max_time_diff)
     without_gt = _keep_frames_with_gt(index, folder, max_time_diff) if require_gt and index.gt_poses is not None else 0
     chosen = _select(index, frame_start, frame_stop, frame_step, folder)
-    depth_scale = _depth_scale(depth_scale, index.depth_scale, kind, folder)
     return RGBDSequence(
         name=folder.resolve().name,
         kind=kind,
@@ -223,7 +222,7 @@ def load_sequence(
         timestamps=index.timestamps[chosen],
         gt_poses=None if index.gt_poses is None else index.gt_poses[chosen],
         native_intrinsics=index.intrinsics,
-        depth_scale=depth_scale,
+        depth_scale=_depth_scale(depth_scale, index.depth_scale, kind, folder),
         crop_edge=crop_edge,
         resize_width=resize_width,
         depth_trunc=depth_trunc,

@@ -158,6 +158,33 @@ def _checked_calibration(values: dict, where) -> dict:
     return values
 
 
+def _read_intrinsics_json(json_path: Path) -> dict:
+    """The checked calibration of an ``intrinsics.json`` (see :func:`read_calibration`)."""
+    try:
+        values = json.loads(json_path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise ValueError(f"{json_path}: not a text file; expected a JSON object with fx, fy, cx, cy") from None
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{json_path}: not valid JSON ({error})") from None
+    if not isinstance(values, dict):
+        raise ValueError(f"{json_path}: expected a JSON object with fx, fy, cx, cy")
+    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
+    if missing:
+        raise ValueError(f"{json_path}: missing keys {missing} (expected fx, fy, cx, cy[, width, height, depth_scale])")
+    unknown = sorted(set(values) - {"fx", "fy", "cx", "cy", "width", "height", "depth_scale", "note"})
+    if unknown:  # a misspelt depth_scale would fall back to the layout's silently
+        raise ValueError(f"{json_path}: unknown key(s) {', '.join(map(repr, unknown))}; expected fx, fy, cx, cy and "
+                         f"optionally width, height, depth_scale, with free text under 'note' (lens distortion "
+                         f"is not modelled: undistort the images first)")
+    out = {}
+    for key in ("fx", "fy", "cx", "cy", "width", "height", "depth_scale"):
+        if key in values:
+            if not isinstance(values[key], (int, float)) or isinstance(values[key], bool) or not math.isfinite(values[key]):
+                raise ValueError(f"{json_path}: '{key}' must be a finite number, got {values[key]!r}")
+            out[key] = values[key]
+    return _checked_calibration(out, json_path)
+
+
 def read_calibration(folder: Path) -> Optional[dict]:
     """Read ``intrinsics.json`` (preferred) or ``calibration.txt`` from ``folder``.
 
@@ -174,29 +201,7 @@ def read_calibration(folder: Path) -> Optional[dict]:
     """
     json_path = Path(folder) / INTRINSICS_JSON
     if json_path.is_file():
-        try:
-            values = json.loads(json_path.read_text(encoding="utf-8"))
-        except UnicodeDecodeError:
-            raise ValueError(f"{json_path}: not a text file; expected a JSON object with fx, fy, cx, cy") from None
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{json_path}: not valid JSON ({error})") from None
-        if not isinstance(values, dict):
-            raise ValueError(f"{json_path}: expected a JSON object with fx, fy, cx, cy")
-        missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
-        if missing:
-            raise ValueError(f"{json_path}: missing keys {missing} (expected fx, fy, cx, cy[, width, height, depth_scale])")
-        unknown = sorted(set(values) - {"fx", "fy", "cx", "cy", "width", "height", "depth_scale", "note"})
-        if unknown:  # a misspelt depth_scale would fall back to the layout's silently
-            raise ValueError(f"{json_path}: unknown key(s) {', '.join(map(repr, unknown))}; expected fx, fy, cx, cy and "
-                             f"optionally width, height, depth_scale, with free text under 'note' (lens distortion "
-                             f"is not modelled: undistort the images first)")
-        out = {}
-        for key in ("fx", "fy", "cx", "cy", "width", "height", "depth_scale"):
-            if key in values:
-                if not isinstance(values[key], (int, float)) or isinstance(values[key], bool) or not math.isfinite(values[key]):
-                    raise ValueError(f"{json_path}: '{key}' must be a finite number, got {values[key]!r}")
-                out[key] = values[key]
-        return _checked_calibration(out, json_path)
+        return _read_intrinsics_json(json_path)
     text_path = Path(folder) / CALIBRATION_TXT
     if text_path.is_file():
         try:
