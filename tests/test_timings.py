@@ -100,7 +100,9 @@ run_outputs.save_plots = plots_that_take_memory
 run_outputs.trajectory_metrics = lambda *args: {}
 run_outputs.run_environment = lambda *args: {}
 seen["before_plots"] = _high_water_mib()
-two_frames = type("Frames", (list,), {"name": "probe", "gt_poses": None})([None, None])
+camera = SimpleNamespace(fx=1.0, fy=1.0, cx=0.5, cy=0.5, width=2, height=2)
+two_frames = type("Frames", (list,), {"name": "probe", "gt_poses": None, "intrinsics": camera,
+                                      "depth_scale": 1000.0})([None, None])
 plan = SimpleNamespace(args=SimpleNamespace(no_mesh=True, export_rate=None, checkpoint_every=0),
                        cfg=SimpleNamespace(method="tsslam"), sequence=two_frames, out=Path("."),
                        environment=None, device=torch.device("cpu"))
