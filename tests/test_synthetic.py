@@ -189,6 +189,26 @@ def test_synthesize_round_trip(tmp_path):
     assert len(data.load_sequence(out)) == 2
 
 
+def test_synthesize_refuses_the_folder_it_runs_in_and_words_the_cli_refusals(tmp_path, capsys, monkeypatch):
+    """--out . --force inside a synthesized folder emptied it and then failed ('.' has no parent
+    to build the new folder beside); it is refused with every file kept.  Without --force a
+    non-empty folder is refused in command-line words: --force for one of ours, a new folder for
+    one of the user's (--force would be refused there too)."""
+    out = tmp_path / "room"
+    assert data.main(["synthesize", "--out", str(out), "--frames", "2", "--size", "16x12", "--mesh-voxel", "0.5"]) == 0
+    before = sorted(path.name for path in out.iterdir())
+    monkeypatch.chdir(out)
+    assert data.main(["synthesize", "--out", ".", "--frames", "2", "--size", "16x12", "--force"]) == 2
+    assert "current folder" in capsys.readouterr().err and sorted(path.name for path in out.iterdir()) == before
+    monkeypatch.chdir(tmp_path)
+    assert data.main(["synthesize", "--out", "room", "--frames", "2", "--size", "16x12"]) == 2
+    assert "not empty; --force replaces it" in capsys.readouterr().err
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("the user's")
+    assert data.main(["synthesize", "--out", "mine", "--frames", "2", "--size", "16x12"]) == 2
+    assert "not written by this command (no scene.json), so choose a new folder" in capsys.readouterr().err
+
+
 def test_synthesize_along_real_motion_and_cli(tmp_path, shared_data, capsys):
     trajectory = shared_data / "trajectories" / "tum_rgbd_fr2_desk_groundtruth.txt"
     out = tmp_path / "desk"

@@ -319,6 +319,10 @@ def _check_synthesize_out(out: Path, force: bool) -> None:
         raise ValueError(f"--out {out} is a symbolic link; expected a new folder name or a folder written by this command")
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} exists and is a file; expected a folder")
+    if not force and out.is_dir() and any(out.iterdir()):
+        raise ValueError(f"--out {out} exists and is not empty; " + (
+            "--force replaces it" if (out / "scene.json").is_file() else
+            "it was not written by this command (no scene.json), so choose a new folder"))
     if force and out.is_dir() and any(out.iterdir()) and not (out / "scene.json").is_file():
         raise ValueError(f"--out {out} is a non-empty folder without scene.json; --force replaces only a folder "
                          f"written by this command, so choose a new folder")

@@ -398,11 +398,16 @@ def synthesize(out_dir, trajectory=None, n_frames: int = 60, width: int = 160, h
 
     Raises:
         FileExistsError: ``out_dir`` is non-empty and ``overwrite`` is False.
-        ValueError: bad sizes, or a trajectory that leaves the room's free space.
+        ValueError: bad sizes, a trajectory that leaves the room's free space, or ``out_dir`` the
+            current folder or one holding it.
     """
-    out = Path(out_dir)
+    out = Path(out_dir).absolute()  # '.' has no parent to write the new folder in beside it
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass overwrite=True (--force) to replace it")
+    here = Path.cwd().resolve()
+    if out.resolve() == here or out.resolve() in here.parents:
+        raise ValueError(f"{out_dir} is the current folder or holds it: replacing it would delete the folder this "
+                         f"process works in; choose a folder beside it")
     if n_frames < 1 or width < 8 or height < 8 or not fps > 0:
         raise ValueError(f"need n_frames >= 1, width/height >= 8, fps > 0; got {n_frames}, {width}x{height}, {fps}")
     scene = ProceduralRoom(seed=seed)
