@@ -380,6 +380,19 @@ def default_intrinsics(width: int, height: int) -> Intrinsics:
     return Intrinsics(focal, focal, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
 
 
+def _writable_output(out_dir, overwrite: bool) -> Path:
+    """``out_dir`` as an absolute path ('.' has no parent to build the new folder in beside it),
+    refused when non-empty without ``overwrite`` or when it is, or holds, the current folder."""
+    out = Path(out_dir).absolute()
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+        raise FileExistsError(f"{out} exists and is not empty; pass overwrite=True (--force) to replace it")
+    here = Path.cwd().resolve()
+    if out.resolve() == here or out.resolve() in here.parents:
+        raise ValueError(f"{out_dir} is the current folder or holds it: replacing it would delete the folder this "
+                         f"process works in; choose a folder beside it")
+    return out
+
+
 def synthesize(out_dir, trajectory=None, n_frames: int = 60, width: int = 160, height: int = 120, fps: float = 30.0,
                seed: int = 0, clean_depth: bool = False, overwrite: bool = False, mesh_voxel: float = 0.03,
                start_time: Optional[float] = None, body_to_camera: Optional[np.ndarray] = None) -> Path:
@@ -401,13 +414,7 @@ def synthesize(out_dir, trajectory=None, n_frames: int = 60, width: int = 160, h
         ValueError: bad sizes, a trajectory that leaves the room's free space, or ``out_dir`` the
             current folder or one holding it.
     """
-    out = Path(out_dir).absolute()  # '.' has no parent to write the new folder in beside it
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
-        raise FileExistsError(f"{out} exists and is not empty; pass overwrite=True (--force) to replace it")
-    here = Path.cwd().resolve()
-    if out.resolve() == here or out.resolve() in here.parents:
-        raise ValueError(f"{out_dir} is the current folder or holds it: replacing it would delete the folder this "
-                         f"process works in; choose a folder beside it")
+    out = _writable_output(out_dir, overwrite)
     if n_frames < 1 or width < 8 or height < 8 or not fps > 0:
         raise ValueError(f"need n_frames >= 1, width/height >= 8, fps > 0; got {n_frames}, {width}x{height}, {fps}")
     scene = ProceduralRoom(seed=seed)
