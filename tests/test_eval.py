@@ -148,6 +148,14 @@ def test_ate_of_a_camera_on_a_rail_or_standing_still_is_the_least_squares_minimu
     with pytest.raises(ValueError, match="at least 3"):
         ev.horn_alignment(np.zeros((2, 3)), np.zeros((2, 3)))
     assert ev.horn_alignment(np.zeros((4, 3)), line[:4], with_scale=True)[2] == 1.0  # no 0 / 0
+    # an estimate standing still away from the origin: rounding leaves a spread of 1e-16 of its
+    # coordinates, which made a "scale" out of noise; every scale gives the same ATE, s = 1 is reported
+    still = np.full((10, 3), [1.0, 2.0, 3.0]) + np.array([1e-16, 0.0, 0.0]) * np.arange(10)[:, None]
+    moving = line + [0.5, 0.0, 0.0]
+    result = ev.ate(_poses_at(moving), _poses_at(still), with_scale=True)
+    assert result["scale"] == 1.0 and not result["alignment_unique"]
+    centred = moving - moving.mean(0)
+    assert result["ate_rmse_m"] == pytest.approx(np.sqrt((centred ** 2).sum(1).mean()), rel=1e-9)  # best: the mean
 
 
 def test_alignment_of_a_planar_trajectory_is_unique():

@@ -35,6 +35,15 @@ DEFAULT_MAX_DIFF_S = 0.01
 """Association tolerance in seconds (evo's default; TUM's associate.py uses 0.02)."""
 _SVD_RANK_EPS = 1e-12
 """Singular values below this (relative) make the alignment ambiguous (collinear points)."""
+_COINCIDENT_EPS = 1e-12
+"""Points whose RMS spread about their mean is below this times their largest coordinate are one
+point (a camera standing still): float64 rounding alone leaves a spread near 1e-16 of it."""
+
+
+def _coincident(points: np.ndarray) -> bool:
+    """(N, 3) points all at one place, up to rounding (:data:`_COINCIDENT_EPS`)."""
+    spread = float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()))
+    return spread <= _COINCIDENT_EPS * max(float(np.abs(points).max(initial=0.0)), 1e-300)
 
 
 # --------------------------------------------------------------------------------------------
@@ -151,6 +160,7 @@ def horn_alignment(model, data, with_scale: bool = False) -> Tuple[np.ndarray, n
     Points that do not span a plane (collinear, e.g. a camera on a rail, or coincident, a static
     camera) leave the rotation about their line free; this returns one minimiser, and the
     residuals' lengths (hence ATE) and s are the same for all of them (:func:`alignment_is_unique`).
+    A model that does not move at all leaves s free too (any s gives the same ATE): s = 1 then.
 
     Differs from: Horn's quaternion paper gives a symmetric scale; like evo and TUM we use
     Umeyama's (model -> data) least-squares scale.
@@ -170,7 +180,7 @@ def horn_alignment(model, data, with_scale: bool = False) -> Tuple[np.ndarray, n
     S = np.diag([1.0, 1.0, 1.0 if np.linalg.det(U) * np.linalg.det(Vt) > 0 else -1.0])
     R = U @ S @ Vt
     var_model = (model_c**2).sum(1).mean()
-    s = float(np.trace(np.diag(D) @ S) / var_model) if with_scale and var_model > 0 else 1.0
+    s = float(np.trace(np.diag(D) @ S) / var_model) if with_scale and not _coincident(model) else 1.0
     t = mean_data - s * R @ mean_model
     return R, t, s
 
@@ -180,6 +190,8 @@ def alignment_is_unique(model, data) -> bool:
     centred points has rank >= 2 (neither point set collinear or coincident)."""
     model_c, data_c = _to_float64(model), _to_float64(data)
     model_c, data_c = model_c - model_c.mean(0), data_c - data_c.mean(0)
+    if _coincident(_to_float64(model)) or _coincident(_to_float64(data)):  # D is rounding noise then
+        return False
     D = np.linalg.svd(data_c.T @ model_c / model_c.shape[0], compute_uv=False)
     return bool(D[1] > _SVD_RANK_EPS * max(D[0], 1e-300))
 
