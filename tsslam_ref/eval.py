@@ -104,9 +104,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             gt_times, gt_poses = read_tum_trajectory(args.gt)
             est_times, est_poses = read_tum_trajectory(args.est, unique_stamps=True)  # one pose per frame
             if args.interpolate:  # GT at the estimate's own stamps, then matched one to one
-                gt_poses = ground_truth_at(est_times, gt_times, gt_poses, args.max_diff)
-                known = np.all(np.isfinite(gt_poses.reshape(len(gt_poses), -1)), axis=1)
-                gt_times, gt_poses = est_times[known], gt_poses[known]
+                at_estimate = ground_truth_at(est_times, gt_times, gt_poses, args.max_diff)
+                known = np.all(np.isfinite(at_estimate.reshape(len(at_estimate), -1)), axis=1)
+                if not known.any():
+                    raise ValueError(f"no stamp of {args.est} has a pose of {args.gt} within {args.max_diff} s (the "
+                                     f"estimate spans [{est_times[0]:.6f}, {est_times[-1]:.6f}] s, the ground truth "
+                                     f"[{gt_times[0]:.6f}, {gt_times[-1]:.6f}] s); check that both use the same clock")
+                gt_times, gt_poses = est_times[known], at_estimate[known]
             result = evaluate_trajectory(
                 gt_times, gt_poses, est_times, est_poses, args.max_diff, args.scale, args.delta
             )

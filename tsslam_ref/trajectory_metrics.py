@@ -78,7 +78,8 @@ def _check_times(times, name: str) -> np.ndarray:
 # Association and alignment
 
 
-def associate(times_a, times_b, max_diff: float = 0.02) -> Tuple[np.ndarray, np.ndarray]:
+def associate(times_a, times_b, max_diff: float = 0.02,
+              names: Tuple[str, str] = ("times_a", "times_b")) -> Tuple[np.ndarray, np.ndarray]:
     """One-to-one nearest-first association of two timestamp lists (TUM ``associate.py``).
 
     All pairs with |a_i - b_j| <= max_diff are candidates; they are accepted greedily from the
@@ -118,9 +119,9 @@ def associate(times_a, times_b, max_diff: float = 0.02) -> Tuple[np.ndarray, np.
     cand_a, cand_b, diffs = cand_a[keep], cand_b[keep], diffs[keep]
     if cand_a.size == 0:
         raise ValueError(
-            f"no timestamps within max_diff={max_diff} s: times_a spans "
+            f"no timestamps within max_diff={max_diff} s: {names[0]} spans "
             f"[{times_a.min() if times_a.size else np.nan:.6f}, {times_a.max() if times_a.size else np.nan:.6f}] s, "
-            f"times_b spans [{times_b.min() if times_b.size else np.nan:.6f}, "
+            f"{names[1]} spans [{times_b.min() if times_b.size else np.nan:.6f}, "
             f"{times_b.max() if times_b.size else np.nan:.6f}] s; check that both use the same clock "
             f"(seconds, not nanoseconds or frame indices) or raise max_diff"
         )
@@ -323,7 +324,7 @@ def trajectory_errors_over_time(
     finite_gt = np.flatnonzero(np.isfinite(gt_poses).all(axis=(1, 2)))
     if finite_gt.size == 0:
         raise ValueError("every ground-truth pose is NaN/inf; nothing to evaluate")
-    idx_est, idx_gt_finite = associate(est_times, gt_times[finite_gt], max_diff)
+    idx_est, idx_gt_finite = associate(est_times, gt_times[finite_gt], max_diff, ("the estimate", "the ground truth"))
     idx_gt = finite_gt[idx_gt_finite]
     result = ate(gt_poses[idx_gt], est_poses[idx_est], with_scale)
     result.update(rpe(gt_poses[idx_gt], est_poses[idx_est], delta, est_scale=result["scale"]))
