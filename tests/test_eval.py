@@ -724,6 +724,14 @@ def test_cli_mesh(tmp_path, capsys):
     (tmp_path / "junk.ply").write_text("not a mesh")
     assert ev.main(["mesh", str(tmp_path / "junk.ply"), str(tmp_path / "gt.ply")]) == 2
     assert "junk.ply" in capsys.readouterr().err
+    broken = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    broken.vertices[5] = np.nan
+    broken.export(tmp_path / "nan.ply")
+    assert ev.main(["mesh", str(tmp_path / "nan.ply"), str(tmp_path / "gt.ply")]) == 2
+    assert "nan.ply: vertex 5 is not finite" in capsys.readouterr().err
+    trimesh.creation.icosphere(subdivisions=3, radius=1000.0).export(tmp_path / "millimetres.ply")
+    assert ev.main(["mesh", str(tmp_path / "millimetres.ply"), str(tmp_path / "gt.ply"), "--points", "500"]) == 0
+    assert "warning:" in capsys.readouterr().err  # metres against millimetres: printed, and said
 
 
 def test_cull_mesh_keeps_the_cap_a_camera_sees_on_a_sphere():

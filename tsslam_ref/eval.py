@@ -58,7 +58,22 @@ def _load_mesh(path: str) -> trimesh.Trimesh:
         raise ValueError(f"{path}: cannot read a triangle mesh ({error})") from error
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError(f"{path}: contains no triangles")
+    bad = np.flatnonzero(~np.isfinite(mesh.vertices).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{path}: vertex {int(bad[0])} is not finite ({mesh.vertices[bad[0]].tolist()}); expected "
+                         f"finite coordinates in metres")
+    if not (mesh.area_faces > 0).any():
+        raise ValueError(f"{path}: every triangle has zero area; expected a surface")
     return mesh
+
+
+def _warn_if_other_units(rec: trimesh.Trimesh, gt: trimesh.Trimesh, rec_path: str, gt_path: str) -> None:
+    """One line on stderr when the meshes' sizes differ ten-fold or more: millimetres against metres,
+    or a mesh of another scene (the metrics are then meaningless; the command still prints them)."""
+    sizes = [float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0])) for mesh in (rec, gt)]
+    if min(sizes) > 0 and max(sizes) / min(sizes) >= 10:
+        print(f"warning: {rec_path} spans {sizes[0]:.3g} and {gt_path} {sizes[1]:.3g} (bounding-box diagonals): "
+              f"both must be in metres, of the same scene", file=sys.stderr)
 
 
 def _print_result(result: Dict[str, object], keys: Sequence[str], as_json: bool) -> None:
@@ -90,8 +105,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                  "itself (needs a GT stamp within --max-diff), instead of the nearest GT sample")
     trajectory.add_argument("--json", action="store_true", help="print one JSON object")
     mesh = commands.add_parser("mesh", help="accuracy/completion of REC against GT meshes")
-    mesh.add_argument("rec")
-    mesh.add_argument("gt")
+    mesh.add_argument("rec", help="reconstructed mesh (.ply, .obj), in metres")
+    mesh.add_argument("gt", help="ground-truth mesh of the same scene, in metres")
     mesh.add_argument("--threshold", type=number_in("--threshold", 0, 100, low_open=True), default=0.05,
                       help="completion-ratio threshold (m), in (0, 100]")
     mesh.add_argument("--points", type=number_in("--points", 1, 10**8, integer=True), default=200_000,
@@ -116,7 +131,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             )
             keys = ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "scale"]
         else:
-            result = mesh_metrics(_load_mesh(args.rec), _load_mesh(args.gt), args.points, args.threshold, args.seed)
+            rec, gt = _load_mesh(args.rec), _load_mesh(args.gt)
+            _warn_if_other_units(rec, gt, args.rec, args.gt)
+            result = mesh_metrics(rec, gt, args.points, args.threshold, args.seed)
             keys = ["accuracy_m", "completion_m", "completion_ratio", "threshold_m", "n_points"]
     except (ValueError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
