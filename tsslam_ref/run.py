@@ -418,8 +418,8 @@ def execute(plan: Plan) -> int:
           f"{data_module.timing_summary(sequence.timestamps)}), preset {cfg.name}, device {plan.device} ({kernels}), "
           f"output {out}")
     if sequence.frames_without_gt:
-        print(f"note: {sequence.frames_without_gt} frame(s) of {sequence.path} have no ground-truth pose and are left "
-              f"out (before --frames counts); --set data.require_gt=false keeps them")
+        print(f"note: {sequence.frames_without_gt} frame(s) of {sequence.path} have no ground-truth pose and are not "
+              f"used (--frames counts the frames that have one); --set data.require_gt=false keeps them")
     try:
         run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
         result = run_loop(sequence, cfg, device=plan.device, state=state, on_frame=on_frame)
