@@ -643,6 +643,7 @@ def test_cli_trajectory_json_and_bad_file(tmp_path, fr2_desk, capsys):
     direct = ev.evaluate_trajectory(gt_times, gt_poses, gt_times[::7], est_poses)
     for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched"):
         assert printed[key] == pytest.approx(direct[key], rel=1e-6, abs=1e-9)
+    assert (printed["n_est"], printed["n_gt"], printed["delta_frames"]) == (len(est_poses), 2000, 1)  # what was used
 
     bad = tmp_path / "bad.txt"
     bad.write_text("# header\n1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 1\n")

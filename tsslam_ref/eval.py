@@ -96,10 +96,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     trajectory.add_argument("gt", help="ground truth, 'timestamp tx ty tz qx qy qz qw' per line")
     trajectory.add_argument("est", help="estimate, same format, camera-to-world; one line per time stamp")
     trajectory.add_argument("--max-diff", type=number_in("--max-diff", 0, 10, low_open=True), default=DEFAULT_MAX_DIFF_S,
-                            help="association tolerance (s), in (0, 10]")
+                            help=f"association tolerance (s), in (0, 10]; default {DEFAULT_MAX_DIFF_S}")
     trajectory.add_argument("--scale", action="store_true", help="Sim(3) alignment (estimate scale)")
     trajectory.add_argument("--delta", type=number_in("--delta", 1, 10**9, integer=True), default=1,
-                            help="RPE interval in frames, >= 1")
+                            help="RPE interval in matched frames, >= 1; default 1")
     trajectory.add_argument("--interpolate", action="store_true",
                             help="score against the ground truth interpolated at the estimate's stamps, as a run scores "
                                  "itself (needs a GT stamp within --max-diff), instead of the nearest GT sample")
@@ -108,9 +108,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     mesh.add_argument("rec", help="reconstructed mesh (.ply, .obj), in metres")
     mesh.add_argument("gt", help="ground-truth mesh of the same scene, in metres")
     mesh.add_argument("--threshold", type=number_in("--threshold", 0, 100, low_open=True), default=0.05,
-                      help="completion-ratio threshold (m), in (0, 100]")
+                      help="completion-ratio threshold (m), in (0, 100]; default 0.05")
     mesh.add_argument("--points", type=number_in("--points", 1, 10**8, integer=True), default=200_000,
-                      help="surface samples per mesh, 1 to 1e8")
+                      help="surface samples per mesh, 1 to 1e8; default 200000")
     mesh.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
     mesh.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
@@ -129,7 +129,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             result = evaluate_trajectory(
                 gt_times, gt_poses, est_times, est_poses, args.max_diff, args.scale, args.delta
             )
-            keys = ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "scale"]
+            keys = ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "n_est", "n_gt", "delta_frames",
+                    "scale"]
         else:
             rec, gt = _load_mesh(args.rec), _load_mesh(args.gt)
             _warn_if_other_units(rec, gt, args.rec, args.gt)
