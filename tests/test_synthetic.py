@@ -207,6 +207,9 @@ def test_synthesize_refuses_the_folder_it_runs_in_and_words_the_cli_refusals(tmp
     (tmp_path / "mine" / "notes.txt").write_text("the user's")
     assert data.main(["synthesize", "--out", "mine", "--frames", "2", "--size", "16x12"]) == 2
     assert "not written by this command (no scene.json), so choose a new folder" in capsys.readouterr().err
+    (tmp_path / "gt.txt").write_text("a file of the user's")
+    assert data.main(["synthesize", "--out", "gt.txt/sub", "--frames", "2", "--size", "16x12"]) == 2
+    assert "gt.txt is a file, so no folder can be made inside it" in capsys.readouterr().err
 
 
 def test_synthesize_along_real_motion_and_cli(tmp_path, shared_data, capsys):

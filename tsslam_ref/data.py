@@ -319,6 +319,9 @@ def _check_synthesize_out(out: Path, force: bool) -> None:
         raise ValueError(f"--out {out} is a symbolic link; expected a new folder name or a folder written by this command")
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} exists and is a file; expected a folder")
+    blocking = next((parent for parent in out.parents if parent.exists() and not parent.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"--out {out}: {blocking} is a file, so no folder can be made inside it")
     if not force and out.is_dir() and any(out.iterdir()):
         raise ValueError(f"--out {out} exists and is not empty; " + (
             "--force replaces it" if (out / "scene.json").is_file() else
@@ -381,8 +384,8 @@ def _info(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        for key, value in summary.items():
-            print(f"{key:>22}: {value}")
+        for key, value in summary.items():  # floats to 6 significant digits; --json keeps every digit
+            print(f"{key:>22}: {value:.6g}" if isinstance(value, float) else f"{key:>22}: {value}")
     return 0
 
 
