@@ -44,6 +44,27 @@ def test_export_of_a_spline_at_timestamp_size_writes_every_sample(tmp_path, rate
     assert np.loadtxt(tmp_path / "export.txt").shape == rows.shape
 
 
+def test_the_export_writes_stamps_as_trajectory_txt_does_and_reads_back_as_a_trajectory(tmp_path):
+    """Stamps of 1.5e9 s printed with 9 decimals showed float64's binary noise (STAMP came out as
+    ...189679861): they are written to the microsecond, as trajectory.txt writes them, so the
+    first row's stamp is the frame's own text.  The evaluator reads the 14-column export as a
+    trajectory (its first 8 columns).  Out-of-range rates are refused by the function itself."""
+    trajectory = BSplineTrajectory(torch.eye(3, dtype=torch.float64).repeat(6, 1, 1),
+                                   torch.zeros(6, 3, dtype=torch.float64), 0.3, STAMP - 0.6)
+    start, _ = trajectory.domain()
+    state = SimpleNamespace(trajectory=trajectory, timestamps=np.array([start, start + 0.2]), done=2)
+    rows = export_continuous(state, 30.0, tmp_path / "export.txt")
+    first = (tmp_path / "export.txt").read_text().splitlines()[1].split()[0]
+    assert first == f"{STAMP:.6f}" == "1520530328.189680", first
+    times, poses = data.read_tum_trajectory(tmp_path / "export.txt")
+    assert len(times) == len(rows) and np.allclose(times, rows[:, 0], rtol=0, atol=5e-7)
+    assert np.allclose(poses, np.eye(4), atol=1e-9)
+    for rate in (0.0, -1.0, float("nan"), float("inf"), 1e8):
+        with pytest.raises(ValueError, match=r"export rate must be in \(0, 1000\] Hz"):
+            export_continuous(state, rate, tmp_path / "refused.txt")
+    assert not (tmp_path / "refused.txt").exists()
+
+
 def test_the_export_stops_at_the_last_frame_not_at_the_end_of_the_last_interval(tmp_path):
     """Past the last frame the spline is held by nothing; the export ends at that frame's time,
     which it includes when a sample falls on it."""

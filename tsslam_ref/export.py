@@ -19,6 +19,9 @@ import torch
 from .files import atomic_path
 from .geometry import make_pose, trajectory_to_tum
 
+MAX_EXPORT_RATE = 1000.0
+"""Largest export rate (Hz): far above any camera's frame rate, and it bounds the file size."""
+
 
 def spline_output_poses(state) -> torch.Tensor:
     """(done, 4, 4): the spline's poses where it reaches, the frame poses elsewhere."""
@@ -72,8 +75,8 @@ def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     (m/s) and w the body-frame angular velocity (rad/s); quaternions as in ``trajectory.txt``
     (:func:`geometry.trajectory_to_tum`).  Replaces ``path`` atomically (``files.atomic_path``; the
     caller owns the folder).  Returns the (T, 14) float64 rows."""
-    if rate_hz <= 0:
-        raise ValueError(f"--export-rate must be positive, got {rate_hz}")
+    if not 0 < rate_hz <= MAX_EXPORT_RATE:  # NaN fails too
+        raise ValueError(f"the export rate must be in (0, {MAX_EXPORT_RATE:g}] Hz, got {rate_hz}")
     start, end = state.trajectory.domain()
     last_frame = float(state.timestamps[state.done - 1])
     if end <= last_frame:
@@ -86,6 +89,8 @@ def export_continuous(state, rate_hz: float, path) -> np.ndarray:
     rows = np.concatenate([times[:, None], trajectory_to_tum(poses), sample.velocity_world.detach().cpu().double().numpy(),
                            sample.omega_body.detach().cpu().double().numpy()], axis=1)
     with atomic_path(path) as temporary, open(temporary, "w") as stream:
-        stream.write("# t tx ty tz qx qy qz qw vx vy vz wx wy wz (camera-to-world, OpenCV axes; v world m/s, w body rad/s)\n")
-        np.savetxt(stream, rows, fmt="%.9f")
+        stream.write(f"# t tx ty tz qx qy qz qw vx vy vz wx wy wz: t in s (as the frames' stamps), camera-to-world "
+                     f"pose (position m, unit quaternion qx qy qz qw), OpenCV axes; v world frame m/s, w body frame "
+                     f"rad/s; every {1.0 / rate_hz:.9g} s ({rate_hz:.15g} Hz) from the first frame up to the last one\n")
+        np.savetxt(stream, rows, fmt=["%.6f"] + ["%.9f"] * 13)  # stamps to the microsecond, as trajectory.txt
     return rows

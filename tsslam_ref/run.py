@@ -53,11 +53,10 @@ from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
 from .run_outputs import check_output_folder, write_outputs, write_partial_trajectory
+from .export import MAX_EXPORT_RATE
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
 
-MAX_EXPORT_RATE = 1000.0
-"""Largest --export-rate (Hz): far above any camera's frame rate, and it bounds the file size."""
 RESULT_NEUTRAL = ("--checkpoint-every", "--export-rate", "--no-mesh", "--quiet")
 """Options that may differ on ``--resume``: they change what is written, never the trajectory."""
 

@@ -95,15 +95,19 @@ def read_tum_trajectory(path, unique_stamps: bool = False) -> Tuple[np.ndarray, 
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: '<file>:<line>: ...' for a line without 8 numbers, a quaternion whose norm
+        ValueError: '<file>:<line>: ...' for a line without 8 numbers (14, a continuous export of
+            ours, read as its first 8), a quaternion whose norm
             is 0 or off 1 by more than :data:`QUATERNION_NORM_TOLERANCE`, a decreasing timestamp,
             a repeated one when ``unique_stamps`` (an estimate: one pose per frame; recorded ground
             truth such as TUM fr2/desk repeats a few stamps), or a file with no poses.
     """
     stamps, rows, numbers = [], [], []
     for number, fields in _data_lines(path):
+        if len(fields) == 14:  # our continuous export: the pose, then velocities (vx vy vz wx wy wz), not read here
+            fields = fields[:8]
         if len(fields) != 8:
-            raise ValueError(f"{path}:{number}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {len(fields)} fields")
+            raise ValueError(f"{path}:{number}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw' (or the 14 of a "
+                             f"continuous export), got {len(fields)} fields")
         try:
             values = [float(f) for f in fields]
         except ValueError:
