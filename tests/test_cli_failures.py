@@ -501,7 +501,8 @@ def _shifted_ground_truth(folder: Path, shift: float, drop_first: int = 0) -> No
     """Rewrite folder/groundtruth.txt with every time moved by ``shift`` s and its first rows dropped."""
     lines = (folder / "groundtruth.txt").read_text().splitlines()
     rows = [line.split() for line in lines if line.strip() and not line.startswith("#")][drop_first:]
-    (folder / "groundtruth.txt").write_text("".join(f"{float(row[0]) + shift:.6f} {' '.join(row[1:])}\n" for row in rows))
+    shifted = (f"{float(row[0]) + shift:.6f} {' '.join(row[1:])}\n" for row in rows)
+    (folder / "groundtruth.txt").write_text("".join(shifted))
 
 
 def test_ground_truth_on_another_clock_is_named_and_can_be_set_aside(runs):

@@ -184,7 +184,8 @@ def _data_folder(path: str) -> str:
     return str(Path(path).resolve()) if path else str(default_sequence_path())
 
 
-def config_differences(saved: Dict[str, Any], cfg: config_module.Config, saved_in: str = "the checkpoint") -> List[str]:
+def config_differences(saved: Dict[str, Any], cfg: config_module.Config,
+                       saved_in: str = "the checkpoint") -> List[str]:
     """'key: saved -> now' for every config value that differs from the saved config (``saved_in``
     names where it was saved, for the message)."""
     old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))

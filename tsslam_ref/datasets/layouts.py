@@ -115,12 +115,13 @@ def _check_plausible(calibration: dict, width: int, height: int, folder: Path) -
     over 157 deg; normalised intrinsics, fx = 0.5-1.5, are the usual cause)."""
     for focal, centre, size in (("fx", "cx", width), ("fy", "cy", height)):
         if not -0.5 <= calibration[centre] <= size - 0.5:
-            raise ValueError(f"{folder}: calibration {centre} = {calibration[centre]:g} lies outside the {width}x{height} "
-                             f"images (pixels [-0.5, {size - 0.5:g}]); expected the principal point in pixels")
+            raise ValueError(f"{folder}: calibration {centre} = {calibration[centre]:g} lies outside the "
+                             f"{width}x{height} images (pixels [-0.5, {size - 0.5:g}]); expected the principal "
+                             f"point in pixels")
         if calibration[focal] < size / 10:
-            raise ValueError(f"{folder}: calibration {focal} = {calibration[focal]:g} is under a tenth of the image size "
-                             f"({size} px): a field of view over 157 deg; expected the focal length in pixels, not "
-                             f"normalised by the image size")
+            raise ValueError(f"{folder}: calibration {focal} = {calibration[focal]:g} is under a tenth of the image "
+                             f"size ({size} px): a field of view over 157 deg; expected the focal length in pixels, "
+                             f"not normalised by the image size")
 
 
 def listed_file(folder: Path, listing: Path, line: int, name: str) -> Path:
