@@ -468,6 +468,30 @@ def test_resume_of_a_finished_run_without_a_checkpoint_says_it_is_finished(runs)
     assert snapshot(finished) == before
 
 
+def test_export_rate_on_a_finished_run_writes_the_export_from_its_checkpoint(runs):
+    """A finished TS-SLAM run that kept its checkpoint: --resume --export-rate writes the continuous
+    trajectory byte for byte as a run made with that rate from the start wrote it (the oracle), and
+    touches no other file; without the checkpoint it says what is missing."""
+    root = runs["root"]
+    tsslam = [argument for argument in CHEAP if argument != "coslam"]
+    tsslam[tsslam.index("--method") + 1:tsslam.index("--method") + 1] = ["tsslam"]
+    first = cli("run", "--data", "room", "--out", "later_export", *tsslam, cwd=root)
+    assert first.returncode == 0, first.stderr
+    before = snapshot(root / "later_export")
+    again = cli("run", "--data", "room", "--out", "later_export", *tsslam, "--export-rate", "50", "--resume", cwd=root)
+    assert again.returncode == 0 and "wrote trajectory_50hz.txt from its checkpoint" in again.stdout, again.stderr
+    after = snapshot(root / "later_export")
+    assert {name: entry for name, entry in after.items() if name != "trajectory_50hz.txt"} == before
+    direct = cli("run", "--data", "room", "--out", "export_from_start", *tsslam, "--export-rate", "50", cwd=root)
+    assert direct.returncode == 0, direct.stderr
+    exported = (root / "later_export" / "trajectory_50hz.txt").read_bytes()
+    assert exported == (root / "export_from_start" / "trajectory_50hz.txt").read_bytes() and exported.count(b"\n") > 5
+    (root / "later_export" / "checkpoint.pt").unlink()
+    again = cli("run", "--data", "room", "--out", "later_export", *tsslam, "--export-rate", "20", "--resume", cwd=root)
+    assert again.returncode == 0 and "needs the run's checkpoint" in again.stdout, again.stdout
+    assert not (root / "later_export" / "trajectory_20hz.txt").exists()
+
+
 def test_the_dataset_folder_itself_is_refused_as_output_folder(runs):
     """The folder layout reads trajectory.txt as ground truth and a run writes trajectory.txt:
     --out on the data folder is refused before anything is written, --overwrite or not."""

@@ -52,7 +52,7 @@ from .cli_args import OneLineParser, number_in, silence_stdout
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
-from .run_outputs import check_output_folder, write_outputs, write_partial_trajectory
+from .run_outputs import check_output_folder, export_file_name, write_outputs, write_partial_trajectory
 from .export import MAX_EXPORT_RATE
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
@@ -289,11 +289,13 @@ def _prepare_resume(plan: Plan) -> None:
         raise BadInput(f"--resume refused: the frames of {sequence.path} differ from those in {path} "
                        f"({len(saved_times)} frames saved, {len(sequence)} now; the first difference at frame {first})")
     plan.finished = _finished_run(plan.out)
+    if plan.finished and plan.args.export_rate is None:
+        return
+    try:  # a finished run's state too, when --export-rate asks for its continuous trajectory
+        plan.state = checkpoint_module.from_plain(values, plan.device)
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as error:
+        raise checkpoint_module.CheckpointError(f"{path}: the checkpoint's content does not fit ({error})") from None
     if not plan.finished:
-        try:
-            plan.state = checkpoint_module.from_plain(values, plan.device)
-        except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as error:
-            raise checkpoint_module.CheckpointError(f"{path}: the checkpoint's content does not fit ({error})") from None
         plan.environment = _resume_environment(values.get("environment"), plan)
 
 
@@ -395,11 +397,28 @@ def _tracking_failed(plan: Plan, progress, failure: Exception) -> int:
     return EXIT_TRACKING_FAILURE
 
 
+def _export_finished_run(plan: Plan) -> int:
+    """Write a finished run's continuous trajectory at ``--export-rate`` from its checkpoint, as the
+    run would have (the loop only fits the last interval again); no other file is touched."""
+    from . import slam
+    from .export import export_continuous
+
+    result = slam.run_slam(plan.sequence, plan.cfg, device=plan.device, state=plan.state)
+    path = plan.out / export_file_name(plan.args.export_rate)
+    export_continuous(result.state, plan.args.export_rate, path)
+    print(f"{plan.out} holds a finished run (metrics.json); wrote {path.name} from its checkpoint, the other files "
+          f"unchanged")
+    return EXIT_OK
+
+
 def execute(plan: Plan) -> int:
     """Run the prepared command and write its outputs; returns the exit status."""
     cfg, sequence, out, state = plan.cfg, plan.sequence, plan.out, plan.state
+    if plan.finished and state is not None:  # --export-rate on a finished run that kept its checkpoint
+        return _export_finished_run(plan)
     if plan.finished:
-        skipped = " (--export-rate and --no-mesh do not change a finished run's files)" if plan.args.export_rate else ""
+        skipped = (" (--export-rate needs the run's checkpoint, which --checkpoint-every 0 removed)"
+                   if plan.args.export_rate else "")
         print(f"{out} holds a finished run (metrics.json); nothing to resume{skipped}. Use --overwrite to run it again.")
         return EXIT_OK
     from . import parallel, slam
