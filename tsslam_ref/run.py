@@ -269,10 +269,10 @@ def _prepare_resume(plan: Plan) -> None:
     if not path.is_file() and _finished_run(plan.out):  # a finished run made with --checkpoint-every 0
         saved = plan.out / "config.json"
         try:
-            saved_config = json.loads(saved.read_text(encoding="utf-8"))
+            saved_config = config_module.read_json_values(str(saved))
         except (OSError, ValueError):
             saved_config = None  # nothing to compare with: the run is done either way
-        if isinstance(saved_config, dict):
+        if saved_config is not None:
             _refuse_other_settings(checkpoint_module.config_differences(saved_config, cfg, saved.name), saved)
         plan.finished = True
         return

@@ -52,23 +52,24 @@ def resolve_reference(name: str) -> str:
     return str(candidate) if candidate.exists() else name
 
 
-def _still_the_input(path: str) -> bool:
-    """A file 'inputs' wrote and nobody evaluated: written by this kit, no output keys."""
+def _kit_file(path: str) -> Optional[dict]:
+    """The JSON object in ``path`` if this kit wrote it (``written_by``), else None (also for a file
+    that cannot be read or is no object)."""
     try:
-        with open(path, "r", encoding="utf-8") as handle:
-            data = json.load(handle)
-    except (OSError, ValueError):
-        return False
-    return isinstance(data, dict) and data.get("written_by") == WRITTEN_BY and not (
-        set(conformance.OUTPUT_KEYS) & set(data))
+        data = conformance.load_json(path)
+    except conformance.ConformanceError:
+        return None
+    return data if data.get("written_by") == WRITTEN_BY else None
 
 
 def _written_by_kit(path: str) -> bool:
-    try:
-        with open(path, "r", encoding="utf-8") as handle:
-            return json.load(handle).get("written_by") == WRITTEN_BY
-    except (OSError, ValueError, AttributeError):
-        return False
+    return _kit_file(path) is not None
+
+
+def _still_the_input(path: str) -> bool:
+    """A file 'inputs' wrote and nobody evaluated: written by this kit, no output keys."""
+    data = _kit_file(path)
+    return data is not None and not set(conformance.OUTPUT_KEYS) & set(data)
 
 
 def write_json_atomic(path: str, data: dict, force: bool = False) -> None:

@@ -189,10 +189,10 @@ def horn_alignment(model, data, with_scale: bool = False) -> Tuple[np.ndarray, n
 def alignment_is_unique(model, data) -> bool:
     """True when the rotation of :func:`horn_alignment` is unique: the cross-covariance of the
     centred points has rank >= 2 (neither point set collinear or coincident)."""
-    model_c, data_c = _to_float64(model), _to_float64(data)
-    model_c, data_c = model_c - model_c.mean(0), data_c - data_c.mean(0)
-    if _coincident(_to_float64(model)) or _coincident(_to_float64(data)):  # D is rounding noise then
+    model, data = _to_float64(model), _to_float64(data)
+    if _coincident(model) or _coincident(data):  # D is rounding noise then
         return False
+    model_c, data_c = model - model.mean(0), data - data.mean(0)
     D = np.linalg.svd(data_c.T @ model_c / model_c.shape[0], compute_uv=False)
     return bool(D[1] > _SVD_RANK_EPS * max(D[0], 1e-300))
 

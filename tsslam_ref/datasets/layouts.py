@@ -12,6 +12,7 @@ frames and builds the lazy sequence.  Bad input raises an error naming the file 
 """
 
 import re
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional, Tuple
@@ -81,7 +82,8 @@ def _stems_match(rgb_paths: List[Path], depth_paths: List[Path], rgb_dir: Path, 
     rgb_stems = [p.stem for p in rgb_paths]
     depth_stems = [p.stem for p in depth_paths]
     for paths, stems in ((rgb_paths, rgb_stems), (depth_paths, depth_stems)):
-        twice = [path.name for path in paths if stems.count(path.stem) > 1][:4]
+        counts = Counter(stems)  # once per folder, not a count per file
+        twice = [path.name for path in paths if counts[path.stem] > 1][:4]
         if twice:  # x.png and x.jpg: two images for one frame
             raise ValueError(f"{paths[0].parent}: {', '.join(twice)} share a file name stem; each frame needs one "
                              f"image per folder (remove or rename the others)")
