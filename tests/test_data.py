@@ -677,6 +677,36 @@ def test_cli_info(tum_folder, capsys):
                 "depth_valid_fraction"):
         assert key in summary
     assert summary["type"] == "tum" and summary["frames"] == 5 and summary["depth_valid_fraction"] == 1.0
+    assert summary["colour_without_depth"] == 1  # the fixture's frame 3: its depth is 0.026 s away
+
+
+def test_colour_without_depth_counts_only_association_drops(tum_folder):
+    """Six colour stamps, one without depth within 0.02 s: counted before the frame selection and apart
+    from the frames left out for lacking ground truth."""
+    sequence = data.load_sequence(tum_folder[0], frame_start=2)
+    assert sequence.colour_without_depth == 1 and sequence.frames_without_gt == 0 and len(sequence) == 3
+    assert data.load_sequence(tum_folder[0], max_time_diff=0.03).colour_without_depth == 0
+
+
+def test_a_run_notes_colour_images_without_depth(tmp_path, monkeypatch, capsys):
+    """The note is printed with the run's first lines, before any frame is tracked (the loop is
+    replaced by one that stops at once)."""
+    from tsslam_ref import run, slam
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Stop
+
+    rgb = 100.0 + np.arange(6) / 30.0
+    depth = rgb + 0.001
+    depth[2] += 0.03
+    folder = make_tum(tmp_path / "tum", rgb, depth, rgb, _random_poses(6), size=(64, 48))
+    monkeypatch.setattr(slam, "run_slam", stop)
+    with pytest.raises(Stop):
+        run.main(["--data", str(folder), "--config", "tiny", "--quiet", "--out", str(tmp_path / "out")])
+    assert f"note: 1 colour image(s) in {folder / 'rgb.txt'} have no depth image within 0.02 s" in capsys.readouterr().out
 
 
 def test_cli_info_rejects_non_dataset(tmp_path, capsys):

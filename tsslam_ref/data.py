@@ -227,6 +227,7 @@ def load_sequence(
         resize_width=resize_width,
         depth_trunc=depth_trunc,
         frames_without_gt=without_gt,
+        colour_without_depth=index.colour_without_depth,
     )
 
 
@@ -296,6 +297,7 @@ def sequence_info(sequence: RGBDSequence, depth_samples: int = 5) -> dict:
         "path": str(sequence.path),
         "frames": len(sequence),
         "frames_with_gt": sequence.frames_with_gt,
+        "colour_without_depth": sequence.colour_without_depth,
         "width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
         "depth_scale": sequence.depth_scale,
         "duration_s": float(sequence.timestamps[-1] - sequence.timestamps[0]),

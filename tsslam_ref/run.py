@@ -438,6 +438,9 @@ def execute(plan: Plan) -> int:
     if sequence.frames_without_gt:
         print(f"note: {sequence.frames_without_gt} frame(s) of {sequence.path} have no ground-truth pose and are not "
               f"used (--frames counts the frames that have one); --set data.require_gt=false keeps them")
+    if sequence.colour_without_depth:
+        print(f"note: {sequence.colour_without_depth} colour image(s) in {sequence.path / 'rgb.txt'} have no depth "
+              f"image within 0.02 s and are not used")
     try:
         run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
         result = run_loop(sequence, cfg, device=plan.device, state=state, on_frame=on_frame)

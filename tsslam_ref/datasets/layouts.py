@@ -55,6 +55,7 @@ class LayoutIndex:
     intrinsics: Intrinsics  # of the stored depth images
     depth_scale: Optional[float]  # from a calibration file, else None (use DEPTH_SCALES)
     gt_span: Optional[Tuple[float, float]] = None  # first and last time of the ground-truth file, s
+    colour_without_depth: int = 0  # TUM: colour stamps left out, no depth stamp within the tolerance
 
 
 def natural_key(name: str):
@@ -202,7 +203,8 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
                 f"{depth_paths[0]}: {size[0]}x{size[1]} image but no intrinsics.json/calibration.txt in {folder}; "
                 f"the published TUM values are for 640x480"
             )
-    return LayoutIndex("tum", rgb_paths, depth_paths, timestamps, gt_poses, intrinsics, depth_scale, gt_span)
+    return LayoutIndex("tum", rgb_paths, depth_paths, timestamps, gt_poses, intrinsics, depth_scale, gt_span,
+                       colour_without_depth=len(rgb_times) - len(keep))
 
 
 def _read_matrix_lines(path: Path, per_line: int, what: str):

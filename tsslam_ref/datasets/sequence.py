@@ -55,6 +55,8 @@ class RGBDSequence:
         rgb_paths, depth_paths: the files, one per frame.
         frames_without_gt: frames of the folder left out before the selection because their
         ground-truth pose is unknown (``require_gt``).
+        colour_without_depth: TUM colour images left out because no depth image was taken within
+        the association tolerance (0.02 s); 0 for the other layouts.
     """
 
     def __init__(
@@ -72,6 +74,7 @@ class RGBDSequence:
         resize_width: Optional[int] = None,
         depth_trunc: Optional[float] = None,
         frames_without_gt: int = 0,
+        colour_without_depth: int = 0,
     ):
         if not (len(rgb_paths) == len(depth_paths) == len(timestamps)):
             raise ValueError(
@@ -96,6 +99,7 @@ class RGBDSequence:
         self.resize_width = resize_width
         self.depth_trunc = depth_trunc
         self.frames_without_gt = int(frames_without_gt)
+        self.colour_without_depth = int(colour_without_depth)
         width, height = output_size(native_intrinsics.width, native_intrinsics.height, self.crop_edge, resize_width)
         edge = self.crop_edge
         self.intrinsics = native_intrinsics.cropped(edge, edge, edge, edge).resized(width, height)
