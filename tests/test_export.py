@@ -212,3 +212,13 @@ def test_the_trajectory_written_during_a_run_has_each_processed_frame_with_its_o
     assert np.allclose(rows[:, 1:4], poses[:3, :3, 3], atol=1e-9)
     expected = rotations.as_quat()[:3]
     assert np.allclose(np.abs(np.sum(rows[:, 4:] * expected, axis=1)), 1.0, atol=1e-9)  # q or -q
+
+
+@pytest.mark.parametrize("span, rate, rows", [(0.3, 2.0, 1), (0.5, 2.0, 2), (0.3, 10.0, 4), (0.0, 30.0, 1)])
+def test_a_run_warns_before_it_starts_when_the_export_would_hold_one_row(capsys, span, rate, rows):
+    """Rows counted by hand: times 0, 1/rate, ... up to the last frame (the span) included."""
+    from tsslam_ref import run
+
+    run._note_sparse_export(rate, 1.3e9 + np.array([0.0, span]))
+    err = capsys.readouterr().err
+    assert (f"will hold {rows} row" in err) == (rows < 2), err

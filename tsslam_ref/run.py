@@ -53,7 +53,7 @@ from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
 from .run_outputs import check_output_folder, export_file_name, write_outputs, write_partial_trajectory
-from .export import MAX_EXPORT_RATE
+from .export import MAX_EXPORT_RATE, export_times
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
 
@@ -229,6 +229,15 @@ def _finished_run(out: Path) -> bool:
     return isinstance(metrics, dict) and "frames" in metrics and not metrics.get("failed", False)
 
 
+def _note_sparse_export(rate_hz: float, timestamps: np.ndarray) -> None:
+    """Warn (stderr) when ``--export-rate`` gives fewer than two rows over the frames' span, (N,) s."""
+    span = float(timestamps[-1] - timestamps[0])
+    rows = len(export_times(0.0, float(np.nextafter(span, np.inf)), rate_hz))  # up to the last frame, as the export
+    if rows < 2:
+        print(f"note: --export-rate {rate_hz:g} Hz is one row every {1.0 / rate_hz:g} s; the frames span {span:.6g} s, "
+              f"so the continuous trajectory will hold {rows} row", file=sys.stderr)
+
+
 def prepare(args: argparse.Namespace) -> Plan:
     """Check everything and load what the run needs; writes nothing.
 
@@ -251,6 +260,8 @@ def prepare(args: argparse.Namespace) -> Plan:
     except RuntimeError as error:  # torch's own message for a device it does not know
         raise BadInput(f"device {cfg.device!r} cannot be used ({error})") from None
     sequence = _checked_sequence(cfg, args.frames)
+    if args.export_rate is not None:
+        _note_sparse_export(args.export_rate, sequence.timestamps)
     out = Path(args.out) if args.out else Path("runs") / f"{sequence.name}-{cfg.method}"
     check_output_folder(out, args.overwrite, args.resume, sequence.path)
     plan = Plan(args=args, cfg=cfg, sequence=sequence, out=out, device=device)
