@@ -15,6 +15,7 @@ from scipy import integrate, optimize
 from scipy.spatial.transform import Rotation
 
 from tsslam_ref import eval as ev
+from tsslam_ref.data import write_tum_trajectory
 from tsslam_ref.geometry import pose_to_tum, tum_to_pose
 
 FR2_DESK = "trajectories/tum_rgbd_fr2_desk_groundtruth.txt"
@@ -356,6 +357,21 @@ def test_associate_errors_are_actionable():
         ev.associate([1.0, 2.0], [1000.0, 2000.0], 0.02)
     with pytest.raises(ValueError, match=r"times_b\[1\]"):
         ev.associate([1.0, 2.0], [1.0, np.nan])
+
+
+@pytest.mark.parametrize("make", [lambda t: torch.tensor(t.tolist()), lambda t: t.astype(np.float32),
+                                  lambda t: list(t.astype(np.float32))], ids=["tensor", "array", "list"])
+def test_float32_stamps_are_refused_before_they_pair_every_pose_with_one_stamp(make):
+    """TUM stamps in float32 round to one value (spacing 128 s at 1.34e9 s): refused, naming the argument."""
+    stamps = 1341841873.0 + np.arange(10) / 30.0
+    assert len(np.unique(stamps.astype(np.float32))) == 1  # the loss the check guards against
+    poses = np.tile(np.eye(4), (10, 1, 1))
+    with pytest.raises(TypeError, match="est_times must be float64 seconds"):
+        ev.evaluate_trajectory(stamps, poses, make(stamps), poses)
+    with pytest.raises(TypeError, match="times_b must be float64 seconds"):
+        ev.associate(stamps, make(stamps))
+    with pytest.raises(TypeError, match="timestamps must be float64 seconds"):
+        write_tum_trajectory("never_written.txt", make(stamps), poses)
 
 
 def test_evaluate_trajectory_drops_nonfinite_gt_rows(fr2_desk):

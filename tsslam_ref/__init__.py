@@ -9,7 +9,8 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
 
 * 0 base: ``config`` (settings), ``presets`` (their named values), ``config_io`` (overrides,
   validation, JSON files), ``geometry`` (SO(3), poses, pixel rays), ``files`` (atomic
-  writes), ``cli_args`` (command-line value parsing shared by the command lines)
+  writes), ``cli_args`` (command-line value parsing shared by the command lines), ``times``
+  (timestamps: float64 seconds, narrower floats refused)
 * 1 math and map: ``spline`` (the curve, Eq. 5-9), ``knots`` (its non-uniform form), ``spline_fit`` (curve approximation, Eq. 11),
   ``spline_jacobians``, ``se3_spline`` (joint SE(3) variant), ``trajectory`` (the spline
   trajectory type), ``knot_policy`` (adaptive interval lengths), ``dynamics`` (L_DR), ``hash_kernel`` (compiled hash-grid kernel), ``field``
@@ -40,6 +41,7 @@ LAYERS = {
     "geometry": 0,
     "files": 0,
     "cli_args": 0,
+    "times": 0,
     # 1 math and map
     "spline": 1,
     "knots": 1,

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from tsslam_ref.geometry import invert_pose, rotation_angle_deg
+from tsslam_ref.times import float64_seconds
 
 DEFAULT_MAX_DIFF_S = 0.01
 """Association tolerance in seconds (evo's default; TUM's associate.py uses 0.02)."""
@@ -65,7 +66,7 @@ def _check_poses(poses, name: str) -> np.ndarray:
 
 
 def _check_times(times, name: str) -> np.ndarray:
-    times = _to_float64(times)
+    times = float64_seconds(times, name)
     if times.ndim != 1:
         raise ValueError(f"{name} must have shape (N,), got {times.shape}")
     bad = np.flatnonzero(~np.isfinite(times))

@@ -20,6 +20,7 @@ import numpy as np
 
 from tsslam_ref.files import atomic_write_text
 from tsslam_ref.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix, trajectory_to_tum, tum_to_pose
+from tsslam_ref.times import float64_seconds
 
 TUM_MAX_TIME_DIFF = 0.02
 """Association tolerance (s) of TUM's associate.py."""
@@ -142,12 +143,12 @@ def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Pa
 
     Args:
         path: output file.
-        timestamps: (N,) float64 s.
+        timestamps: (N,) float64 s (float32 is refused: it cannot hold the stamps).
         poses: (N, 4, 4) camera-to-world.
         overwrite: replace an existing file; otherwise FileExistsError.
     """
     path = Path(path)
-    timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    timestamps = float64_seconds(timestamps, "timestamps").reshape(-1)
     poses = np.asarray(poses, dtype=np.float64)
     if poses.shape != (timestamps.shape[0], 4, 4):
         raise ValueError(f"poses must have shape ({timestamps.shape[0]}, 4, 4) to match the timestamps, got {poses.shape}")
