@@ -74,6 +74,21 @@ def test_frame_rays_and_raybatch_helpers():
         RayBatch(batch.directions_cam, batch.rgb, batch.depth[:2], batch.frame_ids)
 
 
+def test_an_image_of_another_size_than_the_intrinsics_is_refused():
+    """An 80x60 depth with the intrinsics of 160x120 images: every ray would point elsewhere."""
+    from tsslam_ref.data import Intrinsics
+
+    full = Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
+    half = np.ones((60, 80), dtype=np.float32)
+    rows, cols = torch.tensor([0]), torch.tensor([0])
+    with pytest.raises(ValueError, match=r"frame_rays' depth image is 80x60 .* intrinsics are for 160x120"):
+        frame_rays(np.zeros((60, 80, 3), np.float32), half, full, rows, cols)
+    with pytest.raises(ValueError, match=r"render_image's depth is 80x60 .* for 160x120"):
+        render_image(lambda x: None, torch.eye(4), full, config.tiny().render, depth=torch.from_numpy(half))
+    resized = full.resized(80, 60)
+    assert len(frame_rays(np.zeros((60, 80, 3), np.float32), half, resized, rows, cols)) == 1  # the right size
+
+
 def test_rays_to_world_single_and_per_ray_poses_and_pose_gradient():
     generator = torch.Generator().manual_seed(0)
     directions = torch.randn(6, 3, generator=generator, dtype=torch.float64)

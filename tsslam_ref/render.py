@@ -120,6 +120,16 @@ def pixel_directions(rows: torch.Tensor, cols: torch.Tensor, intrinsics) -> torc
     return pixel_to_ray(cols.to(dtype), rows.to(dtype), fx, fy, cx, cy)  # (R, 3)
 
 
+def check_image_size(height: int, width: int, intrinsics, what: str) -> None:
+    """Refuse an image whose size is not that of ``intrinsics`` (when they carry ``width`` and
+    ``height``; a bare (fx, fy, cx, cy) tuple carries no size): rays through the pixels of an image
+    of another size point elsewhere, and every depth along them would be silently wrong."""
+    expected = (getattr(intrinsics, "width", None), getattr(intrinsics, "height", None))
+    if None not in expected and expected != (width, height):
+        raise ValueError(f"{what} is {width}x{height} (W x H) but the intrinsics are for {expected[0]}x{expected[1]} "
+                         f"images: pass the intrinsics of this size (Intrinsics.resized / .cropped)")
+
+
 def sample_pixels(
     height: int, width: int, n: int, ignore_edge: int = 0, generator: Optional[torch.Generator] = None
 ) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -161,6 +171,7 @@ def frame_rays(rgb, depth, intrinsics, rows, cols, frame_id: int = 0, device=Non
     depth_t = _as_tensor(depth, device)
     if rgb_t.dim() != 3 or rgb_t.shape[-1] != 3 or depth_t.shape != rgb_t.shape[:2]:
         raise ValueError(f"frame_rays expects rgb (H, W, 3) and depth (H, W), got {tuple(rgb_t.shape)} and {tuple(depth_t.shape)}")
+    check_image_size(depth_t.shape[0], depth_t.shape[1], intrinsics, "frame_rays' depth image")
     rows = torch.as_tensor(rows, device=device).long()
     cols = torch.as_tensor(cols, device=device).long()
     return RayBatch(
@@ -307,7 +318,8 @@ def render_image(
 
     Args:
         c2w: (4, 4) camera-to-world pose (OpenCV axes).
-        intrinsics: with ``width``/``height`` attributes, or pass ``height``/``width`` or ``depth``.
+        intrinsics: with ``width``/``height`` attributes, or pass ``height``/``width`` or ``depth``;
+            a ``depth`` of another size than ``intrinsics.width`` x ``height`` is refused.
         depth: optional (H, W) sensor depth guiding the samples (as in training); without it
             only the uniform samples in [near, far] are used (plus n_range_d more in [near, far]).
         chunk: rays per chunk (default ``cfg.chunk``).
@@ -317,6 +329,7 @@ def render_image(
     """
     if depth is not None:
         height, width = depth.shape
+        check_image_size(height, width, intrinsics, "render_image's depth")
     else:
         height = height if height is not None else getattr(intrinsics, "height", None)
         width = width if width is not None else getattr(intrinsics, "width", None)
