@@ -70,6 +70,15 @@ def test_estimate_bound_of_a_fronto_parallel_plane():
     assert limited[2, 1] == pytest.approx(2.1) and limited[0, 1] == pytest.approx(0.1)
 
 
+def test_estimate_bound_refuses_a_pose_count_other_than_the_frame_count():
+    """zip would drop the second frame; a bare (4, 4) pose would be read row by row."""
+    frame = _plane_frame(depth_value=2.0)
+    with pytest.raises(ValueError, match=r"2 frame\(s\), poses of shape \(1, 4, 4\), expected \(2, 4, 4\)"):
+        estimate_bound([frame, frame], np.eye(4)[None], margin=0.1)
+    with pytest.raises(ValueError, match=r"poses of shape \(4, 4\), expected \(1, 4, 4\)"):
+        estimate_bound([frame], np.eye(4), margin=0.1)
+
+
 @pytest.fixture(scope="module")
 def synthetic_views():
     """9 clean RGB-D views of the procedural room along the built-in path (sphere traced)."""

@@ -170,6 +170,10 @@ def estimate_bound(
         included so that every camera lies inside the box.
     """
     poses = np.asarray(poses.detach().cpu() if isinstance(poses, torch.Tensor) else poses, dtype=np.float64)
+    frames = list(frames)
+    if poses.shape != (len(frames), 4, 4):
+        raise ValueError(f"estimate_bound needs one (4, 4) camera-to-world pose per frame: {len(frames)} frame(s), "
+                         f"poses of shape {poses.shape}, expected ({len(frames)}, 4, 4)")
     clouds = [backproject_depth(frame, pose, stride, max_depth) for frame, pose in zip(frames, poses)]
     points = np.concatenate(clouds)
     if points.shape[0] == 0:
