@@ -253,7 +253,10 @@ def sdf_to_weights(sdf: torch.Tensor, z_vals: torch.Tensor, truncation: float) -
         truncation: tr in metres.
 
     Returns:
-        (R, S) weights; each row sums to 1 unless every weight underflowed.
+        (R, S) weights; a row sums to W / (W + 1e-8) for the kept weights' sum W: to 1 only when
+        a sample lies within a few truncations of the surface (depth-guided samples do); a row of
+        evenly spaced samples farther apart than ``truncation`` can sum to much less (below 0.99
+        on most rays of a fitted teddy frame at 32 samples over 5 m), and its depth comes out short.
 
     Differs from: the paper's formula reads s as metric; with Co-SLAM's normalised s this is a
     double scaling (metric logistic scale tr^2), kept as Co-SLAM's ``sdf2weights`` has it
@@ -321,7 +324,10 @@ def render_image(
         intrinsics: with ``width``/``height`` attributes, or pass ``height``/``width`` or ``depth``;
             a ``depth`` of another size than ``intrinsics.width`` x ``height`` is refused.
         depth: optional (H, W) sensor depth guiding the samples (as in training); without it
-            only the uniform samples in [near, far] are used (plus n_range_d more in [near, far]).
+            only the uniform samples in [near, far] are used (plus n_range_d more in [near, far]),
+            and they must lie closer than ``cfg.truncation`` to find the surface: with ``tum-cpu``'s
+            32 over 5 m (5 cm truncation) a fitted teddy frame rendered 0.68 m short (median), with
+            ``n_samples=128`` 1 cm (:func:`sdf_to_weights`).
         chunk: rays per chunk (default ``cfg.chunk``).
 
     Returns:
