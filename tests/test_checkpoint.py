@@ -105,9 +105,17 @@ def test_a_planted_pickle_never_runs(tmp_path, inside_torch_file):
         torch.save({"format": checkpoint.FORMAT, "version": checkpoint.VERSION, "config": Payload(marker)}, path)
     else:
         path.write_bytes(pickle.dumps(Payload(marker), protocol=2))
-    with pytest.raises(checkpoint.CheckpointError, match="checkpoint.pt: not a readable tsslam_ref checkpoint"):
+    with pytest.raises(checkpoint.CheckpointError, match="checkpoint.pt: not a readable tsslam_ref checkpoint") as error:
         checkpoint.load(path)
     assert not marker.exists()
+    assert "trust" not in str(error.value)  # torch's advice to load it unsafely is not repeated
+    if inside_torch_file:
+        assert "Python objects other than tensors" in str(error.value)
+
+
+def test_a_run_folder_given_as_the_checkpoint_names_the_file_inside(tmp_path):
+    with pytest.raises(checkpoint.CheckpointError, match="is a folder, not a checkpoint file .*checkpoint.pt"):
+        checkpoint.load(tmp_path)
 
 
 def test_damaged_and_foreign_files_are_refused_naming_the_file(state, tmp_path):

@@ -9,6 +9,12 @@ The file starts with a format tag and a version; :func:`load` checks both and th
 raises :class:`CheckpointError` (a ``ValueError``) naming the file for an empty, truncated,
 corrupt or foreign file or another version.
 
+The last checkpoint of a finished run holds the loop's state after its last frame, before
+``slam.finish_run`` fits the spline's last interval, so its ``frame_poses`` differ from the run's
+``trajectory.txt`` near the end (1.4 cm in an 8-frame teddy run).  To get the finished state
+from it: ``slam.run_slam(sequence, cfg, state=checkpoint.load(path))`` with the run's sequence and
+config (it tracks nothing more; it fits the last interval), as ``--resume --export-rate`` does.
+
 Layer 4 (system): used by ``run.py``; knows the state of ``slam.py``.
 """
 
@@ -232,6 +238,9 @@ def read(path) -> Dict[str, Any]:
             other-version file.
     """
     path = Path(path)
+    if path.is_dir():
+        inside = " (a run keeps it as checkpoint.pt in its output folder: pass that file)"
+        raise CheckpointError(f"{path} is a folder, not a checkpoint file{inside}")
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     if path.stat().st_size == 0:
@@ -241,6 +250,8 @@ def read(path) -> Dict[str, Any]:
         values = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for corrupt, truncated or foreign files
         reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        if "Weights only load failed" in reason:  # torch's advice to load it unsafely is not ours to give
+            reason = "it holds Python objects other than tensors, numbers, strings, lists and dicts, never loaded here"
         raise CheckpointError(f"{path}: not a readable tsslam_ref checkpoint ({reason[:200]})") from None
     if not isinstance(values, dict) or values.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a tsslam_ref checkpoint (no '{FORMAT}' format tag)")
