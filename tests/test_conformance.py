@@ -330,6 +330,25 @@ def test_check_of_a_candidate_with_jacobians_against_a_vector_without_them_passe
     assert code == 0 and "holds no Jacobians (J_first" in text, text
 
 
+@pytest.mark.parametrize("change,named", [
+    ("no_J_first", "missing J_first"),
+    ("misspelt", "missing J_omegadot_body; unknown key(s) J_omegadot"),
+])
+def test_a_partial_or_misspelt_set_of_jacobian_keys_fails_naming_the_keys(tmp_path, capsys, change, named):
+    """Blocks that are all garbage must not pass because the set of keys is incomplete."""
+    path = VECTOR_DIR / "jacobians_paper_dt0.25.json"
+    candidate = json.loads(path.read_text())
+    for key in conformance.JACOBIAN_KEYS:
+        candidate[key] = np.full_like(np.asarray(candidate[key]), 5.0).tolist()
+    if change == "no_J_first":
+        del candidate["J_first"]
+    else:
+        candidate["J_omegadot"] = candidate.pop("J_omegadot_body")
+    code, text = _check_data(path, candidate, tmp_path, capsys)
+    assert code == 1 and text.rstrip().endswith("FAIL"), text
+    assert "Jacobians      FAIL: " in text and named in text and "holds no Jacobians" not in text, text
+
+
 def test_check_fails_another_active_window_as_a_check_failure_not_bad_input(tmp_path, capsys):
     path = VECTOR_DIR / "jacobians_paper_dt0.25.json"
     candidate = json.loads(path.read_text())

@@ -243,10 +243,29 @@ def _check_all(capsys, folder, *extra):
     return code, captured.out.strip().splitlines(), captured.err
 
 
+JACOBIANS_CHECKED = "; Jacobians checked in 1 of the 1 passing vector(s) that hold them, 0 unchecked"
+"""The last line's tail when jacobians_paper_dt0.25 passed with its Jacobians compared."""
+
+
 def test_check_all_passes_only_with_every_vector_and_says_so_on_its_last_line(tmp_path, capsys):
     code, lines, _ = _check_all(capsys, _user_folder(tmp_path))
     total = len(VECTOR_PATHS)
-    assert code == 0 and lines[-1] == f"PASS: {total} of {total} shipped vectors passed, 0 failed, 0 malformed, 0 missing"
+    assert code == 0 and lines[-1] == (f"PASS: {total} of {total} shipped vectors passed, 0 failed, 0 malformed, "
+                                       f"0 missing{JACOBIANS_CHECKED}"), lines[-1]
+
+
+def test_check_all_says_when_a_passing_vector_had_its_jacobians_unchecked(tmp_path, capsys):
+    """A candidate without Jacobian keys passes on its values (Jacobians are optional), but the
+    summary and the last line say that the reference's Jacobians went unchecked."""
+    folder = _user_folder(tmp_path)
+    target = folder / "jacobians_paper_dt0.25.json"
+    target.write_text(json.dumps({key: value for key, value in load(target).items() if not key.startswith("J_")}))
+    code, lines, _ = _check_all(capsys, folder)
+    total = len(VECTOR_PATHS)
+    assert code == 0, lines
+    assert f"  {'jacobians_paper_dt0.25':<28} PASS (Jacobians not checked: the candidate holds none)" in lines, lines
+    assert lines[-1] == (f"PASS: {total} of {total} shipped vectors passed, 0 failed, 0 malformed, 0 missing; "
+                         f"Jacobians checked in 0 of the 1 passing vector(s) that hold them, 1 unchecked"), lines[-1]
 
 
 def test_check_all_with_a_missing_vector_exits_1_and_lists_it(tmp_path, capsys):
@@ -265,7 +284,7 @@ def test_check_all_allow_missing_is_a_partial_check_that_still_counts_them(tmp_p
     code, lines, _ = _check_all(capsys, folder, "--allow-missing")
     total = len(VECTOR_PATHS)
     assert code == 0 and lines[-1] == (f"PASS (partial, --allow-missing): {total - 2} of {total} shipped vectors "
-                                       f"passed, 0 failed, 0 malformed, 2 missing"), lines
+                                       f"passed, 0 failed, 0 malformed, 2 missing{JACOBIANS_CHECKED}"), lines
     assert any(line.startswith("note: 1 file(s)") and line.endswith("basalt_dt1_large.json") for line in lines), lines
     code, lines, _ = _check_all(capsys, _user_folder(tmp_path / "b", {"knots_uneven_tum_stamps"}, "basalt_golden_dt0.5"),
                                 "--allow-missing")
@@ -281,7 +300,7 @@ def test_check_all_counts_a_malformed_candidate_as_a_failure(tmp_path, capsys):
     for extra in ((), ("--allow-missing",)):
         code, lines, _ = _check_all(capsys, folder, *extra)
         assert code == 1 and lines[-1] == (f"FAIL: {total - 1} of {total} shipped vectors passed, 0 failed, "
-                                           f"1 malformed, 0 missing"), lines
+                                           f"1 malformed, 0 missing{JACOBIANS_CHECKED}"), lines
 
 
 def test_check_all_refuses_a_negative_tolerance_before_checking_anything(tmp_path, capsys):
@@ -309,7 +328,7 @@ def test_check_all_counts_a_file_still_holding_the_input_as_missing(tmp_path, ca
     total = len(VECTOR_PATHS)
     code, lines, _ = _check_all(capsys, folder, "--allow-missing")
     assert code == 0 and lines[-1] == (f"PASS (partial, --allow-missing): {total - 1} of {total} shipped vectors "
-                                       f"passed, 0 failed, 0 malformed, 1 missing"), lines
+                                       f"passed, 0 failed, 0 malformed, 1 missing{JACOBIANS_CHECKED}"), lines
     assert any("knots_uneven_tum_stamps" in line and "is still the input" in line for line in lines), lines
     code, lines, _ = _check_all(capsys, folder)
     assert code == 1 and "1 missing" in lines[-1], lines

@@ -298,23 +298,55 @@ def segment_and_u(parsed: Optional[dict], times: np.ndarray):
     return first + offset, s - first
 
 
+JACOBIAN_ALL_KEYS = ("J_first",) + JACOBIAN_KEYS
+
+
+def _jacobian_key_problem(data: dict) -> Optional[str]:
+    """None when ``data`` holds all of :data:`JACOBIAN_ALL_KEYS` or no ``J_*`` key; otherwise what is
+    missing and which ``J_*`` keys are unknown (a partial or misspelt set)."""
+    present = [key for key in data if isinstance(key, str) and key.lower().startswith("j_")]
+    if not present:
+        return None
+    missing = [key for key in JACOBIAN_ALL_KEYS if key not in data]
+    unknown = [key for key in present if key not in JACOBIAN_ALL_KEYS]
+    if not missing and not unknown:
+        return None
+    parts = ([f"missing {', '.join(missing)}"] if missing else []) + (
+        [f"unknown key(s) {', '.join(unknown)}"] if unknown else [])
+    return f"{'; '.join(parts)} (the Jacobian keys are {', '.join(JACOBIAN_ALL_KEYS)})"
+
+
 def _jacobians_to_check(reference: dict, candidate: dict, index: np.ndarray, times: np.ndarray,
                         reference_name: str, candidate_name: str):
-    """(quantity -> row shape to compare, the first time of another active window or None, notes):
-    the Jacobians are checked when both files hold them; a note says so when only one does."""
-    shapes, window, notes = dict(OUTPUT_SHAPES), None, []
-    cand_has, ref_has = (all(key in data for key in JACOBIAN_KEYS + ("J_first",)) for data in (candidate, reference))
+    """(quantity -> row shape to compare, the first time of another active window or None, notes,
+    Jacobian status, the reference's J_first at the matched times or None, a key-set failure or None):
+    the Jacobians are checked when both files hold them; a note says so when only one does; a
+    candidate with some but not all Jacobian keys, or an unknown ``J_*`` key, fails when the
+    reference holds them.  Status: None (the reference holds none), "checked" or "unchecked"."""
+    shapes, window, notes, first, key_failure = dict(OUTPUT_SHAPES), None, [], None, None
+    problem = _jacobian_key_problem(reference)
+    if problem:
+        raise ConformanceError(f"{reference_name}: incomplete Jacobians: {problem}")
+    ref_has = all(key in reference for key in JACOBIAN_ALL_KEYS)
+    cand_problem = _jacobian_key_problem(candidate)
+    cand_has = cand_problem is None and all(key in candidate for key in JACOBIAN_ALL_KEYS)
+    if cand_problem and ref_has:
+        key_failure = f"{candidate_name} holds an incomplete set of Jacobians: {cand_problem}"
+    elif cand_problem:
+        notes.append(f"{candidate_name} holds an incomplete set of Jacobians ({cand_problem}); {reference_name} "
+                     f"holds none, so they were not checked")
     if cand_has and ref_has:
         shapes.update({key: JACOBIAN_SHAPE for key in JACOBIAN_KEYS})
-        window = _window_mismatch(_rows_of(reference, "J_first", (), reference_name, len(reference["times"]))[index],
-                                  _rows_of(candidate, "J_first", (), candidate_name, len(times)), times)
+        first = _rows_of(reference, "J_first", (), reference_name, len(reference["times"]))[index]
+        window = _window_mismatch(first, _rows_of(candidate, "J_first", (), candidate_name, len(times)), times)
     elif cand_has:
         notes.append(f"{reference_name} holds no Jacobians; the candidate's were not checked (the shipped "
                      f"vector with Jacobians is jacobians_paper_dt0.25)")
-    elif ref_has:
-        notes.append(f"{candidate_name} holds no Jacobians ({', '.join(('J_first',) + JACOBIAN_KEYS)}); only the "
+    elif ref_has and not cand_problem:
+        notes.append(f"{candidate_name} holds no Jacobians ({', '.join(JACOBIAN_ALL_KEYS)}); only the "
                      f"pose and its derivatives were checked")
-    return shapes, window, notes
+    status = None if not ref_has else "checked" if cand_has else "unchecked"
+    return shapes, window, notes, status, first, key_failure
 
 
 def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: float = DEFAULT_RTOL,
@@ -326,7 +358,10 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
     index), ``missing`` (reference times the candidate left out), ``dropped`` (those before the
     reference's last time: any fails the check), ``window`` (None, or the first time whose
     ``J_first`` differs: index, time, ref, cand), ``notes`` (list of str: Jacobians not checked and
-    why), ``atol``, ``rtol``, ``knots`` (the reference's knot vector, None when uniform or unknown),
+    why), ``jacobians`` (None when the reference holds no Jacobians, else "checked" or "unchecked":
+    the candidate holds none), ``jacobian_keys`` (None, or why the candidate's set of Jacobian keys
+    fails: some missing, or an unknown ``J_*`` key), ``J_first`` (the reference's at the matched
+    times, None when the Jacobians are not compared), ``atol``, ``rtol``, ``knots`` (the reference's knot vector, None when uniform or unknown),
     ``refs`` and ``cands`` (quantity -> (M, ...) arrays at the matched times), ``parsed`` (the
     reference's parsed input, None for a bare output file), ``ok``.  Times are the reference's at
     the matched indices (equal to the candidate's up to :data:`TIME_MATCH`).  Hints for a failed
@@ -348,7 +383,8 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
         parsed = None  # a bare output file: no segment / u, fewer hints
     segment, u = segment_and_u(parsed, times)
     refs, cands, rows = {}, {}, []
-    shapes, window, notes = _jacobians_to_check(reference, candidate, index, times, reference_name, candidate_name)
+    shapes, window, notes, jacobians, first, key_failure = _jacobians_to_check(reference, candidate, index, times,
+                                                                               reference_name, candidate_name)
     for key, shape_tail in shapes.items():
         ref = _rows_of(reference, key, shape_tail, reference_name, len(ref_times))
         cand = _rows_of(candidate, key, shape_tail, candidate_name, len(cand_times))
@@ -365,9 +401,10 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
                      "u": None if u is None else float(u[worst]),
                      "ref": ref[worst].tolist(), "cand": cand[worst].tolist(), "per_time": per_time})
     return {"rows": rows, "matched": index, "missing": missing, "dropped": dropped, "times": times,
-            "window": window, "notes": notes, "atol": atol, "rtol": rtol,
+            "window": window, "notes": notes, "atol": atol, "rtol": rtol, "jacobians": jacobians,
+            "jacobian_keys": key_failure, "J_first": first,
             "knots": None if parsed is None else parsed["knots"], "refs": refs, "cands": cands, "parsed": parsed,
-            "ok": window is None and not dropped.size and all(row["ok"] for row in rows)}
+            "ok": window is None and key_failure is None and not dropped.size and all(row["ok"] for row in rows)}
 
 
 def _rows_of(data: dict, key: str, shape_tail: tuple, source: str, n_times: int) -> np.ndarray:

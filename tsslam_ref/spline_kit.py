@@ -12,7 +12,9 @@ the reference (assets/spline_kit.md: conventions, formulas, golden values and th
     python -m tsslam_ref.spline_kit check REFERENCE CANDIDATE.json [--atol 1e-10] [--rtol 1e-10]
     python -m tsslam_ref.spline_kit check-all FOLDER [--allow-missing]  # FOLDER/<vector name>.json
 
-Exit codes: 0 pass, 1 a check failed (``check-all``: also a malformed candidate, or a shipped vector
+Exit codes: 0 pass (a candidate without Jacobian keys passes on its values; ``check-all`` counts
+such vectors as "Jacobians unchecked"), 1 a check failed (also an incomplete or misspelt set of
+Jacobian keys; ``check-all``: also a malformed candidate, or a shipped vector
 missing from FOLDER unless ``--allow-missing``), 2 bad input (the message names the file, key and
 value; ``check-all``: FOLDER holds none of the shipped names), nothing overwritten.  The default
 tolerances sit between float64 and float32 rounding (:data:`conformance.DEFAULT_RTOL`).
@@ -178,6 +180,8 @@ def format_report(report: dict, reference_name: str = "reference", candidate_nam
         lines.append(f"J_first        FAIL: {window['count']} time(s) with another active window; first at index "
                      f"{window['index']}, t = {window['time']!r} s: candidate {window['cand']}, reference "
                      f"{window['ref']} (index convention or knot rule)")
+    if report.get("jacobian_keys"):
+        lines.append(f"Jacobians      FAIL: {report['jacobian_keys']}")
     matched, missing, dropped = len(report["times"]), report["missing"], report["dropped"]
     if dropped.size:
         shown = ", ".join(repr(float(t)) for t in dropped[:3]) + (" ..." if dropped.size > 3 else "")
@@ -202,12 +206,13 @@ def _segment_label(segment: int, knot_vector: Optional[np.ndarray]) -> str:
     return f"segment {segment} = [knots[{segment + 2}], knots[{segment + 3}]) = [{start!r}, {end!r}) s"
 
 
-def _check(reference_path: str, candidate_path: str, atol: float, rtol: float) -> bool:
+def _check(reference_path: str, candidate_path: str, atol: float, rtol: float) -> dict:
+    """Print the report of one check and its verdict; returns the report (``ok``, ``jacobians``)."""
     report = conformance_hints.check(conformance.load_json(reference_path), conformance.load_json(candidate_path),
                                      atol, rtol, reference_path, candidate_path)
     print(format_report(report, reference_path, candidate_path))
     print("PASS" if report["ok"] else "FAIL")
-    return report["ok"]
+    return report
 
 
 def _check_all(folder: str, atol: float, rtol: float, allow_missing: bool = False) -> int:
@@ -218,7 +223,7 @@ def _check_all(folder: str, atol: float, rtol: float, allow_missing: bool = Fals
     if not os.path.isdir(folder):
         raise conformance.ConformanceError(f"{folder}: no such folder (check-all wants the folder of your "
                                            f"outputs, FOLDER/<name>.json)")
-    results = {}
+    results, jacobians = {}, {}  # jacobians: name -> "checked" / "unchecked" for passing vectors that hold them
     for path in shipped_vectors():
         candidate = os.path.join(folder, path.name)
         if not os.path.exists(candidate) or _still_the_input(candidate):
@@ -226,14 +231,18 @@ def _check_all(folder: str, atol: float, rtol: float, allow_missing: bool = Fals
             continue
         print(f"== {path.stem}")
         try:
-            results[path.stem] = "PASS" if _check(str(path), candidate, atol, rtol) else "FAIL"
+            report = _check(str(path), candidate, atol, rtol)
+            results[path.stem] = "PASS" if report["ok"] else "FAIL"
+            if report["ok"] and report["jacobians"]:
+                jacobians[path.stem] = report["jacobians"]
         except conformance.ConformanceError as error:
             print(f"error: {error}")
             results[path.stem] = "error"
     print("== summary")
     for name, result in results.items():
         path = os.path.join(folder, name + ".json")
-        shown = (result if result != "missing" else f"missing (no {path})" if not os.path.exists(path) else
+        unchecked = " (Jacobians not checked: the candidate holds none)" if jacobians.get(name) == "unchecked" else ""
+        shown = (result + unchecked if result != "missing" else f"missing (no {path})" if not os.path.exists(path) else
                  f"missing ({path} is still the input 'inputs' wrote: no outputs)")
         print(f"  {name:<28} {shown}")
     counts = {key: sum(result == key for result in results.values()) for key in ("PASS", "FAIL", "error", "missing")}
@@ -242,8 +251,18 @@ def _check_all(folder: str, atol: float, rtol: float, allow_missing: bool = Fals
         return 2
     _note_unknown_files(folder, results)
     ok = counts["FAIL"] == counts["error"] == 0 and (allow_missing or counts["missing"] == 0)
-    print(_counts_line(counts, len(results), allow_missing, ok))
+    print(_counts_line(counts, len(results), allow_missing, ok, _jacobian_counts(jacobians)))
     return 0 if ok else 1
+
+
+def _jacobian_counts(jacobians: dict) -> str:
+    """The last line's tail: of the passing vectors whose reference holds Jacobians, how many had
+    them checked (the candidate held them) and how many not ('' when there is none)."""
+    if not jacobians:
+        return ""
+    checked = sum(status == "checked" for status in jacobians.values())
+    return (f"; Jacobians checked in {checked} of the {len(jacobians)} passing vector(s) that hold them, "
+            f"{len(jacobians) - checked} unchecked")
 
 
 def _note_unknown_files(folder: str, results: dict) -> None:
@@ -254,10 +273,11 @@ def _note_unknown_files(folder: str, results: dict) -> None:
         print(f"note: {len(unknown)} file(s) in {folder} are no shipped name and were not checked: {shown}")
 
 
-def _counts_line(counts: dict, total: int, allow_missing: bool, ok: bool) -> str:
-    """The last line of check-all: the verdict and how many vectors passed, failed, were bad, missing."""
+def _counts_line(counts: dict, total: int, allow_missing: bool, ok: bool, jacobians: str = "") -> str:
+    """The last line of check-all: the verdict and how many vectors passed, failed, were bad, missing
+    (then ``jacobians``, :func:`_jacobian_counts`)."""
     line = (f"{counts['PASS']} of {total} shipped vectors passed, {counts['FAIL']} failed, "
-            f"{counts['error']} malformed, {counts['missing']} missing")
+            f"{counts['error']} malformed, {counts['missing']} missing{jacobians}")
     if not counts["missing"]:
         return f"{'PASS' if ok else 'FAIL'}: {line}"
     if allow_missing:
@@ -287,7 +307,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         if args.command == "check":
             conformance.check_tolerances(args.atol, args.rtol)
-            return 0 if _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol) else 1
+            return 0 if _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol)["ok"] else 1
         return _check_all(args.folder, args.atol, args.rtol, args.allow_missing)
     except BrokenPipeError:  # the reader of our output went away: cli_args.interruptible ends quietly
         raise
