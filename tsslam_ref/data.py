@@ -226,8 +226,7 @@ def load_sequence(
         crop_edge=crop_edge,
         resize_width=resize_width,
         depth_trunc=depth_trunc,
-        frames_without_gt=without_gt,
-        colour_without_depth=index.colour_without_depth,
+        frames_without_gt=without_gt, colour_without_depth=index.colour_without_depth,
     )
 
 
