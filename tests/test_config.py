@@ -5,6 +5,7 @@ hand-written bad inputs, each of which must fail with a message naming the key, 
 was expected.
 """
 
+import copy
 import dataclasses
 import json
 import re
@@ -251,3 +252,15 @@ def test_presets_hold_the_numbers_their_sources_state(name):
     for key, expected in DOCUMENTED_PRESET_VALUES[name].items():
         section, field_name = key.split(".")
         assert getattr(getattr(cfg, section), field_name) == expected, (name, key)
+
+
+def test_assigning_a_misspelt_setting_is_refused_with_the_name_it_meant():
+    """A typo would add an attribute nothing reads: tracking would run with the preset's 20 iterations."""
+    cfg = config.tiny()
+    with pytest.raises(AttributeError, match=r"TrackingConfig has no setting 'itres' \(did you mean 'iters'\?\)"):
+        cfg.tracking.itres = 5
+    with pytest.raises(AttributeError, match=r"Config has no setting 'zzz'; its settings: name, method"):
+        cfg.zzz = 1
+    cfg.tracking.iters = 5  # a real setting still assigns
+    assert cfg.tracking.iters == 5 and copy.deepcopy(cfg).tracking.iters == 5
+    assert dataclasses.replace(cfg.tracking, iters=7).iters == 7

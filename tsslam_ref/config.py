@@ -19,6 +19,7 @@ Layer 0 (base): dataclasses only, no torch.
   live in config_io.py and are re-exported here.
 """
 
+import difflib
 import os
 from dataclasses import dataclass
 from dataclasses import field as _field
@@ -27,6 +28,19 @@ from typing import Any, Callable, Dict, List, Optional
 from .config_io import apply_overrides, save, to_dict, validate  # noqa: F401  (re-exported here)
 from .config_io import read_json_values, set_values
 from .presets import PRESET_LAYERS
+
+
+class _Settings:
+    """Base of every settings dataclass: assigning a name that is not one of its fields is refused
+    (``cfg.tracking.itres = 5`` would otherwise add an attribute nothing reads)."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        known = getattr(type(self), "__dataclass_fields__", {})
+        if name not in known:
+            close = difflib.get_close_matches(name, list(known), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else f"; its settings: {', '.join(known)}"
+            raise AttributeError(f"{type(self).__name__} has no setting {name!r}{hint}")
+        object.__setattr__(self, name, value)
 
 
 def ranged(default: Any, comparison: str, bound: Any) -> Any:
@@ -39,7 +53,7 @@ def ranged(default: Any, comparison: str, bound: Any) -> Any:
 
 
 @dataclass
-class DataConfig:
+class DataConfig(_Settings):
     """Which frames to read and how to pre-process them."""
 
     dataset: str = "auto"
@@ -69,7 +83,7 @@ class DataConfig:
 
 
 @dataclass
-class FieldConfig:
+class FieldConfig(_Settings):
     """Co-SLAM joint encoding: OneBlob + multi-resolution hash grid + two tiny MLPs (Sec. III-A)."""
 
     bound: Optional[List[List[float]]] = None
@@ -112,7 +126,7 @@ class FieldConfig:
 
 
 @dataclass
-class RenderConfig:
+class RenderConfig(_Settings):
     """Ray sampling and SDF volume rendering (Sec. III-A, Eq. 3; Co-SLAM ``render_rays``)."""
 
     n_samples: int = ranged(32, ">=", 1)
@@ -134,7 +148,7 @@ class RenderConfig:
 
 
 @dataclass
-class LossConfig:
+class LossConfig(_Settings):
     """Weights of the five reconstruction losses (Sec. III-A, Eq. 4; Co-SLAM section 3.4)."""
 
     rgb_weight: float = ranged(5.0, ">=", 0)
@@ -154,7 +168,7 @@ class LossConfig:
 
 
 @dataclass
-class TrackingConfig:
+class TrackingConfig(_Settings):
     """Per-frame pose optimisation with the map frozen (Sec. III-D, Tracking Thread)."""
 
     iters: int = ranged(10, ">=", 1)
@@ -177,7 +191,7 @@ class TrackingConfig:
 
 
 @dataclass
-class MappingConfig:
+class MappingConfig(_Settings):
     """First-frame mapping, keyframes and global BA (Co-SLAM section 5; Sec. III-D Global BA)."""
 
     first_iters: int = ranged(200, ">=", 0)
@@ -217,7 +231,7 @@ class MappingConfig:
 
 
 @dataclass
-class SplineConfig:
+class SplineConfig(_Settings):
     """Cubic B-spline trajectory (Sec. III-B): uniform knots, or knots placed by the motion (ours)."""
 
     dt: float = ranged(0.3, "(]", (0, 10))
@@ -254,7 +268,7 @@ class SplineConfig:
 
 
 @dataclass
-class DynamicsConfig:
+class DynamicsConfig(_Settings):
     """Dynamics regulariser L_DR (Sec. III-C, Eq. 10)."""
 
     lambda_acc: float = ranged(0.1, ">=", 0)
@@ -273,7 +287,7 @@ class DynamicsConfig:
 
 
 @dataclass
-class LocalBAConfig:
+class LocalBAConfig(_Settings):
     """Sliding-window local BA over spline control points (Sec. III-D, Fig. 4)."""
 
     enabled: bool = True
@@ -309,7 +323,7 @@ class LocalBAConfig:
 
 
 @dataclass
-class MeshConfig:
+class MeshConfig(_Settings):
     """Marching-cubes meshes (Co-SLAM section 6.1)."""
 
     voxel_eval: float = ranged(0.05, ">", 0)
@@ -322,7 +336,7 @@ class MeshConfig:
 
 
 @dataclass
-class Config:
+class Config(_Settings):
     """Everything a run needs.  Saved as ``config.json`` beside every run's outputs."""
 
     name: str = "default"
