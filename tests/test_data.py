@@ -415,6 +415,33 @@ def test_scannet_layout(tmp_path):
         data.load_sequence(folder)
 
 
+def test_neural_rgbd_release_images_take_its_focal_length(tmp_path):
+    folder = tmp_path / "kitchen"
+    (folder / "images").mkdir(parents=True)
+    (folder / "depth_filtered").mkdir()
+    iio.imwrite(folder / "images/img0.png", _rgb(640, 480, 0))
+    iio.imwrite(folder / "depth_filtered/depth0.png", _depth(640, 480, 1.0, 1000))
+    np.savetxt(folder / "poses.txt", np.eye(4))
+    k = data.load_sequence(folder).intrinsics
+    focal = 320.0 / np.tan(np.radians(30.0))  # NeuralRGBD's 640 px renders with a 60 deg field of view
+    assert k.fx == pytest.approx(focal, rel=1e-12) and k.fy == pytest.approx(focal, rel=1e-12)
+    assert (k.cx, k.cy, k.width, k.height) == (320.0, 240.0, 640, 480)
+
+
+def test_scannet_intrinsics_of_another_image_size_are_refused(tmp_path):
+    """A downsampled export that kept the 640x480 intrinsic_depth.txt: cx = 318.9 on 8x6 depth."""
+    folder = tmp_path / "scene0000_00"
+    for sub in ("color", "depth", "pose", "intrinsic"):
+        (folder / sub).mkdir(parents=True)
+    Image.fromarray(np.zeros((6, 8, 3), np.uint8)).save(folder / "color/0.jpg")
+    iio.imwrite(folder / "depth/0.png", _depth(8, 6, 1.5, 1000))
+    np.savetxt(folder / "pose/0.txt", np.eye(4))
+    np.savetxt(folder / "intrinsic/intrinsic_depth.txt",
+               [[577.59, 0, 318.91, 0], [0, 578.73, 242.68, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    with pytest.raises(ValueError, match=r"intrinsic_depth\.txt: calibration cx = 318\.91 lies outside the 8x6 images"):
+        data.load_sequence(folder)
+
+
 def test_neural_rgbd_layout_converts_opengl_poses(tmp_path):
     folder = tmp_path / "breakfast_room"
     (folder / "images").mkdir(parents=True)
@@ -424,12 +451,13 @@ def test_neural_rgbd_layout_converts_opengl_poses(tmp_path):
         iio.imwrite(folder / f"images/img{i}.png", _rgb(8, 6, i))
         iio.imwrite(folder / f"depth_filtered/depth{i}.png", _depth(8, 6, 1.0 + 0.01 * i, 1000))
     np.savetxt(folder / "poses.txt", poses_gl.reshape(-1, 4))
+    with pytest.raises(ValueError, match=r"depth0\.png: 8x6 image but no intrinsics\.json/calibration\.txt .*"
+                                         r"without focal\.txt the release's values .* are for 640x480 images"):
+        data.load_sequence(folder)
+    (folder / "focal.txt").write_text("7.0\n")
     sequence = data.load_sequence(folder)
     assert sequence.kind == "neural_rgbd"
-    k = sequence.intrinsics
-    focal = 320.0 / np.tan(np.radians(30.0))  # NeuralRGBD's 640 px renders with a 60 deg field of view
-    assert k.fx == pytest.approx(focal, rel=1e-12) and k.fy == pytest.approx(focal, rel=1e-12)
-    assert (k.cx, k.cy) == (4.0, 3.0)
+    assert sequence.intrinsics == data.Intrinsics(7.0, 7.0, 4.0, 3.0, 8, 6)
     frame = sequence[10]
     np.testing.assert_allclose(frame.depth, 1.1, atol=1e-6)
     gl = poses_gl[10]  # OpenGL camera looks along -z and has y up
@@ -442,7 +470,8 @@ def test_neural_rgbd_layout_converts_opengl_poses(tmp_path):
     (folder / "focal.txt").write_text("-500\n")
     with pytest.raises(ValueError, match=r"focal\.txt: .*fx, fy > 0"):
         data.load_sequence(folder)
-    (folder / "focal.txt").unlink()
+    (folder / "intrinsics.json").write_text(json.dumps({"fx": 6.5, "fy": 6.6, "cx": 3.5, "cy": 2.5}))
+    assert data.load_sequence(folder).intrinsics == data.Intrinsics(6.5, 6.6, 3.5, 2.5, 8, 6)  # before focal.txt
     (folder / "poses.txt").write_text("1 0 0\n")
     with pytest.raises(ValueError, match=r"poses\.txt:1: expected 4 numbers"):
         data.load_sequence(folder)

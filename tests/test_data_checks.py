@@ -29,6 +29,14 @@ def make_replica(folder, frames, poses, size=(16, 12)):
     return folder
 
 
+def test_replica_images_of_another_size_without_a_calibration_file_ask_for_one(tmp_path):
+    folder = make_replica(tmp_path / "room0", 2, _random_poses(2))
+    (folder / "intrinsics.json").unlink()
+    with pytest.raises(ValueError, match=r"depth000000\.png: 16x12 image but no intrinsics\.json/calibration\.txt .*"
+                                         r"the release's values \(600, 600, 599\.5, 339\.5\) are for 1200x680"):
+        data.load_sequence(folder)
+
+
 def make_neural_rgbd(folder, frames, poses_gl):
     """NeuralRGBD layout with ``frames`` 8x6 image pairs and ``poses_gl`` (M, 4, 4) in poses.txt."""
     (folder / "images").mkdir(parents=True)
@@ -37,6 +45,7 @@ def make_neural_rgbd(folder, frames, poses_gl):
         iio.imwrite(folder / f"images/img{i}.png", _rgb(8, 6, i))
         iio.imwrite(folder / f"depth_filtered/depth{i}.png", _depth(8, 6, 1.0, 1000))
     np.savetxt(folder / "poses.txt", np.asarray(poses_gl).reshape(-1, 4))
+    (folder / "focal.txt").write_text("7.0\n")  # the release's 554.256 is for 640x480 renders
     return folder
 
 
@@ -171,6 +180,8 @@ def test_scannet_colour_of_1296x968_for_640x480_depth_is_resized(tmp_path):
     colour[:, 648:, 2] = 255
     Image.fromarray(colour).save(folder / "color/0.jpg", quality=100)
     iio.imwrite(folder / "depth/0.png", _depth(640, 480, 1.5, 1000))
+    np.savetxt(folder / "intrinsic/intrinsic_depth.txt",  # scene0000_00's depth camera
+               [[577.59, 0, 318.91, 0], [0, 578.73, 242.68, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     sequence = data.load_sequence(folder)
     assert sequence.check_files() == 2
     rgb = sequence[0].rgb

@@ -127,6 +127,17 @@ def _check_plausible(calibration: dict, width: int, height: int, folder: Path) -
                              f"not normalised by the image size")
 
 
+def _builtin_camera(intrinsics: Intrinsics, first_depth: Path, folder: Path, what: str) -> Intrinsics:
+    """``intrinsics`` (a layout's built-in camera, ``what`` names it) when the depth images have its
+    size; else ValueError asking for the folder's own calibration."""
+    size = image_size(first_depth)
+    if size != (intrinsics.width, intrinsics.height):
+        raise ValueError(f"{first_depth}: {size[0]}x{size[1]} image but no intrinsics.json/calibration.txt in "
+                         f"{folder}; {what} are for {intrinsics.width}x{intrinsics.height} images (add a "
+                         f"calibration file with this size's values; docs/data.md, 'Calibration files')")
+    return intrinsics
+
+
 def listed_file(folder: Path, listing: Path, line: int, name: str) -> Path:
     """``folder / name`` for a file named on line ``line`` of ``listing``, checked to stay inside.
 
@@ -196,13 +207,8 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     if calibrated is not None:
         intrinsics, depth_scale = calibrated
     else:
-        intrinsics, depth_scale = TUM_INTRINSICS[tum_camera(folder)], None
-        size = image_size(depth_paths[0])
-        if size != (intrinsics.width, intrinsics.height):
-            raise ValueError(
-                f"{depth_paths[0]}: {size[0]}x{size[1]} image but no intrinsics.json/calibration.txt in {folder}; "
-                f"the published TUM values are for 640x480"
-            )
+        camera = TUM_INTRINSICS[tum_camera(folder)]
+        intrinsics, depth_scale = _builtin_camera(camera, depth_paths[0], folder, "the published TUM values"), None
     return LayoutIndex("tum", rgb_paths, depth_paths, timestamps, gt_poses, intrinsics, depth_scale, gt_span,
                        colour_without_depth=len(rgb_times) - len(keep))
 
@@ -317,6 +323,7 @@ def parse_scannet(folder: Path, fps: float) -> LayoutIndex:
     k = _read_matrix_lines(k_path, 4, "4x4 intrinsic matrix")[0][0]
     width, height = image_size(depth_paths[0])
     intrinsics = _intrinsics_from(k_path, k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
+    _check_plausible({"fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2]}, width, height, k_path)
     timestamps = np.asarray(numbers, dtype=np.float64) / fps
     return LayoutIndex("scannet", rgb_paths, depth_paths, timestamps, _invalid_to_nan(np.stack(poses)), intrinsics, None)
 
@@ -338,18 +345,26 @@ def parse_neural_rgbd(folder: Path, fps: float) -> LayoutIndex:
     poses_gl, lines = _read_matrix_lines(folder / "poses.txt", 4, "4 lines per 4x4 pose")
     _one_pose_per_frame(poses_gl, folder / "poses.txt", len(rgb_paths), folder / "images")
     check_rigid_poses(poses_gl, folder / "poses.txt", lines, [f"images/{p.name}" for p in rgb_paths])
-    focal = NEURAL_RGBD_FOCAL
-    focal_path = folder / "focal.txt"
-    if focal_path.is_file():
-        try:
-            focal = float(focal_path.read_text().split()[0])
-        except (ValueError, IndexError):
-            raise ValueError(f"{focal_path}:1: expected one number (the focal length in pixels)") from None
-    width, height = image_size(depth_paths[0])
-    intrinsics = _intrinsics_from(focal_path, focal, focal, width / 2.0, height / 2.0, width, height)
+    calibrated = _calibrated_intrinsics(folder, depth_paths[0])
+    intrinsics = calibrated[0] if calibrated else _neural_rgbd_camera(folder, depth_paths[0])
     poses = opengl_to_opencv_pose(_invalid_to_nan(poses_gl))
     timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
-    return LayoutIndex("neural_rgbd", rgb_paths, depth_paths, timestamps, poses, intrinsics, None)
+    return LayoutIndex("neural_rgbd", rgb_paths, depth_paths, timestamps, poses, intrinsics,
+                       calibrated[1] if calibrated else None)
+
+
+def _neural_rgbd_camera(folder: Path, first_depth: Path) -> Intrinsics:
+    """fx = fy from ``focal.txt`` (else the release's 554.256 for 640x480 renders), cx = W/2, cy = H/2."""
+    focal_path = folder / "focal.txt"
+    width, height = image_size(first_depth)
+    if not focal_path.is_file():
+        release = Intrinsics(NEURAL_RGBD_FOCAL, NEURAL_RGBD_FOCAL, 320.0, 240.0, 640, 480)
+        return _builtin_camera(release, first_depth, folder, "without focal.txt the release's values (fx = fy = 554.256)")
+    try:
+        focal = float(focal_path.read_text().split()[0])
+    except (ValueError, IndexError):
+        raise ValueError(f"{focal_path}:1: expected one number (the focal length in pixels)") from None
+    return _intrinsics_from(focal_path, focal, focal, width / 2.0, height / 2.0, width, height)
 
 
 def parse_replica(folder: Path, fps: float) -> LayoutIndex:
@@ -367,7 +382,8 @@ def parse_replica(folder: Path, fps: float) -> LayoutIndex:
     _one_pose_per_frame(poses, folder / "traj.txt", len(rgb_paths), results)
     check_rigid_poses(poses, folder / "traj.txt", lines, [f"results/{p.name}" for p in rgb_paths])
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
-    intrinsics = calibrated[0] if calibrated else REPLICA_INTRINSICS
+    intrinsics = calibrated[0] if calibrated else _builtin_camera(REPLICA_INTRINSICS, depth_paths[0], folder,
+                                                                  "the release's values (600, 600, 599.5, 339.5)")
     timestamps = np.arange(len(rgb_paths), dtype=np.float64) / fps
     return LayoutIndex("replica", rgb_paths, depth_paths, timestamps, _invalid_to_nan(poses),
                        intrinsics, calibrated[1] if calibrated else None)
