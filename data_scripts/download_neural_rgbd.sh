@@ -9,10 +9,11 @@
 set -euo pipefail
 DEST="${1:-${TSSLAM_DATA:-$HOME/datasets/tsslam_ref}/neural_rgbd_data}"
 URL="http://kaldir.vc.in.tum.de/neural_rgbd/neural_rgbd_data.zip"
-mkdir -p "$(dirname "$DEST")"
+mkdir -p "$DEST"
 if [ -d "$DEST/breakfast_room" ]; then echo "have $DEST"; exit 0; fi
 curl -fL --retry 3 -o "$DEST.zip.part" "$URL"
 mv "$DEST.zip.part" "$DEST.zip"
-unzip -q "$DEST.zip" -d "$(dirname "$DEST")" && rm "$DEST.zip"
+# the archive's top level is the scene folders (Co-SLAM unzips it inside data/neural_rgbd_data)
+unzip -q "$DEST.zip" -d "$DEST" && rm "$DEST.zip"
 echo "wrote $DEST (scenes used by Co-SLAM: breakfast_room complete_kitchen green_room grey_white_room"
 echo "  morning_apartment thin_geometry whiteroom)"

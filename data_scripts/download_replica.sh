@@ -12,5 +12,8 @@ mkdir -p "$(dirname "$DEST")"
 if [ -d "$DEST/room0/results" ]; then echo "have $DEST"; exit 0; fi
 curl -fL --retry 3 -o "$DEST.zip.part" "$URL"
 mv "$DEST.zip.part" "$DEST.zip"
-unzip -q "$DEST.zip" -d "$(dirname "$DEST")" && rm "$DEST.zip"
+# the archive holds one folder, Replica/: unpack it beside DEST, then move its scenes into DEST
+mkdir -p "$DEST" "$DEST.unzip"
+unzip -q "$DEST.zip" -d "$DEST.unzip"
+mv "$DEST.unzip"/Replica/* "$DEST"/ && rm -r "$DEST.unzip" "$DEST.zip"
 echo "wrote $DEST"
