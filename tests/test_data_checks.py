@@ -37,6 +37,16 @@ def test_replica_images_of_another_size_without_a_calibration_file_ask_for_one(t
         data.load_sequence(folder)
 
 
+def test_neural_rgbd_frames_missing_on_each_side_are_not_paired_by_order(tmp_path):
+    """img3 missing in images/ and depth1 in depth_filtered/: the counts agree, the numbers do not."""
+    folder = make_neural_rgbd(tmp_path / "kitchen", 4, _random_poses(4))
+    (folder / "images/img3.png").unlink()
+    (folder / "depth_filtered/depth1.png").unlink()
+    np.savetxt(folder / "poses.txt", _random_poses(3).reshape(-1, 4))
+    with pytest.raises(ValueError, match=r"images/img1\.png pairs with .*depth2\.png by order, but their frame numbers"):
+        data.load_sequence(folder)
+
+
 def make_neural_rgbd(folder, frames, poses_gl):
     """NeuralRGBD layout with ``frames`` 8x6 image pairs and ``poses_gl`` (M, 4, 4) in poses.txt."""
     (folder / "images").mkdir(parents=True)

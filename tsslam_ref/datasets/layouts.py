@@ -342,6 +342,10 @@ def parse_neural_rgbd(folder: Path, fps: float) -> LayoutIndex:
         raise ValueError(f"{folder / 'images'}: no images")
     if len(rgb_paths) != len(depth_paths):
         raise ValueError(f"{folder / 'images'} has {len(rgb_paths)} images but {depth_dir} has {len(depth_paths)}")
+    for rgb_path, depth_path in zip(rgb_paths, depth_paths):  # img<i>.png with depth<i>.png
+        if re.sub(r"\D", "", rgb_path.stem) != re.sub(r"\D", "", depth_path.stem):
+            raise ValueError(f"{rgb_path} pairs with {depth_path} by order, but their frame numbers differ "
+                             f"(a frame missing on each side?); expected images/img<i> with {depth_dir.name}/depth<i>")
     poses_gl, lines = _read_matrix_lines(folder / "poses.txt", 4, "4 lines per 4x4 pose")
     _one_pose_per_frame(poses_gl, folder / "poses.txt", len(rgb_paths), folder / "images")
     check_rigid_poses(poses_gl, folder / "poses.txt", lines, [f"images/{p.name}" for p in rgb_paths])
