@@ -89,6 +89,22 @@ def test_an_image_of_another_size_than_the_intrinsics_is_refused():
     assert len(frame_rays(np.zeros((60, 80, 3), np.float32), half, resized, rows, cols)) == 1  # the right size
 
 
+def test_images_and_rays_of_the_wrong_kind_are_refused_naming_what_was_expected():
+    """8-bit colours (a loss 600000 times too large) and raw PNG depth would pass every shape check."""
+    rows, cols = torch.tensor([0]), torch.tensor([0])
+    rgb, depth = np.zeros((48, 64, 3), np.float32), np.ones((48, 64), np.float32)
+    with pytest.raises(TypeError, match="rgb is uint8; expected floating-point colours in .* divide 8-bit"):
+        frame_rays((rgb * 255).astype(np.uint8), depth, INTRINSICS, rows, cols)
+    with pytest.raises(TypeError, match="depth is torch.int32; expected floating-point metres"):
+        frame_rays(torch.from_numpy(rgb), torch.ones(48, 64, dtype=torch.int32), INTRINSICS, rows, cols)
+    cfg = config.tiny().render
+    origins = torch.zeros(5, 3)
+    with pytest.raises(ValueError, match=r"target_depth \(R,\), got \(5, 3\), \(5, 3\) and \(5, 1\)"):
+        render_rays(lambda x: None, origins, origins, torch.ones(5, 1), cfg)
+    with pytest.raises(ValueError, match=r"one \(4, 4\) camera-to-world pose, got \(2, 4, 4\)"):
+        render_image(lambda x: None, torch.eye(4).repeat(2, 1, 1), INTRINSICS, cfg, height=4, width=4)
+
+
 def test_rays_to_world_single_and_per_ray_poses_and_pose_gradient():
     generator = torch.Generator().manual_seed(0)
     directions = torch.randn(6, 3, generator=generator, dtype=torch.float64)

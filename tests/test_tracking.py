@@ -408,3 +408,9 @@ def test_ray_budget_counts_inner_pixels_for_tracking_and_the_whole_frame_for_the
     cfg.tracking.ignore_edge = 5
     with pytest.raises(ValueError, match="leaves no pixel of the 20x10 frames; expected < 5"):
         check_ray_budget(cfg, 10, 20)
+
+
+def test_track_frame_refuses_the_whole_config_for_its_tracking_settings():
+    cfg = config.tiny()
+    with pytest.raises(TypeError, match=r"takes the tracking settings \(cfg.tracking, a TrackingConfig\), got Config"):
+        track_frame(None, None, torch.eye(4), cfg, None)

@@ -158,8 +158,8 @@ def frame_rays(rgb, depth, intrinsics, rows, cols, frame_id: int = 0, device=Non
     """RayBatch of the pixels (rows, cols) of one RGB-D frame.
 
     Args:
-        rgb: (H, W, 3) colours in [0, 1] (numpy or torch).
-        depth: (H, W) depth in metres, 0 = invalid.
+        rgb: (H, W, 3) float colours in [0, 1] (numpy or torch; integer images are refused).
+        depth: (H, W) float depth in metres, 0 = invalid (integer PNG values are refused).
         intrinsics: see :func:`pixel_directions`.
         rows, cols: (R,) long pixel indices.
         frame_id: stored in every ray's ``frame_ids``.
@@ -167,6 +167,10 @@ def frame_rays(rgb, depth, intrinsics, rows, cols, frame_id: int = 0, device=Non
     """
     if device is None:
         device = rgb.device if isinstance(rgb, torch.Tensor) else "cpu"
+    for name, image, expected in (("rgb", rgb, "colours in [0, 1]: divide 8-bit values by 255"),
+                                  ("depth", depth, "metres: divide the PNG values by the depth scale")):
+        if not (image.dtype.is_floating_point if isinstance(image, torch.Tensor) else image.dtype.kind == "f"):
+            raise TypeError(f"frame_rays: {name} is {image.dtype}; expected floating-point {expected}")
     rgb_t = _as_tensor(rgb, device)
     depth_t = _as_tensor(depth, device)
     if rgb_t.dim() != 3 or rgb_t.shape[-1] != 3 or depth_t.shape != rgb_t.shape[:2]:
@@ -291,6 +295,10 @@ def render_rays(
         dict rgb (R, 3), depth (R,), sdf (R, S), z_vals (R, S), weights (R, S).
     """
     n_rays = origins.shape[0]
+    if origins.dim() != 2 or origins.shape[1] != 3 or directions.shape != origins.shape or \
+            target_depth.shape != (n_rays,):
+        raise ValueError(f"render_rays expects origins and directions (R, 3) and target_depth (R,), got "
+                         f"{tuple(origins.shape)}, {tuple(directions.shape)} and {tuple(target_depth.shape)}")
     z_vals = sample_along_rays(target_depth.to(origins.dtype), cfg, generator)  # (R, S)
     points = origins.unsqueeze(1) + directions.unsqueeze(1) * z_vals.unsqueeze(-1)  # (R, S, 3)
     rgb, sdf = field_fn(points.reshape(-1, 3))
@@ -341,6 +349,10 @@ def render_image(
         width = width if width is not None else getattr(intrinsics, "width", None)
         if height is None or width is None:
             raise ValueError("render_image needs the image size: intrinsics.width/height, height/width or depth")
+    c2w = torch.as_tensor(c2w)  # a NumPy pose too
+    if c2w.shape != (4, 4):
+        raise ValueError(f"render_image renders one camera: c2w must be one (4, 4) camera-to-world pose, "
+                         f"got {tuple(c2w.shape)}")
     chunk = chunk or cfg.chunk
     still_cfg = dataclasses.replace(cfg, perturb=False)
     device = c2w.device

@@ -85,6 +85,9 @@ def track_frame(
     Returns:
         :class:`TrackingResult` with the kept pose, detached.
     """
+    if not isinstance(tracking, TrackingConfig):
+        raise TypeError(f"track_frame takes the tracking settings (cfg.tracking, a TrackingConfig), got "
+                        f"{type(tracking).__name__}")
     pose_parameters = PoseIncrement(init_pose)
     optimizer = pose_parameters.optimizer(tracking.lr_rot, tracking.lr_trans)
     losses: List[float] = []
