@@ -112,8 +112,10 @@ def cumulative_from_scipy_basis(data):
     return {key: np.stack(value) for key, value in outputs.items()}
 
 
-def autograd_jacobians(data):
-    """J_first and the six (M, 4, 3, 3) blocks by autograd of our pose w.r.t. δ (R_k <- Exp(δ_k) R_k), τ."""
+def autograd_jacobians(data, right_input=False, right_output=False):
+    """J_first and the six (M, 4, 3, 3) blocks by autograd of our pose w.r.t. δ (R_k <- Exp(δ_k) R_k), τ;
+    ``right_input`` perturbs R_k <- R_k Exp(δ_k), ``right_output`` reads R(t) <- R(t) Exp(ε) instead (the
+    mistakes a user makes)."""
     parsed = conformance.parse_input(data)
     rotations, points, times = so3_exp(torch.as_tensor(parsed["rotvecs"])), torch.as_tensor(parsed["translations"]), \
         parsed["times"]
@@ -121,8 +123,10 @@ def autograd_jacobians(data):
     base = spline.evaluate(rotations, points, times, *timing).rotation
 
     def outputs(delta, tau):
-        sample = spline.evaluate(so3_exp(delta) @ rotations, points + tau, times, *timing, derivatives=2)
-        epsilon = so3_log(sample.rotation @ base.transpose(-1, -2))
+        perturbed = rotations @ so3_exp(delta) if right_input else so3_exp(delta) @ rotations
+        sample = spline.evaluate(perturbed, points + tau, times, *timing, derivatives=2)
+        epsilon = so3_log(base.transpose(-1, -2) @ sample.rotation if right_output else
+                          sample.rotation @ base.transpose(-1, -2))
         return (epsilon, sample.translation, sample.velocity_world, sample.acceleration_world, sample.omega_body,
                 sample.omegadot_body)
 
@@ -148,6 +152,71 @@ def test_a_correct_independent_float64_candidate_passes_every_vector_with_a_wide
     report = conformance.compare(data, as_candidate(data, independent_float64(data)))
     assert report["ok"] and not report["notes"], spline_kit.format_report(report)  # Jacobians compared too
     assert max(row["scaled"] for row in report["rows"]) < conformance.DEFAULT_RTOL / 1000, spline_kit.format_report(report)
+
+
+JACOBIAN_VECTOR = spline_kit.VECTOR_DIR / "jacobians_paper_dt0.25.json"
+
+
+def _planted_jacobians(data, mistake):
+    """Values from the formulas (spline_formulas) and Jacobians by autograd, with one planted mistake."""
+    dt = data["dt"]
+    blocks = autograd_jacobians(data, right_input=mistake in ("right_input", "right_both"),
+                                right_output=mistake in ("right_output", "right_both"))
+    if mistake == "transposed":  # a column-major dump of every block
+        blocks.update({key: np.swapaxes(blocks[key], -1, -2) for key in conformance.JACOBIAN_KEYS})
+    elif mistake == "reversed":
+        blocks.update({key: blocks[key][:, ::-1] for key in conformance.JACOBIAN_KEYS})
+    elif mistake == "J_v_no_dt":
+        blocks["J_v"] = blocks["J_v"] * dt
+    elif mistake == "J_a_no_dt2":
+        blocks["J_a"] = blocks["J_a"] * dt**2
+    elif mistake == "J_R_sign":
+        blocks["J_R"] = -blocks["J_R"]
+    return {**spline_formulas.evaluate(data), **blocks}
+
+
+@pytest.mark.parametrize("mistake,expected", [
+    ("transposed", "J_R, J_omega_body, J_omegadot_body: each 3x3 block is the TRANSPOSE"),
+    ("reversed", "J_R, J_p, J_v, J_a, J_omega_body, J_omegadot_body: the 4 blocks are in REVERSE order"),
+    ("J_v_no_dt", "J_v: the reference times dt^1 (dt = 0.25)"),
+    ("J_a_no_dt2", "J_a: the reference times dt^2 (dt = 0.25)"),
+    ("J_R_sign", "J_R: the NEGATIVE of the reference"),
+    ("right_input", "J_R, J_omega_body, J_omegadot_body: RIGHT perturbation of the control rotations"),
+    ("right_output", "J_R: RIGHT perturbation of the output rotation"),
+    ("right_both", "J_R: RIGHT perturbation of both the control rotations and the output rotation"),
+])
+def test_each_planted_jacobian_mistake_triggers_its_hint(mistake, expected):
+    data = load(JACOBIAN_VECTOR)
+    report = conformance_hints.check(data, as_candidate(data, _planted_jacobians(data, mistake)))
+    assert not report["ok"] and any(hint.startswith(expected) for hint in report["hints"]), report["hints"]
+    assert len(report["hints"]) == 1 + (mistake == "right_both"), report["hints"]  # right_both: J_omega.. too
+    assert all(row["ok"] for row in report["rows"] if not row["quantity"].startswith("J_")), report["hints"]
+
+
+def test_a_value_hint_survives_jacobians_that_fail_along_with_the_values():
+    """The documented 'only omegadot fails' hint, for a candidate that also holds (failing) Jacobians."""
+    data = load(JACOBIAN_VECTOR)
+    outputs = {**spline_formulas.evaluate(data, mistake="old_omega"), **autograd_jacobians(data)}
+    outputs["J_omegadot_body"] = outputs["J_omegadot_body"] * 1.01
+    report = conformance_hints.check(data, as_candidate(data, outputs))
+    failing = {row["quantity"] for row in report["rows"] if not row["ok"]}
+    assert failing == {"omegadot_body", "J_omegadot_body"}, failing
+    assert any(hint.startswith("only omegadot fails") for hint in report["hints"]), report["hints"]
+
+
+def test_the_worst_jacobian_entry_is_named_by_block_control_point_row_and_column(tmp_path, capsys):
+    data = load(JACOBIAN_VECTOR)
+    data["J_omega_body"][3][1][0][2] += 1e-3  # time 3, block 1, output component 0, perturbation component 2
+    candidate = tmp_path / "mine.json"
+    candidate.write_text(json.dumps(data))
+    assert spline_kit.main(["check", JACOBIAN_VECTOR.stem, str(candidate)]) == 1
+    out = capsys.readouterr().out
+    point = int(data["J_first"][3]) + 1
+    assert "J_omega_body worst at index 3" in out, out
+    assert f"block i = 1 (control point J_first + 1 = {point}), entry (row 0, col 2) = (output component 0, " \
+           f"perturbation component 2)" in out, out
+    ref_line = next(line for line in out.splitlines() if line.startswith("    ref "))
+    assert ref_line.count(",") == 8, ref_line  # the one 3 x 3 block, not 36 numbers
 
 
 # ------------------------------------------------------------------------------------------------

@@ -8,15 +8,21 @@ instead of the split one, the transposed basis matrix, an index convention shift
 segments, times rounded to whole nanoseconds (basalt-headers' int64 ns); otherwise the size of the
 errors (float32 or float64 rounding) and where they sit (only next to knots).
 
-Side module.  Imports ``conformance`` and ``spline``.
+Jacobians (when both files hold them): blocks transposed, in reverse order, of the opposite sign,
+off by a power of Δt, or for a right perturbation instead of the left one
+(of the control rotations, the output rotation or both).
+
+Side module.  Imports ``conformance``, ``spline`` and ``geometry``.
 """
 
 from fractions import Fraction
 from typing import Dict, List, Optional
 
 import numpy as np
+import torch
 
 from tsslam_ref import conformance, spline
+from tsslam_ref.geometry import so3_exp
 
 FLOAT32_LEVEL = 1e-8  # a failing candidate's largest scaled error from here to 3e-5: float32-level, say so
 NANOSECOND_MATCH = 1e-11
@@ -173,7 +179,9 @@ def _transposed_basis_hint(failing: set, cands, parsed: dict, times: np.ndarray)
 
 
 def _rotation_part_hints(failing: set) -> List[str]:
-    """Patterns of the rotation's recursion (Eq. 6 and 9): which of R, omega, omegadot fail."""
+    """Patterns of the rotation's recursion (Eq. 6 and 9): which of R, omega, omegadot fail (the
+    values only: Jacobians that fail along with them do not hide the pattern)."""
+    failing = failing & set(conformance.OUTPUT_KEYS)
     if failing == {"R", "omega_body", "omegadot_body"}:
         return ["R, omega and omegadot fail while p, v and a pass: the rotation's composition; R(t) = R_k "
                 "A_1 A_2 A_3 with A_j = Exp(B_j d_j) and d_j = Log(R_{k+j-1}^T R_{k+j}): increments on the RIGHT "
@@ -182,6 +190,54 @@ def _rotation_part_hints(failing: set) -> List[str]:
         return ["only omegadot fails: its recursion uses the UPDATED omega, omega^(j+1) = A_j^T omega^(j) + "
                 "Bdot_j d_j, then omegadot^(j+1) = Bdot_j omega^(j+1) x d_j + A_j^T omegadot^(j) + Bddot_j d_j"]
     return []
+
+
+_ROTATION_JACOBIANS = ("J_R", "J_omega_body", "J_omegadot_body")
+_JACOBIAN_ORDER = {"J_v": 1, "J_a": 2, "J_omega_body": 1, "J_omegadot_body": 2}
+
+
+def _jacobian_models(key: str, refs, parsed: Optional[dict], first: Optional[np.ndarray]):
+    """(model (M, 4, 3, 3), what it means) for the common mistakes in Jacobian ``key``: the reference
+    with that mistake made on purpose."""
+    ref = refs[key]
+    models = [(np.swapaxes(ref, -1, -2), "each 3x3 block is the TRANSPOSE of the reference's: block [m][i][row][col] "
+               "has row = output component, col = perturbation component (a column-major dump, e.g. Eigen's "
+               "default storage, writes it transposed)"),
+              (ref[:, ::-1], "the 4 blocks are in REVERSE order: block [m][i] belongs to control point "
+               "J_first[m] + i (i = 0 the first active point)"),
+              (-ref, "the NEGATIVE of the reference: a sign flipped (the kit perturbs R_k <- Exp(delta) R_k, "
+               "P_k <- P_k + tau and reads the output as R(t) <- Exp(eps) R(t))")]
+    dt = None if parsed is None else parsed["dt"]
+    if key in _JACOBIAN_ORDER and dt is not None and dt != 1.0:
+        order = _JACOBIAN_ORDER[key]
+        models += [(ref * dt**power, f"the reference times dt^{power} (dt = {dt}): the Jacobian of a time "
+                    f"derivative of order {order} carries its 1/dt^{order} too (du/dt = 1/dt)")
+                   for power in (1, 2, -1, -2)]
+    if key in _ROTATION_JACOBIANS and parsed is not None and first is not None:
+        rotations = so3_exp(torch.as_tensor(parsed["rotvecs"])).numpy()[first[:, None].astype(int) + np.arange(4)]
+        models.append((ref @ rotations, "RIGHT perturbation of the control rotations, R_k <- R_k Exp(delta): the kit "
+                       "perturbs on the LEFT, R_k <- Exp(delta) R_k (J_kit = J_right R_k^T)"))
+        if key == "J_R":
+            transposed = np.swapaxes(refs["R"], 1, 2)[:, None]  # (M, 1, 3, 3) R(t)^T
+            models.append((transposed @ ref, "RIGHT perturbation of the output rotation, R(t) <- R(t) Exp(eps): "
+                           "the kit reads R(t) <- Exp(eps) R(t) (J_kit = R(t) J_right)"))
+            models.append((transposed @ ref @ rotations, "RIGHT perturbation of both the control rotations and the "
+                           "output rotation: the kit perturbs both on the LEFT (J_kit = R(t) J_right R_k^T)"))
+    return models
+
+
+def _jacobian_hints(failing: set, refs, cands, parsed: Optional[dict], first: Optional[np.ndarray]) -> List[str]:
+    """Failing Jacobian blocks that equal the reference with a common mistake made: one hint per
+    mistake, naming the blocks that show it."""
+    found: Dict[str, List[str]] = {}
+    for key in conformance.JACOBIAN_KEYS:
+        if key not in failing:
+            continue
+        for model, meaning in _jacobian_models(key, refs, parsed, first):
+            if _close(cands[key], model):
+                found.setdefault(meaning, []).append(key)
+                break
+    return [f"{', '.join(keys)}: {meaning}" for meaning, keys in found.items()]
 
 
 def _whole_nanoseconds(seconds: float) -> int:
@@ -216,6 +272,7 @@ def diagnose(report: dict) -> List[str]:
     hints = _frame_hints(failing, refs, cands) + _time_scale_hints(failing, refs, cands, parsed)
     hints += _nanosecond_hint(failing, cands, parsed, times) or _precision_hint(failing, rows)
     hints += _representation_hint(failing, cands, parsed, times) + _rotation_part_hints(failing)
+    hints += _jacobian_hints(failing, refs, cands, parsed, report.get("J_first"))
     if parsed is None:
         return hints
     hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)

@@ -171,9 +171,7 @@ def format_report(report: dict, reference_name: str = "reference", candidate_nam
         if row["segment"] is not None:
             where += f", {_segment_label(row['segment'], report['knots'])}, u = {row['u']!r}"
         lines.append(f"  {row['quantity']} worst at {where}:")
-        for label in ("ref", "cand"):
-            value = np.asarray(row[label]).reshape(-1)  # R row by row
-            lines.append(f"    {label:<4} {np.array2string(value, precision=12, separator=', ', max_line_width=400)}")
+        lines += _worst_values(row, report.get("J_first"))
         lines.append(f"    error {row['error']:.3e} (bound {row['bound']:.3e})")
     window = report["window"]
     if window is not None:
@@ -196,6 +194,25 @@ def format_report(report: dict, reference_name: str = "reference", candidate_nam
     for hint in report["hints"]:
         lines.append(f"hint: {hint}")
     return "\n".join(lines)
+
+
+def _worst_values(row: dict, first: Optional[np.ndarray]) -> List[str]:
+    """The ref and cand lines of a failing quantity at its worst time: the value (R row by row), or
+    for a Jacobian (4 x 3 x 3 at that time) the block i and entry (row, col) with the largest error,
+    then that block, row by row."""
+    ref, cand = np.asarray(row["ref"]), np.asarray(row["cand"])
+    lines = []
+    if ref.shape == conformance.JACOBIAN_SHAPE:
+        i, r, c = np.unravel_index(int(np.argmax(np.abs(cand - ref))), ref.shape)
+        point = f" = {int(first[row['index']]) + i}" if first is not None else ""
+        lines.append(f"    block i = {i} (control point J_first + {i}{point}), entry (row {r}, col {c}) = "
+                     f"(output component {r}, perturbation component {c}): ref {float(ref[i, r, c])!r}, cand "
+                     f"{float(cand[i, r, c])!r}; block {i} row by row:")
+        ref, cand = ref[i], cand[i]
+    for label, value in (("ref", ref), ("cand", cand)):
+        shown = np.array2string(value.reshape(-1), precision=12, separator=", ", max_line_width=400)
+        lines.append(f"    {label:<4} {shown}")
+    return lines
 
 
 def _segment_label(segment: int, knot_vector: Optional[np.ndarray]) -> str:
