@@ -47,6 +47,16 @@ def test_neural_rgbd_frames_missing_on_each_side_are_not_paired_by_order(tmp_pat
         data.load_sequence(folder)
 
 
+def test_a_layout_named_for_a_folder_of_another_layout_names_the_one_it_has(tmp_path):
+    """A NeuralRGBD scene run as the tum layout (Co-SLAM calls these scenes 'synthetic', and
+    --dataset synthetic means a TUM-layout folder): was 'rgb.txt: file not found'."""
+    folder = make_neural_rgbd(tmp_path / "kitchen", 2, _random_poses(2))
+    with pytest.raises(ValueError, match=r"kitchen lacks rgb\.txt, depth\.txt of the 'tum' layout but has every "
+                                         r"entry of the 'neural_rgbd' layout"):
+        data.load_sequence(folder, dataset="tum")
+    assert len(data.load_sequence(folder, dataset="neural_rgbd")) == 2
+
+
 def make_neural_rgbd(folder, frames, poses_gl):
     """NeuralRGBD layout with ``frames`` 8x6 image pairs and ``poses_gl`` (M, 4, 4) in poses.txt."""
     (folder / "images").mkdir(parents=True)

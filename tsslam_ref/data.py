@@ -36,6 +36,7 @@ from tsslam_ref.datasets.layouts import (
     DEPTH_SCALES,
     LAYOUTS,
     detect_dataset,
+    other_layout_hint,
     parse_folder,
     parse_neural_rgbd,
     parse_replica,
@@ -135,6 +136,9 @@ def _layout_of(folder: Path, dataset: str) -> str:
     kind = detect_dataset(folder) if dataset == "auto" else dataset
     if kind not in LAYOUTS:
         raise ValueError(f"dataset '{dataset}' unknown; expected 'auto' or one of {sorted(LAYOUTS)}")
+    hint = other_layout_hint(folder, kind) if dataset != "auto" else None
+    if hint:
+        raise ValueError(hint)
     return kind
 
 

@@ -474,6 +474,17 @@ def read_calibration_exists(folder: Path) -> bool:
     return (folder / "intrinsics.json").is_file() or (folder / "calibration.txt").is_file()
 
 
+def other_layout_hint(folder: Path, kind: str) -> Optional[str]:
+    """When ``folder`` lacks entries of layout ``kind`` but has every entry of another layout: a
+    sentence naming both (for a layout given by name, as ``--dataset``); else None."""
+    checks = _looks_like(folder)
+    matching = [other for other, missing in checks.items() if not missing and other != kind]
+    if not checks[kind] or not matching:
+        return None
+    return (f"{folder} lacks {', '.join(checks[kind])} of the '{kind}' layout but has every entry of the "
+            f"'{matching[0]}' layout ({LAYOUTS[matching[0]]}): name that one, or 'auto'")
+
+
 def detect_dataset(path) -> str:
     """Layout of a dataset folder: 'tum' | 'scannet' | 'neural_rgbd' | 'replica' | 'folder'.
 
