@@ -315,6 +315,19 @@ def render_rays(
     }
 
 
+def _render_size(intrinsics, depth, height: Optional[int], width: Optional[int]) -> Tuple[int, int]:
+    """(H, W) of :func:`render_image`: the depth's (checked against ``intrinsics``), else the
+    arguments', else the intrinsics'."""
+    if depth is not None:
+        check_image_size(depth.shape[0], depth.shape[1], intrinsics, "render_image's depth")
+        return depth.shape[0], depth.shape[1]
+    height = height if height is not None else getattr(intrinsics, "height", None)
+    width = width if width is not None else getattr(intrinsics, "width", None)
+    if height is None or width is None:
+        raise ValueError("render_image needs the image size: intrinsics.width/height, height/width or depth")
+    return height, width
+
+
 def render_image(
     field_fn: FieldFn,
     c2w: torch.Tensor,
@@ -341,14 +354,7 @@ def render_image(
     Returns:
         dict rgb (H, W, 3), depth (H, W) on ``c2w``'s device.
     """
-    if depth is not None:
-        height, width = depth.shape
-        check_image_size(height, width, intrinsics, "render_image's depth")
-    else:
-        height = height if height is not None else getattr(intrinsics, "height", None)
-        width = width if width is not None else getattr(intrinsics, "width", None)
-        if height is None or width is None:
-            raise ValueError("render_image needs the image size: intrinsics.width/height, height/width or depth")
+    height, width = _render_size(intrinsics, depth, height, width)
     c2w = torch.as_tensor(c2w)  # a NumPy pose too
     if c2w.shape != (4, 4):
         raise ValueError(f"render_image renders one camera: c2w must be one (4, 4) camera-to-world pose, "
