@@ -574,3 +574,12 @@ def test_ninja_of_the_virtual_environment_is_found_without_activating_it(tmp_pat
     (system / "ninja").write_text("#!/bin/sh\n")
     (system / "ninja").chmod(0o755)
     assert hash_kernel.ninja_search_path(str(system), str(scripts)) == str(system)  # the system's wins, PATH unchanged
+
+
+def test_points_that_are_not_an_n_by_3_tensor_are_refused_naming_what_was_expected():
+    field = SceneField(config.tiny().field, [[-1.0, 1.0], [-1.0, 1.0], [0.0, 3.0]],
+                       generator=torch.Generator().manual_seed(0))
+    with pytest.raises(TypeError, match=r"points must be a torch tensor \(N, 3\) .*, got ndarray"):
+        field(torch.zeros(5, 3).numpy())
+    with pytest.raises(ValueError, match=r"points must have shape \(N, 3\), got \(3,\)"):
+        field.sdf(torch.zeros(3))

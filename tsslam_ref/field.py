@@ -53,6 +53,8 @@ CORNER_OFFSETS = tuple(itertools.product((0, 1), repeat=3))
 
 
 def _check_points(points: torch.Tensor, name: str = "points") -> None:
+    if not isinstance(points, torch.Tensor):
+        raise TypeError(f"{name} must be a torch tensor (N, 3) on the field's device, got {type(points).__name__}")
     if points.dim() != 2 or points.shape[-1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {tuple(points.shape)}")
 
