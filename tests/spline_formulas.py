@@ -45,16 +45,16 @@ def v_matrix(phi):
     return np.eye(3) + (1 - math.cos(theta)) / theta**2 * K + (theta - math.sin(theta)) / theta**3 * K @ K
 
 
-def exp_se3(xi):
-    """4 x 4 pose of a tangent ξ = (ρ, φ)."""
+def exp_se3(xi, with_v=True):
+    """4 x 4 pose of a tangent ξ = (ρ, φ); ``with_v=False`` leaves V(φ) out (a common mistake)."""
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = exp_so3(xi[3:]), v_matrix(xi[3:]) @ xi[:3]
+    T[:3, :3], T[:3, 3] = exp_so3(xi[3:]), (v_matrix(xi[3:]) if with_v else np.eye(3)) @ xi[:3]
     return T
 
 
-def log_se3(T):
+def log_se3(T, with_v=True):
     phi = log_so3(T[:3, :3])
-    return np.concatenate([np.linalg.solve(v_matrix(phi), T[:3, 3]), phi])
+    return np.concatenate([np.linalg.solve(v_matrix(phi) if with_v else np.eye(3), T[:3, 3]), phi])
 
 
 def hat_se3(xi):
@@ -63,9 +63,10 @@ def hat_se3(xi):
     return H
 
 
-def evaluate_se3(data):
+def evaluate_se3(data, with_v=True):
     """Joint SE(3): T = T_k Π Exp(B_j ξ_j); body twist H = T⁻¹Ṫ by the Lie-group recursion
-    H' = A⁻¹ H A + Ḃ ξ̂, Ḣ' = Ḃ [H', ξ̂] + A⁻¹ Ḣ A + B̈ ξ̂; v = R ρ, a = R(ω × ρ + ρ̇)."""
+    H' = A⁻¹ H A + Ḃ ξ̂, Ḣ' = Ḃ [H', ξ̂] + A⁻¹ Ḣ A + B̈ ξ̂; v = R ρ, a = R(ω × ρ + ρ̇).
+    ``with_v=False``: Exp(ρ, φ) = [Exp(φ), ρ] and its inverse as Log (V(φ) left out)."""
     dt, t0, convention = data["dt"], data["t0"], data["convention"]
     poses = []
     for v, p in zip(np.asarray(data["rotvecs"], dtype=np.float64), np.asarray(data["translations"], dtype=np.float64)):
@@ -82,8 +83,8 @@ def evaluate_se3(data):
         Bdd = C @ np.array([0, 0, 2, 6 * u]) / dt**2
         T, H, H_dot = poses[i].copy(), np.zeros((4, 4)), np.zeros((4, 4))
         for j in range(1, 4):
-            xi = log_se3(np.linalg.inv(poses[i + j - 1]) @ poses[i + j])
-            A = exp_se3(B[j] * xi)
+            xi = log_se3(np.linalg.inv(poses[i + j - 1]) @ poses[i + j], with_v)
+            A = exp_se3(B[j] * xi, with_v)
             A_inv = np.linalg.inv(A)
             T = T @ A
             H = A_inv @ H @ A + Bd[j] * hat_se3(xi)
@@ -115,10 +116,11 @@ def evaluate(data, dtype=np.float64, mistake=None):
     world-to-body), "nanoseconds" (correct code on int64 nanoseconds, as basalt-headers: t, t0 and
     Δt each rounded to whole ns, u from the integers), "world_increments" (d_j = Log(R_{k+j} R_{k+j-1}ᵀ),
     the increment in the world frame, composed on the right as if it were the body one), "old_omega"
-    (ω̇'s cross product with ω^(j), before its update and rotation by A_jᵀ).
+    (ω̇'s cross product with ω^(j), before its update and rotation by A_jᵀ), "no_V" (joint SE(3) vectors:
+    Exp(ρ, φ) = [Exp(φ), ρ] and Log likewise, V(φ) left out).
     """
     if data.get("representation", "split") == "se3":
-        return evaluate_se3(data)
+        return evaluate_se3(data, with_v=mistake != "no_V")
     if mistake == "float32":
         dtype = np.float32
     dt, t0, convention = data["dt"], data["t0"], data["convention"]

@@ -165,6 +165,17 @@ def test_joint_se3_candidate_is_named(capsys, tmp_path):
     assert code == 1 and "JOINT SE(3)" in out, out
 
 
+@pytest.mark.parametrize("vector", ["se3_basalt_dt1_pypose", "se3_paper_dt0.05_large_rot"])
+def test_joint_se3_without_v_is_named_by_its_pattern_p_v_a_differ_while_the_rotation_agrees(capsys, tmp_path, vector):
+    """The documented pattern 'p, v and a all differ while R, omega, omegadot agree' for a uniform vector."""
+    data = load(spline_kit.VECTOR_DIR / f"{vector}.json")
+    candidate = as_candidate(data, spline_formulas.evaluate(data, mistake="no_V"))
+    report = conformance.compare(data, candidate)
+    assert {row["quantity"] for row in report["rows"] if not row["ok"]} == {"p", "v", "a"}
+    code, out = run_check(capsys, data, candidate, tmp_path)
+    assert code == 1 and "hint: p, v and a differ while R, omega, omegadot agree" in out and "V(phi)" in out, out
+
+
 def test_half_open_candidate_without_t_max_passes_on_what_it_has(capsys, tmp_path):
     data = load(spline_kit.VECTOR_DIR / "basalt_golden_dt0.5.json")
     times = np.asarray(data["times"])

@@ -111,24 +111,35 @@ def _precision_hint(failing: set, rows: dict) -> List[str]:
 
 
 def _representation_hint(failing: set, cands, parsed: Optional[dict], times: np.ndarray) -> List[str]:
-    """Joint SE(3) instead of split (or the reverse): only p, v, a differ."""
+    """Joint SE(3) instead of split (or the reverse): only p, v, a differ (values only) and p equals
+    the other representation's."""
+    failing = failing & set(conformance.OUTPUT_KEYS)
     if not (failing and failing <= {"p", "v", "a"} and {"p", "v", "a"} & failing):
         return []
-    other = None
-    if parsed is not None and parsed["knots"] is None:
-        swapped = dict(parsed, representation="split" if parsed["representation"] == "se3" else "se3")
-        other = conformance.evaluate_parsed(swapped, times)
-    if other is not None:  # the other representation evaluated: a hint only if the candidate is it
-        if not _close(cands["p"], other["p"]):
-            return []
-        return ["p equals the JOINT SE(3) spline of the same control points (PyPose pp.bspline, Sophus) "
-                "but this vector is split SO(3) x R^3" if parsed["representation"] == "split" else
-                "p equals the SPLIT SO(3) x R^3 spline but this vector is JOINT SE(3) "
-                "(\"representation\": \"se3\")"]
-    if failing != {"p", "v", "a"}:
+    if parsed is None or parsed["knots"] is not None:
         return []
-    return ["p, v and a differ while R, omega, omegadot agree: the translation may be coupled "
-            "differently, e.g. a JOINT SE(3) spline (PyPose, Sophus) against a split one"]
+    swapped = dict(parsed, representation="split" if parsed["representation"] == "se3" else "se3")
+    if not _close(cands["p"], conformance.evaluate_parsed(swapped, times)["p"]):
+        return []
+    return ["p equals the JOINT SE(3) spline of the same control points (PyPose pp.bspline, Sophus) "
+            "but this vector is split SO(3) x R^3" if parsed["representation"] == "split" else
+            "p equals the SPLIT SO(3) x R^3 spline but this vector is JOINT SE(3) "
+            "(\"representation\": \"se3\")"]
+
+
+def _translation_coupling_hint(failing: set, parsed: Optional[dict]) -> List[str]:
+    """p, v and a all fail while R, omega, omegadot pass, and no other hint explains it: the
+    translation is coupled to the rotation differently (given when nothing more specific is found)."""
+    if failing & set(conformance.OUTPUT_KEYS) != {"p", "v", "a"}:
+        return []
+    if parsed is not None and parsed["representation"] == "se3":
+        return ["p, v and a differ while R, omega, omegadot agree: this vector is JOINT SE(3), whose translation "
+                "is coupled to the rotation: T(t) = T_k prod Exp(B_j xi_j) with Exp(rho, phi) = [Exp(phi), "
+                "V(phi) rho] and xi_j = Log(T_{k+j-1}^-1 T_{k+j}) (rho = V(phi)^-1 R_{k+j-1}^T (p_{k+j} - p_{k+j-1})); "
+                "check V(phi) in Exp and Log, or a split spline against this joint one"]
+    return ["p, v and a differ while R, omega, omegadot agree: the translation may be coupled differently, "
+            "e.g. a JOINT SE(3) spline (PyPose, Sophus) against a split one, whose p is the B-spline of the "
+            "translations alone"]
 
 
 def _knot_rule_hint(failing: set, rows: dict, parsed: dict, times: np.ndarray) -> List[str]:
@@ -272,8 +283,8 @@ def diagnose(report: dict) -> List[str]:
     hints = _frame_hints(failing, refs, cands) + _time_scale_hints(failing, refs, cands, parsed)
     hints += _nanosecond_hint(failing, cands, parsed, times) or _precision_hint(failing, rows)
     hints += _representation_hint(failing, cands, parsed, times) + _rotation_part_hints(failing)
-    hints += _jacobian_hints(failing, refs, cands, parsed, report.get("J_first"))
-    if parsed is None:
-        return hints
-    hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)
-    return hints + _transposed_basis_hint(failing, cands, parsed, times)
+    if parsed is not None:
+        hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)
+        hints += _transposed_basis_hint(failing, cands, parsed, times)
+    hints = hints or _translation_coupling_hint(failing, parsed)  # only when nothing more specific matched
+    return hints + _jacobian_hints(failing, refs, cands, parsed, report.get("J_first"))
