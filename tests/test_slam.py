@@ -378,6 +378,31 @@ def test_run_cli_hands_a_parallel_run_to_the_two_thread_loop(synthetic_sequence,
     assert calls == [("two threads", True), ("sequential", False)]
 
 
+def test_run_threads_option_sets_the_threads_the_loop_runs_with(synthetic_sequence, tmp_path, monkeypatch, capsys):
+    """--threads N: the loop (a recorder here) sees N PyTorch threads, and the first line says so."""
+
+    class Stop(Exception):
+        pass
+
+    seen = []
+
+    def recorder(sequence, cfg, **kwargs):
+        seen.append(torch.get_num_threads())
+        raise Stop
+
+    before = torch.get_num_threads()
+    monkeypatch.setattr(slam, "run_slam", recorder)
+    try:
+        with pytest.raises(Stop):
+            run.main(["--data", str(synthetic_sequence), "--config", "tiny", "--quiet", "--frames", "0:4",
+                      "--out", str(tmp_path / "out"), "--threads", "1"])
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1] and "kernels, 1 threads)" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        run.main(["--threads", "0"])
+
+
 def test_global_ba_names_a_fixed_mask_of_the_wrong_length():
     current = global_ba.CurrentFrame(rays=None, timestamp=0.0, pose=torch.eye(4))
     with pytest.raises(ValueError, match=r"one entry per keyframe plus the current frame \(1\), got 2"):

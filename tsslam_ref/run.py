@@ -90,6 +90,7 @@ _seed = number_in("--seed", 0, 2**32 - 1, integer=True, interval="[0, 2**32 - 1]
 _export_rate = number_in("--export-rate", 0, MAX_EXPORT_RATE, low_open=True,
                          hint="samples per second; leave the option out for no export")
 _checkpoint_every = number_in("--checkpoint-every", 0, 10**9, integer=True, hint="frames; 0 for no checkpoint")
+_threads = number_in("--threads", 1, 1024, integer=True)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -118,6 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt (same command otherwise)")
     parser.add_argument("--checkpoint-every", type=_checkpoint_every, default=25,
                         help="frames between checkpoints, >= 1, or 0 = never (default 25)")
+    parser.add_argument("--threads", type=_threads, default=None,
+                        help="CPU threads for PyTorch and the compiled map kernels, 1 to 1024 (default: PyTorch's "
+                             "choice, one per core); with the CPU kernels it decides a seed's last bits")
     parser.add_argument("--no-mesh", action="store_true", help="skip the final mesh")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -475,6 +479,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     """Command-line entry: :func:`prepare` (checks, no writes), then :func:`execute`."""
     argv = _join_dash_values(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(argv)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     try:
         plan = prepare(args)
     except (ValueError, OSError) as error:
