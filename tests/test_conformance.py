@@ -349,6 +349,17 @@ def test_a_partial_or_misspelt_set_of_jacobian_keys_fails_naming_the_keys(tmp_pa
     assert "Jacobians      FAIL: " in text and named in text and "holds no Jacobians" not in text, text
 
 
+@pytest.mark.parametrize("key", ["dt", "t0", "times", "knots"])
+def test_kit_python_api_refuses_float32_times_naming_the_key(key):
+    """JSON numbers are float64; a Python caller can hand the kit float32 ones, whose digits are gone."""
+    name = "knots_uneven_tum_stamps" if key == "knots" else "paper_dt0.03_tum_stamps"
+    data = {k: v for k, v in json.loads((VECTOR_DIR / f"{name}.json").read_text()).items()
+            if k in conformance.INPUT_KEYS + conformance.OPTIONAL_INPUT_KEYS}
+    data[key] = np.float32(data[key]) if key in ("dt", "t0") else np.asarray(data[key], dtype=np.float32)
+    with pytest.raises(conformance.ConformanceError, match=f"input: key '{key}' must be float64 seconds"):
+        conformance.evaluate_input(data)
+
+
 def test_check_fails_another_active_window_as_a_check_failure_not_bad_input(tmp_path, capsys):
     path = VECTOR_DIR / "jacobians_paper_dt0.25.json"
     candidate = json.loads(path.read_text())

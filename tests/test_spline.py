@@ -549,6 +549,32 @@ def test_float32_times_are_refused_not_rounded_to_one_instant(times):
         knots.locate(times, knots.uniform_knots(8, 0.1, 1.5e9 - 0.3))
 
 
+@pytest.mark.parametrize("name,value", [("t0", np.float32(12.3)), ("dt", np.float32(0.033)),
+                                        ("t0", torch.tensor(12.3)), ("dt", np.array(0.033, dtype=np.float16))])
+def test_float32_t0_and_dt_are_refused_like_float32_times(name, value):
+    """t0 and dt are times too: float32 ones lose their digits before any cast (12.3 s in float32 is
+    12.300000190734863 s), so every entry point refuses them naming the argument."""
+    R, P = random_spline(28, n_ctrl=8)
+    timing = {"t0": 12.3, "dt": 0.033, name: value}
+    t_mid = 12.3 + 4.5 * 0.033
+    for call in (lambda: spline.valid_time_range(8, timing["dt"], timing["t0"]),
+                 lambda: spline.evaluate(R, P, [t_mid], timing["dt"], timing["t0"]),
+                 lambda: spline.active_control_indices([t_mid], 8, timing["dt"], timing["t0"]),
+                 lambda: spline.time_in_domain([t_mid], 8, timing["dt"], timing["t0"]),
+                 lambda: knots.uniform_knots(8, timing["dt"], timing["t0"])):
+        with pytest.raises(TypeError, match=f"^{name} must be float64 seconds .*digits are gone"):
+            call()
+
+
+def test_the_domain_message_prints_plain_floats_for_numpy_float64_timing():
+    R, P = random_spline(29, n_ctrl=8)
+    with pytest.raises(ValueError) as raised:
+        spline.evaluate(R, P, [5.0], np.float64(0.25), np.float64(0.5))
+    assert "outside the spline domain [1.0, 2.25] s" in str(raised.value) and "np." not in str(raised.value)
+    assert spline.valid_time_range(8, np.float64(0.25), np.float64(0.5)) == (1.0, 2.25)
+    assert all(type(end) is float for end in spline.valid_time_range(8, np.float64(0.25), np.float64(0.5)))
+
+
 def test_an_interval_too_short_for_float64_stamps_is_refused():
     R, P = random_spline(27, n_ctrl=8)
     t_min, _ = spline.valid_time_range(8, 1e-3, 1.5e9)  # 1 ms at 1.5e9 s: ~4000 ulps, fine

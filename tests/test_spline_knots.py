@@ -266,3 +266,16 @@ def test_fit_starts_each_control_point_at_the_pose_of_the_time_it_dominates(layo
         inside = np.linspace(t_min, t_max, 30)
         curve = spline.evaluate(rotations, translations, inside, dt, t0, convention).translation
         assert torch.allclose(curve, line(inside)[1], atol=1e-12)
+
+
+@pytest.mark.parametrize("make", [lambda k: k.astype(np.float32), lambda k: torch.as_tensor(k, dtype=torch.float32),
+                                  lambda k: [np.float32(x) for x in k]], ids=["array", "tensor", "list"])
+def test_float32_knots_are_refused_like_float32_times(make):
+    """Knots are times: float32 ones (1e-5 relative error near 100 s) are refused naming them."""
+    R, P, _ = random_spline(40)
+    knot_vector = 100.0 + np.cumsum(np.full(10, 0.05))
+    with pytest.raises(TypeError, match="^knots must be float64 seconds"):
+        knots.check_knots(make(knot_vector), 8)
+    with pytest.raises(TypeError, match="^knots must be float64 seconds"):
+        knots.evaluate(R, P, [float(knot_vector[4])], make(knot_vector))
+

@@ -77,9 +77,19 @@ def _array(data: dict, key: str, shape_tail: Sequence[int], source: str) -> np.n
     return value
 
 
+def _check_seconds(data: dict, key: str, source: str) -> None:
+    """ConformanceError when the time value ``data[key]`` (from Python, not JSON, whose numbers are
+    float64) is float32 or narrower: its digits are gone before the kit's cast to float64."""
+    try:
+        spline.check_float64_seconds(f"{source}: key {key!r}", data.get(key))
+    except TypeError as error:
+        raise ConformanceError(str(error)) from None
+
+
 def _scalar(data: dict, key: str, source: str) -> float:
     if key not in data:
         raise ConformanceError(f"{source}: missing key {key!r}")
+    _check_seconds(data, key, source)
     value = data[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ConformanceError(f"{source}: key {key!r} must be a finite number, got {value!r}")
@@ -146,6 +156,7 @@ def _parse_knot_input(data: dict, source: str) -> dict:
     if data.get("representation", "split") != "split":
         raise ConformanceError(f"{source}: key 'knots' needs \"representation\": \"split\", got "
                                f"{data.get('representation')!r}")
+    _check_seconds(data, "knots", source)
     knot_vector = _array(data, "knots", (), source)
     parsed = {"representation": "split", "convention": None, "dt": None, "t0": float(knot_vector[0]) if
               knot_vector.size else None, "knots": knot_vector}
@@ -161,6 +172,7 @@ def _parse_control_points(data: dict, source: str, parsed: dict) -> dict:
     """Add rotvecs, translations and times to ``parsed``; ConformanceError naming the key."""
     parsed["rotvecs"] = _array(data, "rotvecs", (3,), source)
     parsed["translations"] = _array(data, "translations", (3,), source)
+    _check_seconds(data, "times", source)
     parsed["times"] = _array(data, "times", (), source)
     if parsed["rotvecs"].shape[0] != parsed["translations"].shape[0]:
         raise ConformanceError(f"{source}: 'rotvecs' and 'translations' must have the same length")

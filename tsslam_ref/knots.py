@@ -34,8 +34,10 @@ from tsslam_ref.spline import CumulativeWeights, SplineSample, TimesLike
 def check_knots(knots, n_ctrl: int) -> np.ndarray:
     """The knot vector as a (N + 2,) float64 array; ValueError naming the problem otherwise.
 
-    Needs N ≥ 4 control points, exactly N + 2 finite knots, strictly increasing.
+    Needs N ≥ 4 control points, exactly N + 2 finite knots, strictly increasing, float64 (or Python
+    floats: float32 knots raise TypeError, :func:`spline.check_float64_seconds`).
     """
+    spline.check_float64_seconds("knots", knots)
     values = np.asarray(knots.detach().cpu() if isinstance(knots, torch.Tensor) else knots, dtype=np.float64)
     if n_ctrl < 4:
         raise ValueError(f"a cubic B-spline needs at least 4 control points, got n_ctrl={n_ctrl}")
@@ -55,8 +57,13 @@ def check_knots(knots, n_ctrl: int) -> np.ndarray:
 
 
 def uniform_knots(n_ctrl: int, dt: float, t0: float, convention: str = "paper") -> np.ndarray:
-    """(N + 2,) equally spaced knots giving the uniform spline (dt, t0, convention) of :mod:`spline`."""
+    """(N + 2,) equally spaced knots giving the uniform spline (dt, t0, convention) of :mod:`spline`.
+
+    Raises TypeError for float32 dt or t0.
+    """
     offset = spline.first_segment_offset(convention)
+    spline.check_float64_seconds("dt", dt)
+    spline.check_float64_seconds("t0", t0)
     return float(t0) + float(dt) * (np.arange(n_ctrl + 2, dtype=np.float64) + offset - 2)
 
 

@@ -20,19 +20,12 @@ Index conventions (s = (t − t0)/Δt, control point k sits at t_k = t0 + kΔt, 
 Both give the same curve with paper time = basalt time + 2Δt.  **The domain is closed**: t_max
 maps to the last segment at u = 1 (like PyPose; basalt and kontiki are half-open and reject t_max).
 
-Segment rule (exact on what it is given): the float64 numbers t, t0 and Δt are the times.  The
-segment is i = floor((t − t0)/Δt) − offset of the *exact* rational quotient, u = s − i with
-s = (t − t0)/Δt − offset in float64.  floor of the float64 quotient is already exact unless it
-lies within 8 eps of an integer; only those times (knots, in practice) are redone with
-``fractions.Fraction``.  A knot time that float64 puts 1e-17 before the knot is therefore in the
-previous segment at u = 1 (the curve is C², so only a and ω̇ notice, by Δjerk times the
-distance, i.e. nothing), and a time 3e-6 segments before a knot is in the previous segment at
-u = 1 − 3e-6, as exact arithmetic says.  No tolerance moves a time to another segment.
-Special cases, the domain ends only: the index is clamped to the last segment, so t_max gives u = 1
-(closed domain); a time within the float64 rounding of an end (END_ULPS ulps of the ends'
-magnitude, :func:`time_in_domain`) is accepted and continues the end segment by that much.  The
-same rule holds for absolute stamps and relative times (1.2e-6 s for ends near a 1.3e9 s stamp,
-whose ulp is 2.4e-7 s; 5e-17 s for ends near 0.06 s).  Other times raise ValueError naming the time and the domain.
+Segment rule (exact on what it is given): the float64 numbers t, t0 and Δt are the times; the
+segment is floor((t − t0)/Δt) − offset of the *exact* rational quotient (:func:`_exact_floor_quotient`),
+u = s − i with s = (t − t0)/Δt − offset in float64; no tolerance moves a time to another segment.  At
+the domain ends only, the index is clamped (t_max gives u = 1) and a time within the float64 rounding
+of an end is accepted (:func:`time_in_domain`); other times raise ValueError naming the time and the
+domain.  Times, t0 and Δt must be float64 (or Python floats): float32 ones raise TypeError.
 
 Rotation steps: the principal Log is ambiguous at a relative rotation of π between consecutive
 control points (the two choices give different curves); :func:`evaluate` does not check this,
@@ -162,20 +155,22 @@ def first_segment_offset(convention: str) -> int:
 
 
 def valid_time_range(n_ctrl: int, dt: float, t0: float, convention: str = "paper") -> Tuple[float, float]:
-    """Closed valid time interval [t_min, t_max] in seconds for ``n_ctrl`` control points.
+    """Closed valid time interval [t_min, t_max] in seconds (Python floats) for ``n_ctrl`` control points.
 
     paper: [t0 + 2Δt, t0 + (n−1)Δt]; basalt: [t0, t0 + (n−3)Δt].
 
     Raises:
-        ValueError: n_ctrl < 4, dt ≤ 0 or an unknown convention.
+        ValueError: n_ctrl < 4, dt ≤ 0 or an unknown convention.  TypeError: float32 dt or t0.
     """
     offset = first_segment_offset(convention)
     if n_ctrl < 4:
         raise ValueError(f"a cubic B-spline needs at least 4 control points, got n_ctrl={n_ctrl}")
+    check_float64_seconds("dt", dt)
+    check_float64_seconds("t0", t0)
     if not dt > 0:
-        raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
-    t0 = float(t0)
-    check_resolvable(float(dt), t0)
+        raise ValueError(f"knot spacing dt must be > 0 s, got {float(dt)!r}")
+    dt, t0 = float(dt), float(t0)
+    check_resolvable(dt, t0)
     return t0 + offset * dt, t0 + (offset + n_ctrl - 3) * dt
 
 
@@ -193,20 +188,25 @@ def check_resolvable(interval: float, time: float) -> None:
                          f"subtract a reference time from the stamps first")
 
 
-def _times_float64(times: TimesLike) -> torch.Tensor:
-    """Times as a float64 tensor (keeps autograd and device of a tensor input).
-
-    Raises:
-        TypeError: floating times narrower than float64 (float32 holds about 7 digits: at a
-            1.5e9 s stamp its spacing is 128 s, so the cast would come too late).
-    """
-    values = times if isinstance(times, torch.Tensor) else np.asarray(times)  # NumPy scalars and lists too
+def check_float64_seconds(name: str, value) -> None:
+    """TypeError when ``value`` (times, t0, dt or knots: a scalar, array, list or tensor) is floating
+    but narrower than float64: float32 holds about 7 digits (at a 1.5e9 s stamp its spacing is 128 s),
+    so a cast to float64 would come after the digits are gone."""
+    values = value if isinstance(value, torch.Tensor) else np.asarray(value)  # NumPy scalars and lists too
     dtype = values.dtype
     narrow = dtype.is_floating_point if isinstance(values, torch.Tensor) else dtype.kind == "f"
     if narrow and dtype.itemsize < 8:
-        raise TypeError(f"times must be float64 seconds (or Python floats), got {dtype}: it cannot hold "
-                        f"absolute stamps (float32 spacing at 1.5e9 s is 128 s)")
-    return values.to(torch.float64) if isinstance(values, torch.Tensor) else torch.as_tensor(values.astype(np.float64))
+        raise TypeError(f"{name} must be float64 seconds (or Python floats), got {dtype}: its digits are gone "
+                        f"before a cast to float64 (float32 spacing at 1.5e9 s is 128 s)")
+
+
+def _times_float64(times: TimesLike) -> torch.Tensor:
+    """Times as a float64 tensor (keeps autograd and device of a tensor input); TypeError for
+    floating times narrower than float64 (:func:`check_float64_seconds`)."""
+    check_float64_seconds("times", times)
+    if isinstance(times, torch.Tensor):
+        return times.to(torch.float64)
+    return torch.as_tensor(np.asarray(times).astype(np.float64))
 
 
 def _end_tolerance(t_end: float, t0: float) -> float:
