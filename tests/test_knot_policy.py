@@ -201,6 +201,28 @@ def test_adaptive_frame_spacing_check_uses_the_first_interval_when_it_is_the_sho
     knot_schedule.check_frame_spacing(cfg, times)
 
 
+def test_adaptive_knots_need_two_frames_per_shortest_interval_as_uniform_knots_do():
+    """12 Hz frames (0.083 s apart) with dt_min = 0.1 s: no gap exceeds the shortest interval, but the
+    intervals snapped one frame each and the policy, short of frames, kept that length to the end
+    (the curve between frames ran tens of metres off, exit 0).  Refused; 2 x 0.083 s -> 0.2 s."""
+    cfg = config.tiny()
+    cfg.method, cfg.spline.knots = "tsslam", "adaptive"
+    cfg.spline.dt, cfg.spline.dt_min, cfg.spline.dt_max = 0.3, 0.1, 0.4
+    twelve_hz = 1341841873.0 + np.arange(16) / 12.0
+    with pytest.raises(ValueError, match=r"0\.083 s apart \(median\), more than half of the shortest adaptive interval, "
+                                         r"min\(spline\.dt, spline\.dt_min\) = 0\.1 s.*--set spline\.dt_min=0\.2 "
+                                         r"--set spline\.dt=0\.3"):
+        knot_schedule.check_frame_spacing(cfg, twelve_hz)
+    knot_schedule.check_frame_spacing(cfg, 1341841873.0 + np.arange(16) / 20.0)  # 20 Hz: two frames per 0.1 s
+    thirty_hz = 1341841873.0 + np.arange(16) / 30.0
+    cfg.spline.dt_min = 0.04  # one frame per 0.04 s interval at 30 Hz
+    with pytest.raises(ValueError, match=r"0\.033 s apart \(median\).*--set spline\.dt_min=0\.1 "):
+        knot_schedule.check_frame_spacing(cfg, thirty_hz)
+    cfg.spline.dt_min = 0.01  # a gap over the shortest interval: the suggestion holds two frames, not one
+    with pytest.raises(ValueError, match=r"0\.033 s apart, more than the shortest adaptive interval.*--set spline\.dt_min=0\.1 "):
+        knot_schedule.check_frame_spacing(cfg, thirty_hz)
+
+
 def test_snap_uses_the_median_frame_spacing_across_a_dropped_frame():
     """Frames at k/30 s with frame 5 dropped: the spacing is still 1/30 s (median; the mean would be
     0.0375 s), so the knot nearest 0.4 s after an end at 0.3 s is 8/30 + 4.25/30 s, by hand."""

@@ -59,7 +59,8 @@ def end_last_interval(state, last: int) -> None:
 
 
 def check_frame_spacing(cfg: Config, timestamps) -> None:
-    """ValueError when two consecutive frames lie further apart than the shortest spline interval.
+    """ValueError when two consecutive frames lie further apart than the shortest spline interval,
+    or when that interval would hold fewer than two frames in the median.
 
     An interval holding no frame has nothing to place its control point: it is extrapolated from
     the control polygon, and the next fit frees it with no data, so the curve rings there (2 Hz
@@ -67,10 +68,12 @@ def check_frame_spacing(cfg: Config, timestamps) -> None:
     ``spline.dt`` with uniform knots; with adaptive knots the first interval's ``spline.dt`` or
     ``spline.dt_min``, whichever is shorter (intervals planned at it then step over frames, and
     the policy, which measures the motion from the frames inside them, never recovers).  A run
-    without the spline has no intervals to leave empty.  Uniform knots also need at least two
-    frames per interval in the median (frame spacing <= dt / 2): with 1.25 (5 Hz frames, dt =
-    0.25 s) the curve approximation's three free control points rest on too few poses and the
-    trajectory runs off by metres.
+    without the spline has no intervals to leave empty.  The shortest interval also needs at least
+    two frames in the median (frame spacing <= half of it): with 1.25 (5 Hz frames, dt = 0.25 s)
+    the curve approximation's three free control points rest on too few poses and the trajectory
+    runs off by metres; with adaptive knots at one frame per interval (12 Hz frames, dt_min =
+    0.1 s) the policy has too few frames to measure the motion, keeps the last length, and the
+    curve between frames ran tens of metres off.
     """
     if cfg.method != "tsslam" or not cfg.local_ba.use_spline:
         return
@@ -78,28 +81,33 @@ def check_frame_spacing(cfg: Config, timestamps) -> None:
     if len(times) < 2:
         return
     gaps = np.diff(times)
-    worst = int(np.argmax(gaps))
+    worst, typical = int(np.argmax(gaps)), float(np.median(gaps))
     uniform = cfg.spline.knots == "uniform"
     shortest = cfg.spline.dt if uniform else min(cfg.spline.dt, cfg.spline.dt_min)
+    which = (f"spline.dt = {cfg.spline.dt} s" if uniform else
+             f"the shortest adaptive interval, min(spline.dt, spline.dt_min) = {shortest} s")
     if gaps[worst] > shortest:
-        suggestion = math.ceil(gaps[worst] * 20.0) / 20.0  # the next 0.05 s
-        which, fix = ((f"spline.dt = {cfg.spline.dt} s", f"--set spline.dt={suggestion:g} (or more)") if uniform else
-                      (f"the shortest adaptive interval, min(spline.dt, spline.dt_min) = {shortest} s",
-                       f"--set spline.dt_min={suggestion:g} --set spline.dt={max(suggestion, cfg.spline.dt):g} (or more)"))
-        fix = f"use {fix}, or --method coslam"
+        suggestion = math.ceil(max(gaps[worst], 0.0 if uniform else 2.0 * typical) * 20.0) / 20.0  # next 0.05 s
+        fix = f"use {_longer_intervals(cfg, suggestion)}, or --method coslam"
         if suggestion > LONGEST_DT:  # beyond any interval the config allows
             fix = (f"no spline interval may be that long (spline.dt at most {LONGEST_DT:g} s): check the time stamps "
                    f"(milliseconds read as seconds?), cut the sequence at the gap, or use --method coslam")
         raise ValueError(
             f"frames {worst} and {worst + 1} (t = {times[worst]:.6f} s, {times[worst + 1]:.6f} s) are {gaps[worst]:.3f} s "
             f"apart, more than {which}, so a spline interval would hold no frame to fit its control point; {fix}")
-    typical = float(np.median(gaps))
-    if uniform and typical > cfg.spline.dt / 2.0 * (1.0 + 1e-6):  # fewer than two frames per interval (stamps' rounding aside)
+    if typical > shortest / 2.0 * (1.0 + 1e-6):  # fewer than two frames per interval (stamps' rounding aside)
         suggestion = math.ceil(2.0 * typical * 20.0 - 1e-6) / 20.0
         raise ValueError(
-            f"frames are {typical:.3f} s apart (median), more than half of spline.dt = {cfg.spline.dt} s, so an interval "
-            f"would hold fewer than two frames, too few to place its control point; use --set spline.dt={suggestion:g} "
-            f"(or more), or --method coslam")
+            f"frames are {typical:.3f} s apart (median), more than half of {which}, so an interval would hold fewer "
+            f"than two frames, too few to place its control point; use {_longer_intervals(cfg, suggestion)}, or "
+            f"--method coslam")
+
+
+def _longer_intervals(cfg: Config, seconds: float) -> str:
+    """The --set options that make the shortest spline interval at least ``seconds`` long."""
+    if cfg.spline.knots == "uniform":
+        return f"--set spline.dt={seconds:g} (or more)"
+    return f"--set spline.dt_min={seconds:g} --set spline.dt={max(seconds, cfg.spline.dt):g} (or more)"
 
 
 def check_knot_settings(cfg: Config) -> None:
