@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import spline, spline_jacobians, spline_kit
+from tsslam_ref import se3_spline, spline, spline_jacobians, spline_kit
 from tsslam_ref.geometry import so3_exp, vee
 
 F64 = torch.float64
@@ -156,3 +156,55 @@ def test_cli_evaluate_jacobians_and_check_catches_a_wrong_block(tmp_path, capsys
     assert spline_kit.main(["check", str(vector), str(output)]) == 1
     out = capsys.readouterr().out
     assert "J_omega_body" in out and "worst at index 3" in out
+
+
+def _se3(R, P, times, dt, t0, derivatives=2):
+    return se3_spline.evaluate(R, P, times, dt, t0, derivatives=derivatives)
+
+
+BAD_CONTROL_POINTS = [
+    ("batched", lambda R, P: (R.expand(2, 8, 3, 3), P.expand(2, 8, 3)), ValueError,
+     "control_rotations must be (N, 3, 3), got (2, 8, 3, 3) (one spline: no batch dimension)"),
+    ("quaternions", lambda R, P: (torch.ones(8, 4, dtype=F64), P), ValueError,
+     "control_rotations must be (N, 3, 3), got (8, 4) (rotation matrices: convert quaternions"),
+    ("rotation_vectors", lambda R, P: (torch.ones(8, 3, dtype=F64), P), ValueError,
+     "control_rotations must be (N, 3, 3), got (8, 3)"),
+    ("numpy", lambda R, P: (R.numpy(), P.numpy()), TypeError,
+     "control_rotations must be a torch tensor, got ndarray"),
+    ("R_float32", lambda R, P: (R.float(), P), ValueError,
+     "control rotations (torch.float32) and translations (torch.float64) must share a dtype"),
+    ("P_float32", lambda R, P: (R, P.float()), ValueError,
+     "control rotations (torch.float64) and translations (torch.float32) must share a dtype"),
+    ("P_four_columns", lambda R, P: (R, torch.ones(8, 4, dtype=F64)), ValueError,
+     "control_translations must be (N, 3) matching control_rotations (8, 3, 3), got (8, 4)"),
+    ("P_fewer_rows", lambda R, P: (R, P[:5]), ValueError,
+     "control_translations must be (N, 3) matching control_rotations (8, 3, 3), got (5, 3)"),
+]
+
+
+@pytest.mark.parametrize("function", [spline_jacobians.jacobians, _se3], ids=["jacobians", "se3_spline"])
+@pytest.mark.parametrize("case,make,error,words", BAD_CONTROL_POINTS, ids=[case[0] for case in BAD_CONTROL_POINTS])
+def test_jacobians_and_se3_spline_check_their_control_points_naming_what_was_given(function, case, make, error, words):
+    """As spline.evaluate: a batch, quaternions, numpy arrays, mixed dtypes and mismatched rows are named."""
+    R, P = random_spline(5)
+    R_bad, P_bad = make(R, P)
+    with pytest.raises(error) as raised:
+        function(R_bad, P_bad, [1.2], 0.25, 0.5)
+    assert words in str(raised.value), str(raised.value)
+
+
+@pytest.mark.parametrize("derivatives", [3, -1, "2", None])
+def test_se3_spline_refuses_other_derivative_orders_as_spline_does(derivatives):
+    R, P = random_spline(6)
+    for function in (spline.evaluate, se3_spline.evaluate):
+        with pytest.raises(ValueError, match=r"derivatives must be 0, 1 or 2, got"):
+            function(R, P, [1.2], 0.25, 0.5, derivatives=derivatives)
+
+
+def test_jacobians_and_se3_spline_flatten_times_to_m_as_documented():
+    R, P = random_spline(7)
+    times = np.full((2, 3), 1.2)
+    assert spline_jacobians.jacobians(R, P, times, 0.25, 0.5)["J_R"].shape == (6, 4, 3, 3)
+    assert se3_spline.evaluate(R, P, times, 0.25, 0.5).rotation.shape == (6, 3, 3)
+    assert se3_spline.evaluate(R, P, 1.2, 0.25, 0.5).translation.shape == (1, 3)
+    assert spline.evaluate(R, P, times, 0.25, 0.5).rotation.shape == (2, 3, 3, 3)  # keeps the shape

@@ -212,7 +212,7 @@ def evaluate(control_rotations: torch.Tensor, control_translations: torch.Tensor
     Raises:
         ValueError: bad knots (named), a time outside [κ_2, κ_{N−1}], malformed shapes.
     """
-    n_ctrl = spline._check_control_points(control_rotations, control_translations)
+    n_ctrl = spline.check_control_points(control_rotations, control_translations)
     knots = check_knots(knots, n_ctrl)
     if derivatives not in (0, 1, 2):
         raise ValueError(f"derivatives must be 0, 1 or 2, got {derivatives}")

@@ -77,14 +77,18 @@ def evaluate(control_rotations: torch.Tensor, control_translations: torch.Tensor
     """Joint SE(3) spline at query times (unbatched control points), as :func:`tsslam_ref.spline.evaluate`.
 
     Args:
-        control_rotations: (N, 3, 3); control_translations: (N, 3) (T_k = [R_k, t_k], camera-to-world).
-        times: (M,) seconds; dt, t0, convention: as the split spline.
-        derivatives: 0 pose; 1 adds v, ω_body; 2 adds a, ω̇_body.
+        control_rotations: (N, 3, 3); control_translations: (N, 3) (T_k = [R_k, t_k], camera-to-world):
+            tensors of one dtype, unbatched (checked as :func:`tsslam_ref.spline.evaluate` checks them).
+        times: any shape, seconds (float64), flattened to (M,): a scalar gives M = 1, a (2, 3) array
+            M = 6 (unlike ``spline.evaluate``, which keeps the shape); dt, t0, convention: as the split spline.
+        derivatives: 0 pose; 1 adds v, ω_body; 2 adds a, ω̇_body (ValueError otherwise).
 
     Returns:
         :class:`tsslam_ref.spline.SplineSample` with fields (M, ...).
     """
-    n_ctrl = control_rotations.shape[0]
+    n_ctrl = spline.check_control_points(control_rotations, control_translations, batched=False)
+    if derivatives not in (0, 1, 2):
+        raise ValueError(f"derivatives must be 0, 1 or 2, got {derivatives!r}")
     first, u, _ = spline._locate(times, n_ctrl, dt, t0, convention)
     device = control_translations.device
     first = first.to(device)

@@ -450,20 +450,25 @@ def evaluate_segments(
     return evaluate_weights(control_rotations, control_translations, first_index, weights, derivatives)
 
 
-def _check_control_points(control_rotations: torch.Tensor, control_translations: torch.Tensor) -> int:
-    if control_rotations.shape[-2:] != (3, 3) or control_rotations.dim() < 3:
-        raise ValueError(f"control_rotations must be (..., N, 3, 3), got {tuple(control_rotations.shape)}")
-    if control_translations.shape[-1] != 3 or control_translations.shape[:-1] != control_rotations.shape[:-2]:
-        raise ValueError(
-            f"control_translations must be (..., N, 3) matching control_rotations "
-            f"{tuple(control_rotations.shape)}, got {tuple(control_translations.shape)}"
-        )
+def check_control_points(control_rotations: torch.Tensor, control_translations: torch.Tensor,
+                         batched: bool = True) -> int:
+    """N, once the control points are tensors (..., N, 3, 3) and (..., N, 3) of one dtype (``batched``
+    False: (N, 3, 3) and (N, 3)); TypeError or ValueError naming what was given otherwise."""
+    for name, value in (("control_rotations", control_rotations), ("control_translations", control_translations)):
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"{name} must be a torch tensor, got {type(value).__name__} (use torch.as_tensor)")
+    shape, lead = tuple(control_rotations.shape), "..., " if batched else ""
+    if shape[-2:] != (3, 3) or len(shape) < 3 or not (batched or len(shape) == 3):
+        hint = (" (rotation matrices: convert quaternions or rotation vectors first, e.g. geometry.so3_exp)"
+                if len(shape) == 2 else "" if batched else " (one spline: no batch dimension)")
+        raise ValueError(f"control_rotations must be ({lead}N, 3, 3), got {shape}{hint}")
+    if control_translations.shape[-1:] != (3,) or control_translations.shape[:-1] != shape[:-2]:
+        raise ValueError(f"control_translations must be ({lead}N, 3) matching control_rotations {shape}, "
+                         f"got {tuple(control_translations.shape)}")
     if control_rotations.dtype != control_translations.dtype:
-        raise ValueError(
-            f"control rotations ({control_rotations.dtype}) and translations "
-            f"({control_translations.dtype}) must share a dtype"
-        )
-    return control_rotations.shape[-3]
+        raise ValueError(f"control rotations ({control_rotations.dtype}) and translations "
+                         f"({control_translations.dtype}) must share a dtype")
+    return shape[-3]
 
 
 def evaluate(
@@ -496,7 +501,7 @@ def evaluate(
         ValueError: "time ... is outside the spline domain [t_min, t_max]" (closed interval),
             malformed shapes, N < 4, unknown convention.
     """
-    n_ctrl = _check_control_points(control_rotations, control_translations)
+    n_ctrl = check_control_points(control_rotations, control_translations)
     first, u, shape = _locate(times, n_ctrl, dt, t0, convention)
     sample = evaluate_segments(control_rotations, control_translations, first, u, dt, derivatives)
     return reshape_sample(sample, control_translations.shape[:-2], shape)

@@ -159,14 +159,17 @@ def jacobians(control_rotations: torch.Tensor, control_translations: torch.Tenso
     """Jacobians of R, p, v, a, ω_body, ω̇_body w.r.t. the 4 active control points (module docstring).
 
     Args:
-        control_rotations: (N, 3, 3); control_translations: (N, 3) (unbatched).
-        times: (M,) seconds (the domain rule of :mod:`tsslam_ref.spline`).
+        control_rotations: (N, 3, 3); control_translations: (N, 3): tensors of one dtype, unbatched
+            (checked as :func:`tsslam_ref.spline.evaluate` checks them, ValueError / TypeError).
+        times: any shape, seconds (float64; the domain rule of :mod:`tsslam_ref.spline`), flattened
+            to (M,): a scalar gives M = 1, a (2, 3) array M = 6 (unlike ``spline.evaluate``, which
+            keeps the shape).
 
     Returns:
         dict with ``first`` (M,) int64 (first active control index) and :data:`JACOBIAN_KEYS`,
         each (M, 4, 3, 3) in the control points' dtype.
     """
-    n_ctrl = control_rotations.shape[0]
+    n_ctrl = spline.check_control_points(control_rotations, control_translations, batched=False)
     first, u, _ = spline._locate(times, n_ctrl, dt, t0, convention)
     dtype, device = control_translations.dtype, control_translations.device
     u = u.detach().to(device=device, dtype=dtype)
