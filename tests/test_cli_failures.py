@@ -677,6 +677,12 @@ def test_a_camera_standing_still_or_turning_in_place_gets_its_ate(tmp_path, caps
         assert run.main(arguments + ["--data", str(tmp_path / "room"), "--out", str(out)]) == 0, capsys.readouterr().err
         metrics = json.loads((out / "metrics.json").read_text())
         assert np.isfinite(metrics["ate_rmse_m"]) and metrics["ate_rmse_m"] < 0.5, metrics
+        assert ("spline" in metrics) == (method == "tsslam")
+    stamps = np.loadtxt(out / "trajectory.txt")[:, 0]  # the TS-SLAM run's frames: its intervals cover them
+    bounds = np.array(metrics["spline"]["interval_boundaries_s"])
+    assert metrics["spline"]["knots"] == "uniform" and metrics["spline"]["intervals"] == len(bounds) - 1
+    assert abs(bounds[0] - stamps[0]) < 1e-6 and bounds[-2] <= stamps[-1] < bounds[-1]
+    np.testing.assert_allclose(np.diff(bounds), config_module.tiny().spline.dt, rtol=1e-9)
 
 
 def test_a_map_without_a_surface_still_ends_with_metrics(runs, tmp_path, monkeypatch, capsys):

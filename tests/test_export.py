@@ -222,3 +222,19 @@ def test_a_run_warns_before_it_starts_when_the_export_would_hold_one_row(capsys,
     run._note_sparse_export(rate, 1.3e9 + np.array([0.0, span]))
     err = capsys.readouterr().err
     assert (f"will hold {rows} row" in err) == (rows < 2), err
+
+
+def test_the_spline_summary_lists_the_intervals_of_uneven_knots():
+    """Knots pushed at chosen times (the oracle): 7 control points, paper convention -> 4 intervals
+    from the start time, each as long as the gap pushed."""
+    from tsslam_ref.run_outputs import spline_summary
+
+    trajectory = BSplineTrajectory.empty(STAMP, 0.3, torch.zeros(1, dtype=torch.float64))
+    gaps = [0.3, 0.3, 0.3, 0.1, 0.2, 0.4]  # t_1 - t_0, ...: the intervals of the domain are the last four
+    knots = STAMP - 0.6 + np.concatenate([[0.0], np.cumsum(gaps)])
+    for time in knots:
+        trajectory.push_back(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), knot_time=time)
+    summary = spline_summary(trajectory, "adaptive")
+    assert summary["intervals"] == 4 and summary["knots"] == "adaptive"
+    np.testing.assert_allclose(np.diff(summary["interval_boundaries_s"]), [0.3, 0.1, 0.2, 0.4], atol=1e-6)
+    assert (summary["interval_min_s"], summary["interval_max_s"]) == pytest.approx((0.1, 0.4), abs=1e-6)

@@ -216,6 +216,8 @@ def write_outputs(plan, result) -> None:
                "camera": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy, "width": camera.width,
                           "height": camera.height, "depth_scale": sequence.depth_scale}}
     metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
+    if cfg.method == "tsslam" and cfg.local_ba.use_spline:
+        metrics["spline"] = spline_summary(result.state.trajectory, cfg.spline.knots)
     metrics["runtime"] = result.state.timings.table()
     metrics["environment"] = run_environment(plan.device, result.state.field)
     if plan.environment is not None and plan.environment != metrics["environment"]:  # resumed elsewhere
@@ -235,6 +237,21 @@ def write_outputs(plan, result) -> None:
     if "peak_rss_mib" in metrics:
         parts.append(f"peak RSS {metrics['peak_rss_mib']:.0f} MiB")
     print("; ".join(parts + [f"outputs in {out}"]))
+
+
+def spline_summary(trajectory, knots: str) -> dict:
+    """Where a TS-SLAM run's knots went: the knot rule, the domain's interval count, their lengths
+    (min / mean / max, s) and the interval boundaries (float64 s, as the frames' stamps; the last
+    one is the domain's end, past the last frame)."""
+    start, end = trajectory.domain()
+    boundaries = [start]
+    while boundaries[-1] < end:
+        boundaries.append(trajectory.interval(len(boundaries) - 1)[1])
+    boundaries = np.asarray(boundaries, dtype=np.float64)
+    lengths = np.diff(boundaries)
+    return {"knots": knots, "intervals": int(len(lengths)), "interval_min_s": float(lengths.min()),
+            "interval_mean_s": float(lengths.mean()), "interval_max_s": float(lengths.max()),
+            "interval_boundaries_s": boundaries.tolist()}
 
 
 def _jsonable(value):
