@@ -279,3 +279,13 @@ def test_float32_knots_are_refused_like_float32_times(make):
     with pytest.raises(TypeError, match="^knots must be float64 seconds"):
         knots.evaluate(R, P, [float(knot_vector[4])], make(knot_vector))
 
+
+@pytest.mark.parametrize("n_ctrl,dt,t0,words", [
+    (8, 0.0, 1.0, "dt must be > 0 s, got 0.0"), (8, -0.1, 1.0, "dt must be > 0 s, got -0.1"),
+    (8, float("nan"), 1.0, "dt must be a finite number of seconds, got nan"),
+    (8, float("inf"), 1.0, "dt must be a finite number of seconds, got inf"),
+    (8, 0.1, float("nan"), "t0 must be a finite number of seconds, got nan"),
+    (3, 0.1, 1.0, "at least 4 control points, got n_ctrl=3"), (2, 0.1, 1.0, "got n_ctrl=2")])
+def test_uniform_knots_refuses_a_bad_spacing_or_too_few_points_naming_the_value(n_ctrl, dt, t0, words):
+    with pytest.raises(ValueError, match=words.replace("(", r"\(")):
+        knots.uniform_knots(n_ctrl, dt, t0)
