@@ -106,7 +106,7 @@ def run_slam_in_two_threads(sequence, cfg: Config, device: Optional[torch.device
             on_frame(state)
     if state.done < len(sequence):
         run_tracking_and_mapping(sequence, state, device, dtype, on_frame)
-    return slam.finish_run(sequence, state, device, dtype, time.perf_counter() - start, first_new)
+    return slam.finish_run(sequence, state, device, dtype, start, first_new)
 
 
 def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.device, dtype: torch.dtype,

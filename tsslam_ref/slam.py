@@ -130,7 +130,7 @@ def run_slam(sequence, cfg: Config, device: Optional[torch.device] = None, state
         state.done = i + 1
         if on_frame is not None:
             on_frame(state)
-    return finish_run(sequence, state, device, dtype, time.perf_counter() - start, first_new)
+    return finish_run(sequence, state, device, dtype, start, first_new)
 
 
 def prepare_run(sequence, cfg: Config, device: Optional[torch.device], state: Optional[SLAMState]
@@ -150,12 +150,13 @@ def prepare_run(sequence, cfg: Config, device: Optional[torch.device], state: Op
     return state, device, getattr(torch, cfg.dtype)
 
 
-def finish_run(sequence, state: SLAMState, device: torch.device, dtype: torch.dtype, elapsed: float,
+def finish_run(sequence, state: SLAMState, device: torch.device, dtype: torch.dtype, started: float,
                first_new: int) -> SLAMResult:
-    """TS-SLAM maps its last, incomplete interval; collect the outputs (``elapsed`` s for the
-    frames from ``first_new`` on)."""
+    """TS-SLAM maps its last, incomplete interval; collect the outputs (the frames from
+    ``first_new`` on took from ``started``, a ``time.perf_counter()`` value, to now, this step included)."""
     if state.cfg.method == "tsslam" and state.done == len(sequence):
         tsslam_finish(state, sequence, device, dtype)
+    elapsed = time.perf_counter() - started
     return SLAMResult(
         timestamps=np.asarray(sequence.timestamps, dtype=np.float64),
         poses=estimated_trajectory(state).detach().cpu().double().numpy(),
