@@ -118,6 +118,16 @@ def test_mesh_faces_and_colours_are_the_inputs():
     assert list(trace.vertexcolor) == ["rgb(255,0,0)", "rgb(0,255,0)", "rgb(0,0,255)", "rgb(255,255,255)"]
 
 
+def test_mesh_takes_a_read_ply_s_rgba_integer_colours_as_0_to_255():
+    """A mesh.ply read by trimesh gives (V, 4) uint8 RGBA; a dark one (every value <= 1) is still 0-255."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
+    rgba = np.array([[1, 0, 0, 255], [0, 1, 0, 255], [200, 100, 50, 255]], dtype=np.uint8)
+    trace = view3d.mesh(vertices, [[0, 1, 2]], rgba)
+    assert list(trace.vertexcolor) == ["rgb(1,0,0)", "rgb(0,1,0)", "rgb(200,100,50)"]
+    dark = view3d.mesh(vertices, [[0, 1, 2]], rgba[:2].repeat([1, 2], axis=0)[:, :3])
+    assert list(dark.vertexcolor) == ["rgb(1,0,0)", "rgb(0,1,0)", "rgb(0,1,0)"]
+
+
 def test_trajectory_marks_its_first_position():
     """Oracle: the start marker (size 6) is on the first of the given positions, the others size 0."""
     trace = view3d.trajectory(np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]))

@@ -185,7 +185,9 @@ def mesh(vertices, faces, vertex_colors=None, *, name: str = "mesh", color: str 
 
     Args:
         vertices: (V, 3) in metres; faces: (F, 3) vertex indices in [0, V);
-        vertex_colors: None (one ``color``) or (V, 3) RGB in [0, 1] (or 0-255 integers).
+        vertex_colors: None (one ``color``), or (V, 3) RGB / (V, 4) RGBA (alpha ignored) as
+            floats in [0, 1] or as integers 0-255 (an integer array, as a read ``mesh.ply``'s
+            ``visual.vertex_colors``, is taken as 0-255).
     """
     vertices = _array(vertices, "vertices", (None, 3))
     faces_f = _array(faces, "faces", (None, 3))
@@ -197,8 +199,10 @@ def mesh(vertices, faces, vertex_colors=None, *, name: str = "mesh", color: str 
     i, j, k = faces.T.tolist()
     style = {"color": color}
     if vertex_colors is not None:
-        rgb = _array(vertex_colors, "vertex_colors", (len(vertices), 3))
-        rgb = rgb / 255.0 if rgb.max(initial=0) > 1 else rgb
+        integers = np.issubdtype(np.asarray(vertex_colors).dtype, np.integer)
+        channels = np.shape(vertex_colors)[-1] if np.ndim(vertex_colors) == 2 else 3
+        rgb = _array(vertex_colors, "vertex_colors", (len(vertices), 4 if channels == 4 else 3))[:, :3]
+        rgb = rgb / 255.0 if integers or rgb.max(initial=0) > 1 else rgb
         style = {"vertexcolor": [f"rgb({r},{g},{b})" for r, g, b in np.round(rgb * 255).astype(int)]}
     return _graph_objects().Mesh3d(x=x, y=y, z=z, i=i, j=j, k=k, name=name, opacity=float(opacity),
                                    showlegend=True, flatshading=True, **style)
