@@ -71,7 +71,8 @@ def random_control_points(rng: np.random.Generator, n_ctrl: int, max_angle: floa
 
 def query_times(rng: np.random.Generator, n_ctrl: int, dt: float, t0: float, convention: str) -> np.ndarray:
     """All knots in the domain (both ends included), the float64 neighbours just before and after
-    every interior knot (where the segment choice is hardest), plus random times; sorted, float64."""
+    every interior knot (where the segment choice is hardest), plus random times; sorted, float64,
+    each time once (the knots include both domain ends)."""
     t_min, t_max = spline.valid_time_range(n_ctrl, dt, t0, convention)
     offset = 2 if convention == "paper" else 0
     knots = t0 + dt * np.arange(offset, offset + n_ctrl - 2, dtype=np.float64)
@@ -79,7 +80,7 @@ def query_times(rng: np.random.Generator, n_ctrl: int, dt: float, t0: float, con
     interior = knots[1:-1]
     neighbours = [np.nextafter(interior, -np.inf), np.nextafter(interior, np.inf),
                   np.nextafter(np.nextafter(interior, -np.inf), -np.inf)]
-    return np.sort(np.concatenate([[t_min, t_max], knots, *neighbours, random]))
+    return np.unique(np.concatenate([[t_min, t_max], knots, *neighbours, random]))
 
 
 def make_vector(convention, dt, t0, rotvecs, translations, times, description, representation="split",
@@ -101,8 +102,8 @@ def knot_vector():
     domain_knots = knot_vector[2:n_ctrl]  # kappa_2 .. kappa_{N-1}
     interior = domain_knots[1:-1]
     random = domain_knots[0] + (domain_knots[-1] - domain_knots[0]) * rng.uniform(size=N_RANDOM_TIMES)
-    times = np.sort(np.concatenate([domain_knots, np.nextafter(interior, -np.inf), np.nextafter(interior, np.inf),
-                                    random]))
+    times = np.unique(np.concatenate([domain_knots, np.nextafter(interior, -np.inf), np.nextafter(interior, np.inf),
+                                      random]))
     data = {"description": f"{name}: random spline on uneven knots ({low}..{high} s apart) at TUM-like stamps, "
                            f"seed {SEED + 1}, n_ctrl={n_ctrl}, relative rotations <= {max_angle} rad",
             "representation": "split", "knots": knot_vector.tolist(), "rotvecs": rotvecs.tolist(),
@@ -125,7 +126,7 @@ def main(argv=None) -> int:
         times = query_times(rng, n_ctrl, dt, t0, convention)
         description = (f"{name}: random spline, seed {SEED}, n_ctrl={n_ctrl}, relative rotations <= {max_angle} rad")
         vectors[name] = make_vector(convention, dt, t0, rotvecs, translations, times, description)
-    golden_times = np.sort(np.concatenate([BASALT_GOLDEN_TIMES, query_times(rng, 6, 0.5, 0.0, "basalt")]))
+    golden_times = np.unique(np.concatenate([BASALT_GOLDEN_TIMES, query_times(rng, 6, 0.5, 0.0, "basalt")]))
     vectors["basalt_golden_dt0.5"] = make_vector(
         "basalt", 0.5, 0.0, BASALT_GOLDEN_ROTVECS, BASALT_GOLDEN_TRANSLATIONS, golden_times,
         "basalt_golden_dt0.5: the knots of the basalt golden table (tsslam_ref/assets/spline_kit.md); our values "
@@ -140,7 +141,7 @@ def main(argv=None) -> int:
     rotvecs, translations = random_control_points(rng, n_ctrl, max_angle, scale)
     t_min, t_max = spline.valid_time_range(n_ctrl, dt, t0, convention)
     knots = t0 + dt * np.arange(2, n_ctrl, dtype=np.float64)
-    times = np.sort(np.concatenate([knots, t_min + (t_max - t_min) * rng.uniform(size=N_JACOBIAN_TIMES)]))
+    times = np.unique(np.concatenate([knots, t_min + (t_max - t_min) * rng.uniform(size=N_JACOBIAN_TIMES)]))
     description = (f"{name}: random spline with analytic Jacobians w.r.t. the 4 active control points "
                    f"(R_k <- Exp(delta) R_k, P_k <- P_k + tau; output R <- Exp(eps) R), seed {SEED}")
     vectors[name] = make_vector(convention, dt, t0, rotvecs, translations, times, description, jacobians=True)

@@ -53,6 +53,14 @@ def test_shipped_vectors_exist_and_are_small():
         assert len(data["times"]) >= (30 if "J_R" in data else 200)
 
 
+def test_every_shipped_vector_holds_each_time_once():
+    """The domain ends are knots too; a vector must not list them (or any time) twice."""
+    for path in ALL_VECTOR_PATHS:
+        times = json.loads(path.read_text())["times"]
+        assert len(set(times)) == len(times), (path.stem, len(times) - len(set(times)))
+        assert times == sorted(times), path.stem
+
+
 @pytest.mark.parametrize("path", VECTOR_PATHS, ids=lambda p: p.stem)
 def test_shipped_vector_rotations_match_pypose_and_translations_match_scipy(path):
     data, arrays = load_vector(path)
