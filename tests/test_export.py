@@ -238,3 +238,29 @@ def test_the_spline_summary_lists_the_intervals_of_uneven_knots():
     assert summary["intervals"] == 4 and summary["knots"] == "adaptive"
     np.testing.assert_allclose(np.diff(summary["interval_boundaries_s"]), [0.3, 0.1, 0.2, 0.4], atol=1e-6)
     assert (summary["interval_min_s"], summary["interval_max_s"]) == pytest.approx((0.1, 0.4), abs=1e-6)
+
+
+def test_the_trajectory_figure_draws_the_estimate_aligned_as_the_ate_aligns_it_on_equal_axes():
+    """An estimate that is the ground truth turned 90 degrees and shifted: aligned, its curve lies on the
+    ground truth's (the oracle: the planted positions); the axes span one common length."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tsslam_ref import run_outputs, trajectory_metrics
+
+    t = np.linspace(0.0, 1.0, 20)
+    gt = np.tile(np.eye(4), (20, 1, 1))
+    gt[:, :3, 3] = np.stack([t, 0.1 * np.sin(6 * t), 0.02 * t], axis=1)  # a flat, wide path: x spans 50x z
+    turn = make_pose(torch.from_numpy(Rotation.from_euler("z", 90, degrees=True).as_matrix()), torch.tensor([3.0, 0, 0]))
+    estimate = turn.double().numpy() @ gt
+    known = np.ones(20, dtype=bool)
+    result = trajectory_metrics.ate(gt, estimate)
+    figure = run_outputs._trajectory_figure(plt, estimate[:, :3, 3], (gt, known), result)
+    axis = figure.axes[0]
+    drawn = np.array(axis.lines[0].get_data_3d()).T
+    np.testing.assert_allclose(drawn, gt[:, :3, 3], atol=1e-9)
+    spans = [np.diff(limits)[0] for limits in (axis.get_xlim(), axis.get_ylim(), axis.get_zlim())]
+    assert spans == pytest.approx([spans[0]] * 3) and "aligned as for the ATE" in axis.get_title()
+    plt.close(figure)

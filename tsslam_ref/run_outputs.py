@@ -141,36 +141,62 @@ def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
 
 
 def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, metrics: dict) -> None:
-    """``trajectory.png`` (positions, with the ground truth when known) and ``errors.png`` (position
-    error after alignment over time, when at least 3 frames have a ground-truth pose)."""
+    """``trajectory.png`` (positions on equal axes; with at least 3 ground-truth poses the estimate
+    aligned onto them as the ATE aligns it) and ``errors.png`` (that position error over time)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure = plt.figure(figsize=(6, 5))
-    axis = figure.add_subplot(projection="3d")
-    axis.plot(*poses[:, :3, 3].T, label="estimate", color="tab:red")
-    if sequence.gt_poses is not None:
-        gt = np.asarray(sequence.gt_poses)
-        axis.plot(*gt[:, :3, 3].T, label="ground truth", color="k", linestyle="--")
-    axis.set_xlabel("x [m]"), axis.set_ylabel("y [m]"), axis.set_zlabel("z [m]")
-    axis.set_title(f"camera-to-world positions, ATE {metrics.get('ate_rmse_m', float('nan')) * 100:.2f} cm")
-    axis.legend()
-    with atomic_path(out / "trajectory.png") as temporary:
-        figure.savefig(temporary, dpi=80, format="png")
-    plt.close(figure)
     ground_truth = _known_ground_truth(sequence)
+    result = None
     if ground_truth is not None:
         gt, known = ground_truth
         result = trajectory_metrics_module.ate(gt[known], poses[known])
+    figure = _trajectory_figure(plt, poses[:, :3, 3], ground_truth, result)
+    with atomic_path(out / "trajectory.png") as temporary:
+        figure.savefig(temporary, dpi=80, format="png")
+    plt.close(figure)
+    if result is not None:
         figure, axis = plt.subplots(figsize=(6, 3))
         axis.plot(timestamps[known] - timestamps[0], np.asarray(result["errors_m"]) * 100)
-        axis.set_xlabel("time since first frame [s]"), axis.set_ylabel("position error after alignment [cm]")
+        axis.set_xlabel("time since first frame [s]"), axis.set_ylabel("position error [cm]")
+        axis.set_title(f"ATE per frame, after one rigid alignment fitted on these {int(known.sum())} frames",
+                       fontsize=9)
         figure.tight_layout()
         with atomic_path(out / "errors.png") as temporary:
             figure.savefig(temporary, dpi=80, format="png")
         plt.close(figure)
+
+
+def _trajectory_figure(plt, positions: np.ndarray, ground_truth, result):
+    """3-D plot of (N, 3) estimated positions, aligned onto the ground truth when ``result`` (the
+    :func:`ate` of the known frames) is given; equal axis scales, a dot at each start."""
+    figure = plt.figure(figsize=(6, 5))
+    axis = figure.add_subplot(projection="3d")
+    curves = []
+    if result is None:
+        curves.append((positions, "estimate", "tab:red", "-"))
+        title = "camera positions (camera-to-world), no ground truth to align to"
+    else:
+        gt, known = ground_truth
+        curves.append((np.asarray(result["est_positions_aligned_m"]), "estimate, aligned", "tab:red", "-"))
+        curves.append((gt[known, :3, 3], "ground truth", "k", "--"))
+        title = f"camera positions, estimate aligned as for the ATE ({result['ate_rmse_m'] * 100:.2f} cm)"
+    for points, label, colour, style in curves:
+        axis.plot(*points.T, label=label, color=colour, linestyle=style)
+        axis.scatter(*points[:1].T, color=colour, s=20)  # the start
+    every = np.concatenate([points for points, *_ in curves])
+    centre, half = every.mean(axis=0), max(float(np.ptp(every, axis=0).max()) / 2.0, 1e-3)
+    axis.set_xlim(centre[0] - half, centre[0] + half), axis.set_ylim(centre[1] - half, centre[1] + half)
+    axis.set_zlim(centre[2] - half, centre[2] + half)
+    axis.set_box_aspect((1, 1, 1))
+    for side in (axis.xaxis, axis.yaxis, axis.zaxis):  # few ticks: long metre labels overlap otherwise
+        side.set_major_locator(plt.MaxNLocator(4))
+    axis.set_xlabel("x [m]"), axis.set_ylabel("y [m]"), axis.set_zlabel("z [m]")
+    axis.set_title(title, fontsize=9)
+    axis.legend(fontsize=8)
+    return figure
 
 
 def _why_no_metrics(sequence) -> str:
