@@ -5,7 +5,7 @@ TS-SLAM §III-B, Eq. (5) ``eq:bspline_p`` (translation), Eq. (6) ``eq:bspline_r`
 ``eq_rot_jeck`` (the ω / ω̇ recursion).  Curve approximation, §III-D Eq. (11), is in
 :mod:`tsslam_ref.spline_fit`.
 
-Layer 1 (math).  Imports layer 0 (``geometry``); looks the names moved to ``spline_fit`` up there
+Layer 1 (math).  Imports layer 0 (``geometry``, ``times``); looks the names moved to ``spline_fit`` up there
 on first use.  Taught in notebooks/01_bspline_trajectory.ipynb.
 Sources: Sommer et al. 2020 "Efficient derivative computation for cumulative B-splines on Lie groups";
 basalt-headers ``so3_spline.h`` / ``rd_spline.h`` @a585db3 (same recursion, body frame).  docs/spline.md is the user doc;
@@ -60,6 +60,7 @@ import numpy as np
 import torch
 
 from tsslam_ref.geometry import so3_exp, so3_log
+from tsslam_ref.times import check_float64_seconds  # noqa: F401  (re-exported: knots, conformance)
 
 # Cumulative cubic basis matrix C of §III-B (rows: B_0..B_3, columns: powers 1, u, u², u³).
 _C = (
@@ -186,18 +187,6 @@ def check_resolvable(interval: float, time: float) -> None:
         raise ValueError(f"a knot interval of {interval!r} s is too short for times near {float(time)!r} s: float64 "
                          f"resolves {np.spacing(abs(float(time))):.3g} s there, so it needs >= {floor:.3g} s; "
                          f"subtract a reference time from the stamps first")
-
-
-def check_float64_seconds(name: str, value) -> None:
-    """TypeError when ``value`` (times, t0, dt or knots: a scalar, array, list or tensor) is floating
-    but narrower than float64: float32 holds about 7 digits (at a 1.5e9 s stamp its spacing is 128 s),
-    so a cast to float64 would come after the digits are gone."""
-    values = value if isinstance(value, torch.Tensor) else np.asarray(value)  # NumPy scalars and lists too
-    dtype = values.dtype
-    narrow = dtype.is_floating_point if isinstance(values, torch.Tensor) else dtype.kind == "f"
-    if narrow and dtype.itemsize < 8:
-        raise TypeError(f"{name} must be float64 seconds (or Python floats), got {dtype}: its digits are gone "
-                        f"before a cast to float64 (float32 spacing at 1.5e9 s is 128 s)")
 
 
 def _times_float64(times: TimesLike) -> torch.Tensor:

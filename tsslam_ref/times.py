@@ -12,19 +12,22 @@ import numpy as np
 import torch
 
 
-def float64_seconds(times, name: str) -> np.ndarray:
-    """A float64 NumPy copy of ``times`` (array, tensor, list or scalar; the input is not changed).
-
-    Raises:
-        TypeError: floating-point times narrower than float64 (float16/32 arrays or tensors, NumPy
-            float32 scalars or lists of them), naming ``name``.  Integers and Python floats pass.
-    """
-    values = times.detach() if isinstance(times, torch.Tensor) else np.asarray(times)
+def check_float64_seconds(name: str, value) -> None:
+    """TypeError naming ``name`` when ``value`` (times, t0, dt or knots: a scalar, array, list or
+    tensor) is floating-point but narrower than float64 (float16/32 arrays or tensors, NumPy float32
+    scalars or lists of them).  Integers and Python floats pass."""
+    values = value if isinstance(value, torch.Tensor) else np.asarray(value)  # NumPy scalars and lists too
     dtype = values.dtype
     floating = dtype.is_floating_point if isinstance(values, torch.Tensor) else dtype.kind == "f"
     if floating and dtype.itemsize < 8:
         raise TypeError(f"{name} must be float64 seconds (or Python floats), got {dtype}: float32 keeps about 7 "
-                        f"digits (its spacing at a 1.5e9 s stamp is 128 s), so the stamps were lost before the cast")
-    if isinstance(values, torch.Tensor):
-        return values.numpy(force=True).astype(np.float64, copy=True)
-    return np.array(values, dtype=np.float64, copy=True)
+                        f"digits (its spacing at a 1.5e9 s stamp is 128 s): the digits are gone before any cast")
+
+
+def float64_seconds(times, name: str) -> np.ndarray:
+    """A float64 NumPy copy of ``times`` (array, tensor, list or scalar; the input is not changed),
+    after :func:`check_float64_seconds`."""
+    check_float64_seconds(name, times)
+    if isinstance(times, torch.Tensor):
+        return times.detach().numpy(force=True).astype(np.float64, copy=True)
+    return np.array(times, dtype=np.float64, copy=True)
