@@ -104,7 +104,8 @@ camera = SimpleNamespace(fx=1.0, fy=1.0, cx=0.5, cy=0.5, width=2, height=2)
 two_frames = type("Frames", (list,), {"name": "probe", "gt_poses": None, "intrinsics": camera,
                                       "depth_scale": 1000.0})([None, None])
 plan = SimpleNamespace(args=SimpleNamespace(no_mesh=True, export_rate=None, checkpoint_every=0),
-                       cfg=SimpleNamespace(method="tsslam"), sequence=two_frames, out=Path("."),
+                       cfg=SimpleNamespace(method="tsslam", local_ba=SimpleNamespace(use_spline=False)),
+                       sequence=two_frames, out=Path("."),
                        environment=None, device=torch.device("cpu"))
 result = SimpleNamespace(timestamps=np.array([0.0, 0.1]), poses=np.repeat(np.eye(4)[None], 2, axis=0),
                          frames_per_second=1.0, frames_processed=2,

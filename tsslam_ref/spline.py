@@ -5,8 +5,8 @@ TS-SLAM §III-B, Eq. (5) ``eq:bspline_p`` (translation), Eq. (6) ``eq:bspline_r`
 ``eq_rot_jeck`` (the ω / ω̇ recursion).  Curve approximation, §III-D Eq. (11), is in
 :mod:`tsslam_ref.spline_fit`.
 
-Layer 1 (math).  Imports layer 0 (``geometry``, ``times``); looks the names moved to ``spline_fit`` up there
-on first use.  Taught in notebooks/01_bspline_trajectory.ipynb.
+Layer 1 (math).  Imports layer 0 (``geometry``, ``times``); looks the names moved to
+``spline_fit`` up there on first use.  Taught in notebooks/01_bspline_trajectory.ipynb.
 Sources: Sommer et al. 2020 "Efficient derivative computation for cumulative B-splines on Lie groups";
 basalt-headers ``so3_spline.h`` / ``rd_spline.h`` @a585db3 (same recursion, body frame).  docs/spline.md is the user doc;
 the conformance kit's reference (tsslam_ref/assets/spline_kit.md) lists formulas and golden values.
@@ -20,12 +20,19 @@ Index conventions (s = (t − t0)/Δt, control point k sits at t_k = t0 + kΔt, 
 Both give the same curve with paper time = basalt time + 2Δt.  **The domain is closed**: t_max
 maps to the last segment at u = 1 (like PyPose; basalt and kontiki are half-open and reject t_max).
 
-Segment rule (exact on what it is given): the float64 numbers t, t0 and Δt are the times; the
-segment is floor((t − t0)/Δt) − offset of the *exact* rational quotient (:func:`_exact_floor_quotient`),
-u = s − i with s = (t − t0)/Δt − offset in float64; no tolerance moves a time to another segment.  At
-the domain ends only, the index is clamped (t_max gives u = 1) and a time within the float64 rounding
-of an end is accepted (:func:`time_in_domain`); other times raise ValueError naming the time and the
-domain.  Times, t0 and Δt must be float64 (or Python floats): float32 ones raise TypeError.
+Segment rule (exact on what it is given): the float64 numbers t, t0 and Δt are the times.  The
+segment is i = floor((t − t0)/Δt) − offset of the *exact* rational quotient, u = s − i with
+s = (t − t0)/Δt − offset in float64.  floor of the float64 quotient is already exact unless it
+lies within 8 eps of an integer; only those times (knots, in practice) are redone with
+``fractions.Fraction``.  A knot time that float64 puts 1e-17 before the knot is therefore in the
+previous segment at u = 1 (the curve is C², so only a and ω̇ notice, by Δjerk times the
+distance, i.e. nothing), and a time 3e-6 segments before a knot is in the previous segment at
+u = 1 − 3e-6, as exact arithmetic says.  No tolerance moves a time to another segment.
+Special cases, the domain ends only: the index is clamped to the last segment, so t_max gives u = 1
+(closed domain); a time within the float64 rounding of an end (END_ULPS ulps of the ends'
+magnitude, :func:`time_in_domain`) is accepted and continues the end segment by that much.  Other
+times raise ValueError naming the time and the domain.  Times, t0 and Δt must be float64 (or
+Python floats): float32 ones raise TypeError.
 
 Rotation steps: the principal Log is ambiguous at a relative rotation of π between consecutive
 control points (the two choices give different curves); :func:`evaluate` does not check this,
