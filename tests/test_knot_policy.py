@@ -219,7 +219,8 @@ def test_adaptive_knots_need_two_frames_per_shortest_interval_as_uniform_knots_d
     with pytest.raises(ValueError, match=r"0\.033 s apart \(median\).*--set spline\.dt_min=0\.1 "):
         knot_schedule.check_frame_spacing(cfg, thirty_hz)
     cfg.spline.dt_min = 0.01  # a gap over the shortest interval: the suggestion holds two frames, not one
-    with pytest.raises(ValueError, match=r"0\.033 s apart, more than the shortest adaptive interval.*--set spline\.dt_min=0\.1 "):
+    with pytest.raises(ValueError, match=r"0\.033 s apart, more than the shortest adaptive interval.*"
+                                         r"--set spline\.dt_min=0\.1 "):
         knot_schedule.check_frame_spacing(cfg, thirty_hz)
 
 

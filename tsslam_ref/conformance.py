@@ -373,7 +373,8 @@ def compare(reference: dict, candidate: dict, atol: float = DEFAULT_ATOL, rtol: 
     why), ``jacobians`` (None when the reference holds no Jacobians, else "checked" or "unchecked":
     the candidate holds none), ``jacobian_keys`` (None, or why the candidate's set of Jacobian keys
     fails: some missing, or an unknown ``J_*`` key), ``J_first`` (the reference's at the matched
-    times, None when the Jacobians are not compared), ``atol``, ``rtol``, ``knots`` (the reference's knot vector, None when uniform or unknown),
+    times, None when the Jacobians are not compared), ``atol``, ``rtol``, ``knots`` (the
+    reference's knot vector, None when uniform or unknown),
     ``refs`` and ``cands`` (quantity -> (M, ...) arrays at the matched times), ``parsed`` (the
     reference's parsed input, None for a bare output file), ``ok``.  Times are the reference's at
     the matched indices (equal to the candidate's up to :data:`TIME_MATCH`).  Hints for a failed

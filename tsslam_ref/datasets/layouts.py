@@ -363,7 +363,8 @@ def _neural_rgbd_camera(folder: Path, first_depth: Path) -> Intrinsics:
     width, height = image_size(first_depth)
     if not focal_path.is_file():
         release = Intrinsics(NEURAL_RGBD_FOCAL, NEURAL_RGBD_FOCAL, 320.0, 240.0, 640, 480)
-        return _builtin_camera(release, first_depth, folder, "without focal.txt the release's values (fx = fy = 554.256)")
+        without = "without focal.txt the release's values (fx = fy = 554.256)"
+        return _builtin_camera(release, first_depth, folder, without)
     try:
         focal = float(focal_path.read_text().split()[0])
     except (ValueError, IndexError):
