@@ -140,7 +140,7 @@ def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
     return mesh_metrics(culled, culled_gt, n_points=50_000, threshold=0.05, seed=seed)
 
 
-def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray, metrics: dict) -> None:
+def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray) -> None:
     """``trajectory.png`` (positions on equal axes; with at least 3 ground-truth poses the estimate
     aligned onto them as the ATE aligns it) and ``errors.png`` (that position error over time)."""
     import matplotlib
@@ -252,7 +252,7 @@ def write_outputs(plan, result) -> None:
         metrics.update(mesh_outputs(plan, result.state.field))
     if args.export_rate is not None:
         export_continuous(result.state, args.export_rate, out / export_file_name(args.export_rate))
-    save_plots(out, sequence, result.timestamps, result.poses, metrics)
+    save_plots(out, sequence, result.timestamps, result.poses)
     metrics.update(peak_memory(plan.device))  # after the mesh and the plots: the whole run's peak
     atomic_write_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))  # last: it marks a finished run
     checkpoint_path = out / "checkpoint.pt"
