@@ -368,6 +368,15 @@ def test_kit_python_api_refuses_float32_times_naming_the_key(key):
         conformance.evaluate_input(data)
 
 
+def test_a_fractional_j_first_is_refused_naming_its_row(tmp_path, capsys):
+    """J_first 0.4 was truncated to 0 and reported as 'candidate 0, reference 0'."""
+    path = VECTOR_DIR / "jacobians_paper_dt0.25.json"
+    candidate = json.loads(path.read_text())
+    candidate["J_first"][3] += 0.4
+    code, text = _check_data(path, candidate, tmp_path, capsys)
+    assert code == 2 and f"key 'J_first' row 3 is {candidate['J_first'][3]!r}; expected an integer" in text, text
+
+
 def test_check_fails_another_active_window_as_a_check_failure_not_bad_input(tmp_path, capsys):
     path = VECTOR_DIR / "jacobians_paper_dt0.25.json"
     candidate = json.loads(path.read_text())

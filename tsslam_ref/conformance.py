@@ -350,7 +350,12 @@ def _jacobians_to_check(reference: dict, candidate: dict, index: np.ndarray, tim
     if cand_has and ref_has:
         shapes.update({key: JACOBIAN_SHAPE for key in JACOBIAN_KEYS})
         first = _rows_of(reference, "J_first", (), reference_name, len(reference["times"]))[index]
-        window = _window_mismatch(first, _rows_of(candidate, "J_first", (), candidate_name, len(times)), times)
+        cand_first = _rows_of(candidate, "J_first", (), candidate_name, len(times))
+        fractional = np.flatnonzero(cand_first != np.round(cand_first))
+        if fractional.size:
+            raise ConformanceError(f"{candidate_name}: key 'J_first' row {fractional[0]} is "
+                                   f"{float(cand_first[fractional[0]])!r}; expected an integer control-point index")
+        window = _window_mismatch(first, cand_first, times)
     elif cand_has:
         notes.append(f"{reference_name} holds no Jacobians; the candidate's were not checked (the shipped "
                      f"vector with Jacobians is jacobians_paper_dt0.25)")
