@@ -146,6 +146,14 @@ def independent_float64(data):
     return {**outputs, **autograd_jacobians(data)} if "J_R" in data else outputs
 
 
+def test_the_report_table_keeps_its_columns_for_the_longest_quantity_name():
+    """J_omegadot_body (15 characters) pushed its row one column right of the header's."""
+    data = load(next(path for path in VECTOR_PATHS if path.stem == "jacobians_paper_dt0.25"))
+    table = spline_kit.format_report(conformance_hints.check(data, data)).splitlines()[1:]
+    rows = [line for line in table if line.split()[0] in conformance.OUTPUT_KEYS + conformance.JACOBIAN_KEYS]
+    assert len(rows) == 12 and {line.index(" ok") for line in rows} == {table[0].index(" result")}
+
+
 @pytest.mark.parametrize("path", VECTOR_PATHS, ids=lambda p: p.stem)
 def test_a_correct_independent_float64_candidate_passes_every_vector_with_a_wide_margin(path):
     data = load(path)

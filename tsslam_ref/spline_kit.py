@@ -158,11 +158,12 @@ def _inputs(folder: str, force: bool) -> int:
 def format_report(report: dict, reference_name: str = "reference", candidate_name: str = "candidate") -> str:
     """Human-readable report: the error definition, one line per quantity, the worst time of each
     failing quantity, missing times and hints."""
+    width = max([14] + [len(row["quantity"]) for row in report["rows"]])  # J_omegadot_body is 15
     lines = ["error = max |cand - ref| over times and components; scale = max |ref|; "
              f"pass if error <= atol + rtol * scale (atol {report['atol']:g}, rtol {report['rtol']:g})",
-             f"{'quantity':<14} {'error':>10} {'scale':>10} {'error/scale':>11} {'bound':>10}  result"]
+             f"{'quantity':<{width}} {'error':>10} {'scale':>10} {'error/scale':>11} {'bound':>10}  result"]
     for row in report["rows"]:
-        lines.append(f"{row['quantity']:<14} {row['error']:10.3e} {row['scale']:10.3e} {row['scaled']:11.3e} "
+        lines.append(f"{row['quantity']:<{width}} {row['error']:10.3e} {row['scale']:10.3e} {row['scaled']:11.3e} "
                      f"{row['bound']:10.3e}  {'ok' if row['ok'] else 'FAIL'}")
     for row in report["rows"]:
         if row["ok"]:
