@@ -566,6 +566,16 @@ def test_float32_t0_and_dt_are_refused_like_float32_times(name, value):
             call()
 
 
+@pytest.mark.parametrize("name", ["t0", "dt"])
+def test_a_non_finite_t0_or_dt_is_named_by_the_spline_itself(name):
+    """A NaN t0 was reported as an interval 'too short for times near nan s'; an infinite dt gave an
+    infinite domain.  The check lives in valid_time_range, which knots.uniform_knots calls too."""
+    R, P = random_spline(30, n_ctrl=8)
+    timing = {"t0": 0.5, "dt": 0.25, name: float("nan") if name == "t0" else float("inf")}
+    with pytest.raises(ValueError, match=f"{name} must be a finite number of seconds"):
+        spline.evaluate(R, P, [1.2], timing["dt"], timing["t0"])
+
+
 def test_the_domain_message_prints_plain_floats_for_numpy_float64_timing():
     R, P = random_spline(29, n_ctrl=8)
     with pytest.raises(ValueError) as raised:

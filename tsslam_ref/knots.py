@@ -59,17 +59,13 @@ def check_knots(knots, n_ctrl: int) -> np.ndarray:
 def uniform_knots(n_ctrl: int, dt: float, t0: float, convention: str = "paper") -> np.ndarray:
     """(N + 2,) equally spaced knots giving the uniform spline (dt, t0, convention) of :mod:`spline`.
 
-    Raises ValueError for n_ctrl < 4, dt ≤ 0 or a non-finite dt or t0, TypeError for float32 dt or t0.
+    Raises what :func:`spline.valid_time_range` raises for (n_ctrl, dt, t0, convention): ValueError for
+    n_ctrl < 4 (or not an integer), dt ≤ 0, a non-finite dt or t0, TypeError for float32 dt or t0.
     """
-    offset = spline.first_segment_offset(convention)
-    if isinstance(n_ctrl, bool) or not isinstance(n_ctrl, (int, np.integer)) or n_ctrl < 4:
+    if isinstance(n_ctrl, bool) or not isinstance(n_ctrl, (int, np.integer)):
         raise ValueError(f"a cubic B-spline needs at least 4 control points, got n_ctrl={n_ctrl!r}")
-    for name, value in (("dt", dt), ("t0", t0)):
-        spline.check_float64_seconds(name, value)
-        if not np.isfinite(float(value)):
-            raise ValueError(f"{name} must be a finite number of seconds, got {float(value)!r}")
-    if not float(dt) > 0:
-        raise ValueError(f"knot spacing dt must be > 0 s, got {float(dt)!r}")
+    spline.valid_time_range(n_ctrl, dt, t0, convention)  # the uniform spline's own checks
+    offset = spline.first_segment_offset(convention)
     return float(t0) + float(dt) * (np.arange(n_ctrl + 2, dtype=np.float64) + offset - 2)
 
 

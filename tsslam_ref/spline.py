@@ -168,13 +168,16 @@ def valid_time_range(n_ctrl: int, dt: float, t0: float, convention: str = "paper
     paper: [t0 + 2Δt, t0 + (n−1)Δt]; basalt: [t0, t0 + (n−3)Δt].
 
     Raises:
-        ValueError: n_ctrl < 4, dt ≤ 0 or an unknown convention.  TypeError: float32 dt or t0.
+        ValueError: n_ctrl < 4, a non-finite dt or t0, dt ≤ 0 or an unknown convention.  TypeError:
+        float32 dt or t0.
     """
     offset = first_segment_offset(convention)
     if n_ctrl < 4:
         raise ValueError(f"a cubic B-spline needs at least 4 control points, got n_ctrl={n_ctrl}")
-    check_float64_seconds("dt", dt)
-    check_float64_seconds("t0", t0)
+    for name, value in (("dt", dt), ("t0", t0)):
+        check_float64_seconds(name, value)
+        if not np.isfinite(float(value)):
+            raise ValueError(f"{name} must be a finite number of seconds, got {float(value)!r}")
     if not dt > 0:
         raise ValueError(f"knot spacing dt must be > 0 s, got {float(dt)!r}")
     dt, t0 = float(dt), float(t0)
