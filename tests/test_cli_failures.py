@@ -903,3 +903,23 @@ def test_resume_names_the_first_frame_past_a_shorter_selection(tmp_path, monkeyp
     monkeypatch.setattr(checkpoint, "read", lambda path: values)
     refused_in_process(capsys, run.main, ["--frames", "0:10", "--out", out, "--resume"],
                        "11 frames saved, 10 now; the first difference at frame 10")
+
+
+def test_settings_the_method_never_reads_are_noted_and_change_nothing(runs):
+    """The baseline has no spline: ``--set spline.knots=adaptive`` with ``--method coslam`` once ran
+    silently, as if adaptive knots were in use.  Noted now; the trajectory is the one without it."""
+    unread = ["--set", "spline.knots=adaptive", "--set", "local_ba.window=3", "--set", "dynamics.a_max=1"]
+    result = cli("run", "--data", "room", "--out", "unread", *CHEAP, *unread, cwd=runs["root"])
+    assert result.returncode == 0, result.stderr
+    notes = [line for line in result.stdout.splitlines() if "has no effect with --method coslam" in line]
+    assert [line.split("--set ")[1].split(" ")[0] for line in notes] == [unread[1], unread[3], unread[5]], notes
+    assert (runs["root"] / "unread" / "trajectory.txt").read_bytes() == (runs["planted"] / "trajectory.txt").read_bytes()
+
+
+def test_keys_of_the_other_method_are_matched_by_name_and_section():
+    unread = config_module.overrides_without_effect
+    assert unread("tsslam", ["mapping.map_every=3", "mapping.map_every_x=1", "spline.dt=0.1"]) == [
+        "mapping.map_every=3 (TS-SLAM maps once per spline interval and every mapping.tsslam_map_every frames)"]
+    assert [text.split(" ")[0] for text in unread("coslam", ["mapping.tsslam_map_every=0", "mapping.map_every=3",
+                                                            "splines.dt=1", "local_ba.enabled=false"])] == [
+        "mapping.tsslam_map_every=0", "local_ba.enabled=false"]

@@ -23,7 +23,7 @@ import difflib
 import os
 from dataclasses import dataclass
 from dataclasses import field as _field
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 from .config_io import apply_overrides, save, to_dict, validate  # noqa: F401  (re-exported here)
 from .config_io import read_json_values, set_values
@@ -362,6 +362,26 @@ class Config(_Settings):
     dynamics: DynamicsConfig = _field(default_factory=DynamicsConfig)
     local_ba: LocalBAConfig = _field(default_factory=LocalBAConfig)
     mesh: MeshConfig = _field(default_factory=MeshConfig)
+
+
+# Settings one method never reads: a ``--set`` meant for the other method is noted, not silently
+# taken as effective (a key ending in "." stands for its whole section).
+IGNORED_BY_METHOD: Dict[str, Tuple[Tuple[str, ...], str]] = {
+    "coslam": (("spline.", "dynamics.", "local_ba.", "mapping.tsslam_map_every"),
+               "the baseline keeps one pose per frame: no spline, local BA or dynamics term"),
+    "tsslam": (("mapping.map_every",), "TS-SLAM maps once per spline interval and every mapping.tsslam_map_every frames"),
+}
+
+
+def overrides_without_effect(method: str, overrides: Sequence[str]) -> List[str]:
+    """Of the overrides ``KEY=VALUE``, those whose key ``method`` never reads, each with the reason."""
+    keys, reason = IGNORED_BY_METHOD.get(method, ((), ""))
+
+    def ignored(text: str) -> bool:
+        key = text.split("=", 1)[0].strip()
+        return any(key.startswith(name) if name.endswith(".") else key == name for name in keys)
+
+    return [f"{text} ({reason})" for text in overrides if ignored(text)]
 
 
 # --------------------------------------------------------------------------------------------

@@ -456,6 +456,8 @@ def execute(plan: Plan) -> int:
     if sequence.colour_without_depth:
         print(f"note: {sequence.colour_without_depth} colour image(s) in {sequence.path / 'rgb.txt'} have no depth "
               f"image within 0.02 s and are not used")
+    for ignored in config_module.overrides_without_effect(cfg.method, plan.args.overrides):
+        print(f"note: --set {ignored} has no effect with --method {cfg.method}")
     try:
         run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
         result = run_loop(sequence, cfg, device=plan.device, state=state, on_frame=on_frame)
