@@ -19,7 +19,7 @@ from tsslam_ref.bundle import (DiscretePoses, KeyframeDatabase, PoseIncrement, S
 from tsslam_ref.bundle import draw_rays as bundle_draw
 from tsslam_ref.dynamics import trajectory_dynamics_loss
 from tsslam_ref.geometry import invert_pose, make_pose, so3_exp, so3_log
-from tsslam_ref.render import RayBatch, frame_rays, sample_pixels
+from tsslam_ref.render import RayBatch, frame_rays, rays_to_world, sample_pixels
 from tsslam_ref.trajectory import BSplineTrajectory
 from tsslam_ref.synthetic import ProceduralRoom, builtin_trajectory, default_intrinsics, render_rgbd
 from tsslam_ref.losses import RenderLossSettings, render_loss
@@ -414,3 +414,13 @@ def test_track_frame_refuses_the_whole_config_for_its_tracking_settings():
     cfg = config.tiny()
     with pytest.raises(TypeError, match=r"takes the tracking settings \(cfg.tracking, a TrackingConfig\), got Config"):
         track_frame(None, None, torch.eye(4), cfg, None)
+
+
+def test_track_frame_and_the_loss_name_a_numpy_pose_instead_of_failing_inside_torch():
+    cfg = config.tiny()
+    with pytest.raises(TypeError, match=r"init_pose must be one \(4, 4\) torch tensor .* got ndarray of shape \(4, 4\)"):
+        track_frame(None, None, np.eye(4), cfg.tracking, None)
+    with pytest.raises(TypeError, match=r"got Tensor of shape \(2, 4, 4\)"):
+        track_frame(None, None, torch.eye(4).expand(2, 4, 4), cfg.tracking, None)
+    with pytest.raises(TypeError, match=r"c2w must be a torch tensor, got ndarray: torch.as_tensor\(c2w\)"):
+        rays_to_world(torch.zeros(5, 3), np.eye(4))

@@ -196,6 +196,8 @@ def rays_to_world(directions_cam: torch.Tensor, c2w: torch.Tensor) -> Tuple[torc
     Returns:
         origins (R, 3) and directions (R, 3) in the world frame, in the promoted dtype.
     """
+    if not isinstance(c2w, torch.Tensor):  # else torch.promote_types names a numpy dtype
+        raise TypeError(f"c2w must be a torch tensor, got {type(c2w).__name__}: torch.as_tensor(c2w) converts it")
     dtype = torch.promote_types(directions_cam.dtype, c2w.dtype)
     directions_cam = directions_cam.to(dtype)
     c2w = c2w.to(dtype)

@@ -88,6 +88,9 @@ def track_frame(
     if not isinstance(tracking, TrackingConfig):
         raise TypeError(f"track_frame takes the tracking settings (cfg.tracking, a TrackingConfig), got "
                         f"{type(tracking).__name__}")
+    if not isinstance(init_pose, torch.Tensor) or init_pose.shape != (4, 4):
+        raise TypeError(f"track_frame's init_pose must be one (4, 4) torch tensor (camera-to-world), got "
+                        f"{type(init_pose).__name__} of shape {tuple(getattr(init_pose, 'shape', ()))}")
     pose_parameters = PoseIncrement(init_pose)
     optimizer = pose_parameters.optimizer(tracking.lr_rot, tracking.lr_trans)
     losses: List[float] = []
