@@ -63,10 +63,11 @@ def hat_se3(xi):
     return H
 
 
-def evaluate_se3(data, with_v=True):
+def evaluate_se3(data, with_v=True, world_twists=False):
     """Joint SE(3): T = T_k Π Exp(B_j ξ_j); body twist H = T⁻¹Ṫ by the Lie-group recursion
     H' = A⁻¹ H A + Ḃ ξ̂, Ḣ' = Ḃ [H', ξ̂] + A⁻¹ Ḣ A + B̈ ξ̂; v = R ρ, a = R(ω × ρ + ρ̇).
-    ``with_v=False``: Exp(ρ, φ) = [Exp(φ), ρ] and its inverse as Log (V(φ) left out)."""
+    ``with_v=False``: Exp(ρ, φ) = [Exp(φ), ρ] and its inverse as Log (V(φ) left out).
+    ``world_twists``: ξ_j = Log(T_{k+j} T_{k+j-1}⁻¹), the world-side increment, composed on the right."""
     dt, t0, convention = data["dt"], data["t0"], data["convention"]
     poses = []
     for v, p in zip(np.asarray(data["rotvecs"], dtype=np.float64), np.asarray(data["translations"], dtype=np.float64)):
@@ -83,7 +84,8 @@ def evaluate_se3(data, with_v=True):
         Bdd = C @ np.array([0, 0, 2, 6 * u]) / dt**2
         T, H, H_dot = poses[i].copy(), np.zeros((4, 4)), np.zeros((4, 4))
         for j in range(1, 4):
-            xi = log_se3(np.linalg.inv(poses[i + j - 1]) @ poses[i + j], with_v)
+            xi = log_se3(poses[i + j] @ np.linalg.inv(poses[i + j - 1]) if world_twists else
+                         np.linalg.inv(poses[i + j - 1]) @ poses[i + j], with_v)
             A = exp_se3(B[j] * xi, with_v)
             A_inv = np.linalg.inv(A)
             T = T @ A
@@ -117,10 +119,11 @@ def evaluate(data, dtype=np.float64, mistake=None):
     Δt each rounded to whole ns, u from the integers), "world_increments" (d_j = Log(R_{k+j} R_{k+j-1}ᵀ),
     the increment in the world frame, composed on the right as if it were the body one), "old_omega"
     (ω̇'s cross product with ω^(j), before its update and rotation by A_jᵀ), "no_V" (joint SE(3) vectors:
-    Exp(ρ, φ) = [Exp(φ), ρ] and Log likewise, V(φ) left out).
+    Exp(ρ, φ) = [Exp(φ), ρ] and Log likewise, V(φ) left out), "world_twists" (joint SE(3) vectors:
+    ξ_j = Log(T_{k+j} T_{k+j-1}⁻¹) composed on the right).
     """
     if data.get("representation", "split") == "se3":
-        return evaluate_se3(data, with_v=mistake != "no_V")
+        return evaluate_se3(data, with_v=mistake != "no_V", world_twists=mistake == "world_twists")
     if mistake == "float32":
         dtype = np.float32
     dt, t0, convention = data["dt"], data["t0"], data["convention"]

@@ -85,28 +85,45 @@ def test_check_tells_a_float32_user_the_cause_and_the_option(tmp_path, capsys):
     assert spline_kit.main(["check", path.stem, str(candidate), "--rtol", str(FLOAT32_RTOL)]) == 0
 
 
-def cumulative_from_scipy_basis(data):
+def cumulative_from_scipy_basis(data, mistake=None):
     """Non-uniform split spline from scipy's basis functions N_l (and derivatives) summed into the
-    cumulative weights, then the ω, ω̇ recursion; translation from scipy's BSpline directly."""
+    cumulative weights, then the ω, ω̇ recursion; translation from scipy's BSpline directly.
+
+    mistake: None, "uniform_basis" (the uniform matrix C on each segment, u = (t - κ_{s+2}) / h_s,
+    derivatives over h_s), "shift+1" / "shift-1" (segment s's weights on control points s ± 1..,
+    clamped to the valid ones), "cumulative" (no mistake); with any of them the translation is the
+    cumulative sum of the weights, as the rotation's, instead of scipy's BSpline."""
     knot_vector = np.asarray(data["knots"])
     origin, n = knot_vector[0], len(data["rotvecs"])
     relative = np.r_[-1.0, knot_vector - origin, knot_vector[-1] - origin + 1.0]  # N + 4 knots, times - origin
     basis = scipy.interpolate.BSpline(relative, np.eye(n), 3)
     translation = scipy.interpolate.BSpline(relative, np.asarray(data["translations"]), 3)
+    points = np.asarray(data["translations"])
     rotations = [spline_formulas.exp_so3(v) for v in np.asarray(data["rotvecs"])]
     outputs = {key: [] for key in conformance.OUTPUT_KEYS}
     for t in data["times"]:
         segment = min(max(int(np.searchsorted(knot_vector, t, side="right")) - 3, 0), n - 4)
         local = t - origin
         B, B_dot, B_ddot = (np.cumsum(basis(local, nu)[segment:segment + 4][::-1])[::-1] for nu in (0, 1, 2))
-        R, omega, omega_dot = rotations[segment].copy(), np.zeros(3), np.zeros(3)
+        if mistake == "uniform_basis":
+            h = knot_vector[segment + 3] - knot_vector[segment + 2]
+            u = (t - knot_vector[segment + 2]) / h
+            B, B_dot, B_ddot = (spline_formulas.C @ np.array(row) / h**order for order, row in
+                                enumerate([[1, u, u * u, u**3], [0, 1, 2 * u, 3 * u * u], [0, 0, 2, 6 * u]]))
+        first = min(max(segment + {"shift+1": 1, "shift-1": -1}.get(mistake, 0), 0), n - 4)
+        R, omega, omega_dot = rotations[first].copy(), np.zeros(3), np.zeros(3)
+        p, v, a = points[first].copy(), np.zeros(3), np.zeros(3)
         for j in range(1, 4):
-            d = spline_formulas.log_so3(rotations[segment + j - 1].T @ rotations[segment + j])
+            d = spline_formulas.log_so3(rotations[first + j - 1].T @ rotations[first + j])
             A = spline_formulas.exp_so3(B[j] * d)
             R = R @ A
             omega = A.T @ omega + B_dot[j] * d
             omega_dot = B_dot[j] * np.cross(omega, d) + A.T @ omega_dot + B_ddot[j] * d
-        values = (R, translation(local), translation(local, 1), translation(local, 2), omega, omega_dot)
+            step = points[first + j] - points[first + j - 1]
+            p, v, a = p + B[j] * step, v + B_dot[j] * step, a + B_ddot[j] * step
+        if mistake is None:
+            p, v, a = translation(local), translation(local, 1), translation(local, 2)
+        values = (R, p, v, a, omega, omega_dot)
         for key, value in zip(conformance.OUTPUT_KEYS, values):
             outputs[key].append(value)
     return {key: np.stack(value) for key, value in outputs.items()}
@@ -424,3 +441,36 @@ def test_a_non_finite_candidate_value_is_refused_naming_its_row_and_time():
     with pytest.raises(conformance.ConformanceError, match=rf"'omega_body' contains non-finite values \(first at "
                                                            rf"row 17, t = {reference['times'][17]!r} s\)"):
         conformance.compare(reference, candidate)
+
+
+KNOT_VECTOR = spline_kit.VECTOR_DIR / "knots_uneven_tum_stamps.json"
+
+
+@pytest.mark.parametrize("mistake,expected", [
+    ("uniform_basis", "R and p equal the UNIFORM cumulative basis on each segment"),
+    ("shift+1", "the candidate equals the reference with the control points shifted by +1 against the knots"),
+    ("shift-1", "the candidate equals the reference with the control points shifted by -1 against the knots"),
+])
+def test_each_planted_knot_vector_mistake_triggers_its_hint(mistake, expected):
+    """An implementer's usual non-uniform mistakes, built on scipy's basis, not on the kit's code."""
+    data = load(KNOT_VECTOR)
+    report = conformance_hints.check(data, as_candidate(data, cumulative_from_scipy_basis(data, mistake)))
+    assert not report["ok"] and any(hint.startswith(expected) for hint in report["hints"]), report["hints"]
+    assert len(report["hints"]) == 1, report["hints"]
+
+
+def test_the_planted_knot_mistakes_translation_path_alone_passes():
+    """With a mistake the candidate's translation is a cumulative sum, not scipy's BSpline: without
+    one, that sum passes, so each planted candidate holds only its planted mistake."""
+    data = load(KNOT_VECTOR)
+    report = conformance_hints.check(data, as_candidate(data, cumulative_from_scipy_basis(data, "cumulative")))
+    assert report["ok"] and not report["hints"], spline_kit.format_report(report)
+
+
+@pytest.mark.parametrize("vector", ["se3_basalt_dt1_pypose", "se3_paper_dt0.05_large_rot"])
+def test_joint_se3_with_world_side_increments_is_named(vector):
+    data = load(spline_kit.VECTOR_DIR / f"{vector}.json")
+    report = conformance_hints.check(data, as_candidate(data, spline_formulas.evaluate(data, mistake="world_twists")))
+    assert not report["ok"] and any("WORLD-side increments" in hint for hint in report["hints"]), report["hints"]
+    correct = conformance_hints.check(data, as_candidate(data, spline_formulas.evaluate(data)))
+    assert correct["ok"] and not correct["hints"]

@@ -5,14 +5,16 @@ of a failed comparison's errors, name the likely mistake, mostly by evaluating t
 that mistake made on purpose and asking whether the candidate equals it: angular rates in the
 world frame, rotations stored transposed, derivatives off by a power of Δt, the joint SE(3) spline
 instead of the split one, the transposed basis matrix, an index convention shifted by whole
-segments, times rounded to whole nanoseconds (basalt-headers' int64 ns); otherwise the size of the
-errors (float32 or float64 rounding) and where they sit (only next to knots).
+segments, times rounded to whole nanoseconds (basalt-headers' int64 ns), with non-uniform knots the
+uniform basis on each segment or control points shifted by one against the knots, for the joint
+SE(3) spline world-side increments; otherwise the size of the errors (float32 or float64 rounding)
+and where they sit (only next to knots).
 
 Jacobians (when both files hold them): blocks transposed, in reverse order, of the opposite sign,
 off by a power of Δt, or for a right perturbation instead of the left one
 (of the control rotations, the output rotation or both).
 
-Side module.  Imports ``conformance``, ``spline`` and ``geometry``.
+Side module.  Imports ``conformance``, ``knots``, ``se3_spline``, ``spline`` and ``geometry``.
 """
 
 from fractions import Fraction
@@ -21,7 +23,7 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
-from tsslam_ref import conformance, spline
+from tsslam_ref import conformance, knots, se3_spline, spline
 from tsslam_ref.geometry import so3_exp
 
 FLOAT32_LEVEL = 1e-8  # a failing candidate's largest scaled error from here to 3e-5: float32-level, say so
@@ -189,6 +191,75 @@ def _transposed_basis_hint(failing: set, cands, parsed: dict, times: np.ndarray)
     return []
 
 
+def _uniform_basis_per_segment(parsed: dict, times: np.ndarray) -> Dict[str, np.ndarray]:
+    """Outputs with the UNIFORM cumulative basis on every segment of a knot vector: segment s's four
+    control points, u = (t - k_{s+2}) / h_s and time derivatives over h_s (the common mistake)."""
+    segment, _ = conformance.segment_and_u(parsed, times)
+    knot_vector = parsed["knots"]
+    outputs = {key: np.zeros((len(times),) + conformance.OUTPUT_SHAPES[key]) for key in conformance.OUTPUT_KEYS}
+    for s in np.unique(segment):
+        rows = segment == s
+        start, length = float(knot_vector[s + 2]), float(knot_vector[s + 3] - knot_vector[s + 2])
+        local = dict(parsed, knots=None, rotvecs=parsed["rotvecs"][s:s + 4],
+                     translations=parsed["translations"][s:s + 4], dt=length, t0=start, convention="basalt")
+        for key, value in conformance.evaluate_parsed(local, np.clip(times[rows], start, start + length)).items():
+            outputs[key][rows] = value
+    return outputs
+
+
+def _knot_vector_hints(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
+    """Non-uniform knots: the uniform basis on each segment, or the control points shifted by one
+    against the knots (segment s using points s + 1..s + 4 or s - 1..s + 2)."""
+    if parsed["knots"] is None or not failing & set(conformance.OUTPUT_KEYS):
+        return []
+    uniform = _uniform_basis_per_segment(parsed, times)
+    if all(_close(cands[key], uniform[key]) for key in ("R", "p")):
+        return ["R and p equal the UNIFORM cumulative basis on each segment (u = (t - k_{s+2}) / h_s): a "
+                "non-uniform segment's basis comes from its six knots k_s..k_{s+5} (Cox-de Boor), not from the "
+                "uniform matrix C"]
+    knot_vector, points, rotvecs = parsed["knots"], parsed["translations"], parsed["rotvecs"]
+    for shift, shifted in ((1, dict(parsed, rotvecs=rotvecs[1:], translations=points[1:], knots=knot_vector[:-1])),
+                           (-1, dict(parsed, rotvecs=rotvecs[:-1], translations=points[:-1], knots=knot_vector[1:]))):
+        if len(shifted["rotvecs"]) < 4:
+            continue
+        t_min, t_max = knots.valid_time_range(shifted["knots"])
+        inside = (times >= t_min) & (times <= t_max)
+        if inside.sum() < max(3, len(times) // 2):
+            continue
+        model = conformance.evaluate_parsed(shifted, times[inside])
+        same = _close_rows(cands["p"][inside], model["p"]) & _close_rows(cands["R"][inside], model["R"])
+        if same.mean() >= 0.9:  # a clamped index at a domain end breaks the shift at a few times
+            return [f"the candidate equals the reference with the control points shifted by {shift:+d} against the "
+                    f"knots ({int(same.sum())} of {same.size} times where that is defined): segment s, on "
+                    f"[k_(s+2), k_(s+3)], uses control points s..s+3 and the knots k_s..k_(s+5)"]
+    return []
+
+
+def _world_twist_pose(parsed: dict, times: np.ndarray) -> Dict[str, np.ndarray]:
+    """R, p of the joint SE(3) spline built on WORLD-side increments Log(T_{j} T_{j-1}^-1), composed on
+    the right as the body-side ones are (the mistake); uniform knots."""
+    rotations = so3_exp(torch.as_tensor(parsed["rotvecs"]))
+    points = torch.as_tensor(parsed["translations"])
+    relative_R = rotations[1:] @ rotations[:-1].transpose(-1, -2)
+    relative_p = points[1:] - (relative_R @ points[:-1].unsqueeze(-1)).squeeze(-1)
+    twists = se3_spline.se3_log(relative_R, relative_p)  # (N-1, 6)
+    first, u, _ = spline._locate(times, len(points), parsed["dt"], parsed["t0"], parsed["convention"])
+    xi = twists[first[:, None] + torch.arange(3)]
+    R, p = se3_spline._pose_at(u.to(points.dtype), rotations[first], points[first], xi)
+    return {"R": R.numpy(), "p": p.numpy()}
+
+
+def _se3_side_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
+    """Joint SE(3): the world-side increment in place of the body-side one."""
+    if parsed["representation"] != "se3" or parsed["knots"] is not None or not {"R", "p"} & failing:
+        return []
+    model = _world_twist_pose(parsed, times)
+    if not all(_close(cands[key], model[key]) for key in ("R", "p")):
+        return []
+    return ["R and p equal the joint SE(3) spline with WORLD-side increments xi_j = Log(T_{k+j} T_{k+j-1}^-1) "
+            "composed on the right: the increments are body-side, xi_j = Log(T_{k+j-1}^-1 T_{k+j})"]
+
+
 def _rotation_part_hints(failing: set) -> List[str]:
     """Patterns of the rotation's recursion (Eq. 6 and 9): which of R, omega, omegadot fail (the
     values only: Jacobians that fail along with them do not hide the pattern)."""
@@ -286,5 +357,6 @@ def diagnose(report: dict) -> List[str]:
     if parsed is not None:
         hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)
         hints += _transposed_basis_hint(failing, cands, parsed, times)
+        hints += _knot_vector_hints(failing, cands, parsed, times) + _se3_side_hint(failing, cands, parsed, times)
     hints = hints or _translation_coupling_hint(failing, parsed)  # only when nothing more specific matched
     return hints + _jacobian_hints(failing, refs, cands, parsed, report.get("J_first"))
