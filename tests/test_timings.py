@@ -35,6 +35,16 @@ def test_stage_counts_calls_iterations_and_time_and_skips_a_failed_body():
     assert timings.table()["tracking"]["total_s"] == timings.seconds["tracking"]
 
 
+def test_a_stage_without_iterations_reports_its_time_per_call_not_its_total():
+    timings = Timings()
+    for _ in range(3):
+        with timings.stage("lba_init", 0):
+            time.sleep(0.01)
+    row = timings.table()["lba_init"]
+    assert row["iterations_per_call"] == 0 and row["calls"] == 3
+    assert row["ms_per_iteration"] == pytest.approx(1000.0 * timings.seconds["lba_init"] / 3)
+
+
 PEAK_PROBE = """
 import json, sys
 import numpy as np

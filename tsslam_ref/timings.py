@@ -50,10 +50,12 @@ class Timings:
         self.add(name, time.perf_counter() - start, record.iterations)
 
     def table(self) -> Dict[str, Dict[str, float]]:
-        """Per stage: ms per iteration, iterations per call, calls, total seconds."""
+        """Per stage: ms per iteration, iterations per call, calls, total seconds.  A stage that ran
+        no iteration (the curve approximation with ``local_ba.fit_iters=0`` or local BA off) reports
+        its ms per call as ``ms_per_iteration``, beside ``iterations_per_call`` 0."""
         rows = {}
         for stage, seconds in self.seconds.items():
-            iterations = max(self.iterations[stage], 1)
+            iterations = self.iterations[stage] or max(self.calls[stage], 1)
             rows[stage] = {
                 "ms_per_iteration": 1000.0 * seconds / iterations,
                 "iterations_per_call": self.iterations[stage] / max(self.calls[stage], 1),
