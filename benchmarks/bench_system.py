@@ -304,6 +304,8 @@ def main() -> None:
     environment = compute_environment(benchmark_device(base))
     print(f"sequence {sequence.name}: {len(sequence)} frames, {sequence.intrinsics.width}x{sequence.intrinsics.height}, "
           f"preset {base.name}, seeds {args.seeds}, {args.threads} threads, {environment['cpu_capability']} CPU kernels")
+    if args.overrides:  # they change every row below, the baseline's too, under the same names
+        print(f"--set on every row: {' '.join(args.overrides)} (--adaptive adds an adaptive-knots row instead)")
     main_variants = ("Co-SLAM (baseline)", "TS-SLAM", ADAPTIVE)
     ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else args.seeds[:1]
     settings = {"preset": base.name, "data": args.data or "bundled", "sequence": sequence.name,

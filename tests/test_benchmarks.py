@@ -218,3 +218,18 @@ def test_tracking_floor_scores_a_shortened_path_by_its_scale_and_lag():
     assert abs(shortened["scale"] - 1.25) < 1e-6 and shortened["ate_cm"] > 0.5
     assert abs(shortened["along_cm"] - 100 * -(1 - 1 / 1.25) * travelled.mean()) < 1e-9
     assert tracking_floor.table_cells(shortened).count("|") == 4  # five cells of the printed row
+
+
+def test_a_set_is_announced_as_changing_every_row_the_baselines_too(monkeypatch, capsys):
+    """``--set spline.knots=adaptive`` runs the baseline and the TS-SLAM row with it, under their usual
+    names; the header says so and points to --adaptive (which adds its own row)."""
+    module = _bench_system()
+    ran = []
+    monkeypatch.setattr(module, "run_once", lambda sequence, cfg: ran.append((cfg.method, cfg.spline.knots))
+                        or {"failed": "not run in this test"})
+    monkeypatch.setattr(sys, "argv", ["bench_system.py", "--frames", "0:6", "--seeds", "0", "--threads", "1",
+                                      "--set", "spline.knots=adaptive"])
+    module.main()
+    out = capsys.readouterr().out
+    assert ran == [("coslam", "adaptive"), ("tsslam", "adaptive")]
+    assert "--set on every row: spline.knots=adaptive (--adaptive adds an adaptive-knots row instead)" in out, out
