@@ -231,7 +231,7 @@ def _knot_vector_hints(failing: set, cands, parsed: dict, times: np.ndarray) -> 
         if same.mean() >= 0.9:  # a clamped index at a domain end breaks the shift at a few times
             return [f"the candidate equals the reference with the control points shifted by {shift:+d} against the "
                     f"knots ({int(same.sum())} of {same.size} times where that is defined): segment s, on "
-                    f"[k_(s+2), k_(s+3)], uses control points s..s+3 and the knots k_s..k_(s+5)"]
+                    f"[k_{{s+2}}, k_{{s+3}}], uses control points s..s+3 and the knots k_s..k_{{s+5}}"]
     return []
 
 
