@@ -923,3 +923,24 @@ def test_keys_of_the_other_method_are_matched_by_name_and_section():
     assert [text.split(" ")[0] for text in unread("coslam", ["mapping.tsslam_map_every=0", "mapping.map_every=3",
                                                             "splines.dt=1", "local_ba.enabled=false"])] == [
         "mapping.tsslam_map_every=0", "local_ba.enabled=false"]
+
+
+def test_a_parallel_run_stopped_with_ctrl_c_resumes(runs):
+    """The mapping thread writes the checkpoint while tracking may be a mapping period ahead; the
+    resumed run finishes (its trajectory is not the uninterrupted one's: --parallel is not deterministic)."""
+    root = runs["root"]
+    slow_mapping = ("from tsslam_ref import parallel\nimport time\nafter_tracking = slam.after_tracking\n"
+                    "slam.after_tracking = lambda *a: time.sleep(0.5) or after_tracking(*a)  # tracking gets ahead\n"
+                    "run_slam = parallel.run_slam_in_two_threads")
+    script = INTERRUPT_AFTER_FRAME_4.replace("run_slam = slam.run_slam", slow_mapping).replace(
+        "slam.run_slam = interrupted_run_slam", "parallel.run_slam_in_two_threads = interrupted_run_slam")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    command = ["--data", "room", "--out", "parallel", "--parallel", *CHEAP, "--method", "tsslam"]  # lag: one interval
+    stopped = subprocess.run([sys.executable, "-c", script, *command], cwd=root, env=env, capture_output=True, text=True,
+                             timeout=120)
+    assert stopped.returncode == 130 and "--resume" in stopped.stderr, stopped.stderr
+    assert 4 <= run.load_checkpoint(root / "parallel" / "checkpoint.pt").done < 10
+    resumed = cli("run", *command, "--resume", cwd=root)
+    assert resumed.returncode == 0 and "Traceback" not in resumed.stderr, resumed.stderr
+    rows = [line for line in (root / "parallel" / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
+    assert len(rows) == 10

@@ -66,6 +66,14 @@ def to_plain(state) -> Dict[str, Any]:
     return _snapshot(_plain_view(state))
 
 
+def _of_frames_done(entries: Dict[int, Any], done: int) -> Dict[int, Any]:
+    """The per-frame entries of the frames done (frame 0 counts once it is mapped).  With
+    ``--parallel`` tracking runs ahead of mapping; the frames it tracked past ``done`` are left out
+    and tracked again after a resume."""
+    limit = max(int(done), 1)
+    return {int(frame): value for frame, value in entries.items() if int(frame) < limit}
+
+
 def _plain_view(state) -> Dict[str, Any]:
     """:func:`to_plain`'s dict before the copy: its tensors are the running state's own."""
     trajectory = None
@@ -79,6 +87,8 @@ def _plain_view(state) -> Dict[str, Any]:
                       "knot_times": None if spline.uniform else torch.from_numpy(spline.timing()["knots"]),
                       "knot_offset": int(spline.knot_offset)}
     keyframes = state.keyframes
+    per_frame = {key: _of_frames_done(getattr(state, key), state.done)
+                 for key in ("tracking_output", "keyframe_of_frame", "relative_to_keyframe", "window_rays")}
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -90,13 +100,13 @@ def _plain_view(state) -> Dict[str, Any]:
                       "timestamps": [float(t) for t in keyframes.timestamps]},
         "timestamps": torch.from_numpy(np.asarray(state.timestamps, dtype=np.float64).copy()),
         "frame_poses": state.frame_poses.detach(),
-        "tracking_output": {int(k): v.detach() for k, v in state.tracking_output.items()},
+        "tracking_output": {k: v.detach() for k, v in per_frame["tracking_output"].items()},
         "done": int(state.done),
-        "keyframe_of_frame": {int(k): int(v) for k, v in state.keyframe_of_frame.items()},
-        "relative_to_keyframe": {int(k): v.detach() for k, v in state.relative_to_keyframe.items()},
+        "keyframe_of_frame": {k: int(v) for k, v in per_frame["keyframe_of_frame"].items()},
+        "relative_to_keyframe": {k: v.detach() for k, v in per_frame["relative_to_keyframe"].items()},
         "trajectory": trajectory,
         "intervals_done": int(state.intervals_done),
-        "window_rays": {int(k): _rays_to_plain(v) for k, v in state.window_rays.items()},
+        "window_rays": {k: _rays_to_plain(v) for k, v in per_frame["window_rays"].items()},
         "generator_state": None if state.generator is None else state.generator.get_state(),
         "timings": {"seconds": dict(state.timings.seconds), "iterations": dict(state.timings.iterations),
                     "calls": dict(state.timings.calls)},
