@@ -159,6 +159,10 @@ def test_config_files_and_output_paths_are_named(tmp_path, capsys):
     (tmp_path / "taken" / "config.json").write_text("{}")  # the user's own config.json, say
     refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "not empty",
                        "it would replace config.json and keep the other 1 entries")
+    (tmp_path / "taken" / ".checkpoint.pt.abcd1234.tmp").write_text("left by a killed run")  # --overwrite removes it
+    refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "not empty", "it would replace config.json, "
+                       "1 temporary file(s) of a killed run and keep the other 1 entries")
+    (tmp_path / "taken" / ".checkpoint.pt.abcd1234.tmp").unlink()
     (tmp_path / "taken" / "config.json").unlink()
     assert snapshot(tmp_path) == before
 
@@ -944,3 +948,33 @@ def test_a_parallel_run_stopped_with_ctrl_c_resumes(runs):
     assert resumed.returncode == 0 and "Traceback" not in resumed.stderr, resumed.stderr
     rows = [line for line in (root / "parallel" / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
     assert len(rows) == 10
+
+
+def test_an_export_from_a_finished_run_refits_only_the_last_interval_and_ctrl_c_there_changes_nothing(
+        runs, tmp_path, monkeypatch, capsys):
+    """A checkpoint every 3 of 10 frames left the finished run's last one at frame 9, so --export-rate
+    tracked frame 10 again, silently different in another environment; and Ctrl-C during the export
+    advised --overwrite, which deletes the finished run."""
+    from tsslam_ref import device as device_module
+    from tsslam_ref import export as export_module
+
+    tsslam = [argument for argument in CHEAP if argument != "coslam"]
+    tsslam[tsslam.index("--method") + 1:tsslam.index("--method") + 1] = ["tsslam"]
+    command = [*tsslam, "--checkpoint-every", "3", "--data", str(runs["root"] / "room"), "--out", str(tmp_path / "done")]
+    assert run.main(command) == 0
+    assert run.load_checkpoint(tmp_path / "done" / "checkpoint.pt").done == 10
+    capsys.readouterr()
+    before = snapshot(tmp_path / "done")
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patched:
+        patched.setattr(export_module, "export_continuous", interrupted)
+        assert run.main(command + ["--resume", "--export-rate", "50"]) == 130
+    assert "run the same command again: the finished run's files are unchanged" in capsys.readouterr().err
+    assert snapshot(tmp_path / "done") == before
+    real = device_module.compute_environment
+    monkeypatch.setattr(device_module, "compute_environment", lambda where: {**real(where), "torch": "0.0-other"})
+    assert run.main(command + ["--resume", "--export-rate", "50"]) == 0
+    assert "the export will not match one the run itself had written bit for bit" in capsys.readouterr().err

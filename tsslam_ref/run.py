@@ -310,8 +310,7 @@ def _prepare_resume(plan: Plan) -> None:
         plan.state = checkpoint_module.from_plain(values, plan.device)
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as error:
         raise checkpoint_module.CheckpointError(f"{path}: the checkpoint's content does not fit ({error})") from None
-    if not plan.finished:
-        plan.environment = _resume_environment(values.get("environment"), plan)
+    plan.environment = _resume_environment(values.get("environment"), plan)
 
 
 def _refuse_other_settings(changes: List[str], path: Path) -> None:
@@ -328,9 +327,10 @@ def _resume_environment(saved: Optional[dict], plan: Plan) -> dict:
     now = device_module.run_environment(plan.device, plan.state.field)
     changes = checkpoint_module.environment_changes(saved, now)
     if changes:
-        print(f"warning: resuming in another environment than the run started in ({'; '.join(changes)}); the "
-              f"frames from {plan.state.done} on will not match an uninterrupted run bit for bit, and metrics.json "
-              f"records both (environment_at_start)", file=sys.stderr)
+        print(f"warning: resuming in another environment than the run started in ({'; '.join(changes)}); " + (
+              "the export will not match one the run itself had written bit for bit" if plan.finished else
+              f"the frames from {plan.state.done} on will not match an uninterrupted run bit for bit, and metrics.json "
+              f"records both (environment_at_start)"), file=sys.stderr)
     return saved if isinstance(saved, dict) else now
 
 
@@ -368,14 +368,16 @@ def _progress_bar(plan: Plan):
 
 def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
     """The loop's per-frame callback: it records the frames done in ``reached``, moves the bar, and
-    every ``--checkpoint-every`` frames writes the trajectory so far and the checkpoint."""
+    every ``--checkpoint-every`` frames and after the last one writes the trajectory so far and the
+    checkpoint (a finished run's then holds every frame: ``--export-rate`` re-fits only the last interval)."""
     every, out = plan.args.checkpoint_every, plan.out
 
     def on_frame(current) -> None:
         reached["done"] = current.done
         if progress is not None:
             progress.update(1)
-        if every and current.done % every == 0:  # the checkpoint first: trajectory.txt never gets ahead of it
+        if every and (current.done % every == 0 or current.done == len(plan.sequence)):
+            # the checkpoint first: trajectory.txt never gets ahead of it
             if plan.environment is None:
                 plan.environment = device_module.run_environment(plan.device, current.field)
             save_checkpoint(current, out / "checkpoint.pt", plan.environment)
@@ -494,9 +496,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         return execute(plan)
     except KeyboardInterrupt:
-        how = ("--resume to finish them from its checkpoint" if (plan.out / "checkpoint.pt").is_file()
-               and not (plan.out / "metrics.json").is_file() else "--overwrite to run it again")
-        print(f"interrupted while writing the outputs in {plan.out}; run the same command with {how}", file=sys.stderr)
+        resumable = (plan.out / "checkpoint.pt").is_file() and not (plan.out / "metrics.json").is_file()
+        how = ("again: the finished run's files are unchanged" if plan.finished else
+               "with --resume to finish them from its checkpoint" if resumable else "with --overwrite to run it again")
+        print(f"interrupted while writing the outputs in {plan.out}; run the same command {how}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # stdout piped into a reader that quit (`| head`)
         silence_stdout()

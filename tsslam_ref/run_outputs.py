@@ -22,7 +22,7 @@ import numpy as np
 from . import data as data_module
 from . import trajectory_metrics as trajectory_metrics_module
 from .device import peak_memory, run_environment
-from .files import atomic_path, atomic_write_text
+from .files import atomic_path, atomic_write_text, is_temporary_of
 
 OUTPUT_NAMES = ("trajectory.txt", "metrics.json", "mesh.ply", "config.json", "trajectory.png", "errors.png",
                 "checkpoint.pt")
@@ -62,8 +62,13 @@ def check_output_folder(out: Path, overwrite: bool, resume: bool, data_folder: s
     names = [entry.name for entry in out.iterdir()]
     if names and not (overwrite or resume):
         ours = sorted(name for name in names if is_output_name(name))
-        replaced = (f"it would replace {', '.join(ours)} and keep the other {len(names) - len(ours)} entries" if ours
-                    else f"none of its {len(names)} entries is a file a run writes")
+        leftovers = [name for name in names if is_temporary_of(name, is_output_name)]  # a run removes them too
+        if ours or leftovers:
+            removed = ours + ([f"{len(leftovers)} temporary file(s) of a killed run"] if leftovers else [])
+            kept = len(names) - len(ours) - len(leftovers)
+            replaced = f"it would replace {', '.join(removed)} and keep the other {kept} entries"
+        else:
+            replaced = f"none of its {len(names)} entries is a file a run writes"
         raise ValueError(f"output folder {out} is not empty; pass --overwrite to replace the files of an earlier run "
                          f"({replaced}) or --resume to continue it")
     for name in names:
