@@ -132,8 +132,9 @@ def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
     Both meshes are culled (frustum + occlusion, eval.cull_mesh) with the ground-truth cameras of
     every second frame, so that only what the sequence observed is compared (Co-SLAM culls with the
     GT poses too, in its ``cull_mesh.py``; it also adds hand-picked virtual cameras, which we do not have).
+    The cameras are the raw images' (no ``crop_edge``), as Co-SLAM's, at the run's working width.
     """
-    intrinsics = sequence.intrinsics
+    intrinsics = sequence.uncropped_intrinsics
     camera = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height)
     poses = np.asarray(sequence.gt_poses)[::2]
     from .reconstruction_metrics import cull_mesh, mesh_metrics  # lazy: trimesh, only when there is a GT mesh

@@ -47,7 +47,8 @@ class RGBDSequence:
 
     Attributes:
         name: folder name.  kind: "tum" | "scannet" | "neural_rgbd" | "replica" | "folder".
-        path: dataset folder.  intrinsics: camera after crop/resize.
+        path: dataset folder.  intrinsics: camera after crop/resize (``uncropped_intrinsics``:
+        the same resize without the crop).
         timestamps: (N,) float64 s.  gt_poses: (N, 4, 4) float64 with NaN-filled rows where
         unknown, or None when the dataset has no ground truth.  depth_scale: PNG value per metre.
         depth_trunc: carried for the losses; the loader never zeroes depth beyond it.
@@ -103,6 +104,14 @@ class RGBDSequence:
         width, height = output_size(native_intrinsics.width, native_intrinsics.height, self.crop_edge, resize_width)
         edge = self.crop_edge
         self.intrinsics = native_intrinsics.cropped(edge, edge, edge, edge).resized(width, height)
+
+    @property
+    def uncropped_intrinsics(self) -> Intrinsics:
+        """The camera of the whole stored image (no ``crop_edge``) at the working width
+        (``resize_width``): the raw camera's frustum, which Co-SLAM culls meshes with.  Equals
+        :attr:`intrinsics` when nothing is cropped."""
+        native = self.native_intrinsics
+        return native.resized(*output_size(native.width, native.height, 0, self.resize_width))
 
     def __len__(self) -> int:
         return len(self.timestamps)
