@@ -22,6 +22,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+import trimesh
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
@@ -286,6 +287,12 @@ def test_a_folder_of_random_files_is_named(tmp_path, capsys):
 def test_broken_calibration_and_ground_truth_mesh_are_named_before_the_run(dataset, tmp_path, capsys):
     (dataset / "gt_mesh.ply").write_bytes(np.random.default_rng(4).bytes(700))
     refused_in_process(capsys, run.main, ["--data", dataset, "--out", tmp_path / "out", "--frames", "0:3"], "gt_mesh.ply")
+    assert not (tmp_path / "out").exists()
+    # a vertex at NaN: the run once dropped its faces (trimesh's processing) and scored the rest; eval mesh refused
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [np.nan, 0, 0]], dtype=float)
+    trimesh.Trimesh(vertices, [[0, 1, 2], [1, 2, 3]], process=False).export(dataset / "gt_mesh.ply")
+    refused_in_process(capsys, run.main, ["--data", dataset, "--out", tmp_path / "out", "--frames", "0:3"],
+                       "ground-truth mesh", "gt_mesh.ply: vertex 3 is not finite", "remove it to skip")
     assert not (tmp_path / "out").exists()
     (dataset / "intrinsics.json").write_bytes(np.random.default_rng(5).bytes(300))
     refused_in_process(capsys, data.main, ["info", dataset], "intrinsics.json", "not a text file")

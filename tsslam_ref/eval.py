@@ -26,6 +26,8 @@ from tsslam_ref.reconstruction_metrics import (  # noqa: F401  (re-exported)
     cull_mesh,
     depth_l1,
     mesh_metrics,
+    mesh_sizes_differ,
+    read_mesh,
     render_depth_zbuffer,
 )
 from tsslam_ref.trajectory_metrics import (  # noqa: F401  (re-exported)
@@ -40,8 +42,8 @@ from tsslam_ref.trajectory_metrics import (  # noqa: F401  (re-exported)
 
 __all__ = [
     "DEFAULT_MAX_DIFF_S", "NEAR_PLANE_M", "OCCLUSION_EPS_M", "RASTER_PIXEL_BUDGET", "associate", "ate",
-    "cull_mesh", "depth_l1", "evaluate_trajectory", "horn_alignment", "main", "mesh_metrics",
-    "render_depth_zbuffer", "rpe", "trajectory_errors_over_time",
+    "cull_mesh", "depth_l1", "evaluate_trajectory", "horn_alignment", "main", "mesh_metrics", "mesh_sizes_differ",
+    "read_mesh", "render_depth_zbuffer", "rpe", "trajectory_errors_over_time",
 ]
 
 
@@ -49,29 +51,11 @@ __all__ = [
 # Files and command line
 
 
-def _load_mesh(path: str) -> trimesh.Trimesh:
-    if not os.path.isfile(path):
-        raise ValueError(f"{path}: " + ("is a folder; expected a mesh file" if os.path.isdir(path) else "mesh file not found"))
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as error:  # trimesh raises many kinds of errors for bad files
-        raise ValueError(f"{path}: cannot read a triangle mesh ({error})") from error
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"{path}: contains no triangles")
-    bad = np.flatnonzero(~np.isfinite(mesh.vertices).all(axis=1))
-    if bad.size:
-        raise ValueError(f"{path}: vertex {int(bad[0])} is not finite ({mesh.vertices[bad[0]].tolist()}); expected "
-                         f"finite coordinates in metres")
-    if not (mesh.area_faces > 0).any():
-        raise ValueError(f"{path}: every triangle has zero area; expected a surface")
-    return mesh
-
-
 def _warn_if_other_units(rec: trimesh.Trimesh, gt: trimesh.Trimesh, rec_path: str, gt_path: str) -> None:
-    """One line on stderr when the meshes' sizes differ ten-fold or more: millimetres against metres,
-    or a mesh of another scene (the metrics are then meaningless; the command still prints them)."""
-    sizes = [float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0])) for mesh in (rec, gt)]
-    if min(sizes) > 0 and max(sizes) / min(sizes) >= 10:
+    """One line on stderr when the meshes' sizes differ ten-fold or more (the metrics are then
+    meaningless; the command still prints them)."""
+    sizes = mesh_sizes_differ(rec, gt)
+    if sizes is not None:
         print(f"warning: {rec_path} spans {sizes[0]:.3g} and {gt_path} {sizes[1]:.3g} (bounding-box diagonals): "
               f"both must be in metres, of the same scene", file=sys.stderr)
 
@@ -132,7 +116,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             keys = ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "n_est", "n_gt", "delta_frames",
                     "scale"]
         else:
-            rec, gt = _load_mesh(args.rec), _load_mesh(args.gt)
+            rec, gt = read_mesh(args.rec), read_mesh(args.gt)
             _warn_if_other_units(rec, gt, args.rec, args.gt)
             result = mesh_metrics(rec, gt, args.points, args.threshold, args.seed)
             keys = ["accuracy_m", "completion_m", "completion_ratio", "threshold_m", "n_points"]

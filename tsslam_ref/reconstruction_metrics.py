@@ -20,7 +20,8 @@ Conventions: inputs are copied to float64 numpy and never modified; pixel centre
 coordinates.
 """
 
-from typing import Dict, Tuple
+import os
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import trimesh
@@ -250,3 +251,39 @@ def depth_l1(rendered_depth, reference_depth, valid=None) -> float:
     if not np.isfinite(rendered[mask]).all():
         raise ValueError("depth_l1: rendered depth is NaN/inf at pixels with a valid reference")
     return float(np.abs(rendered[mask] - reference[mask]).mean())
+
+
+# --------------------------------------------------------------------------------------------
+# Mesh files
+
+
+def read_mesh(path) -> trimesh.Trimesh:
+    """A triangle mesh file as read for the metrics (no processing: faces and vertices as stored);
+    ValueError naming the file when it is missing, unreadable, without triangles, with a non-finite
+    vertex or only zero-area triangles."""
+    path = str(path)
+    if not os.path.isfile(path):
+        missing = "is a folder; expected a mesh file" if os.path.isdir(path) else "mesh file not found"
+        raise ValueError(f"{path}: {missing}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as error:  # trimesh raises many kinds of errors for bad files
+        raise ValueError(f"{path}: cannot read a triangle mesh ({str(error)[:200] or type(error).__name__})") from error
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"{path}: contains no triangles")
+    bad = np.flatnonzero(~np.isfinite(mesh.vertices).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{path}: vertex {int(bad[0])} is not finite ({mesh.vertices[bad[0]].tolist()}); expected "
+                         f"finite coordinates in metres")
+    if not (mesh.area_faces > 0).any():
+        raise ValueError(f"{path}: every triangle has zero area; expected a surface")
+    return mesh
+
+
+def mesh_sizes_differ(rec_mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh,
+                      factor: float = 10.0) -> Optional[Tuple[float, float]]:
+    """The two meshes' bounding-box diagonals (m) when they differ ``factor``-fold or more
+    (millimetres against metres, or a mesh of another scene: the metrics would be meaningless),
+    else None."""
+    sizes = tuple(float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0])) for mesh in (rec_mesh, gt_mesh))
+    return sizes if min(sizes) > 0 and max(sizes) / min(sizes) >= factor else None

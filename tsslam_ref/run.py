@@ -212,17 +212,14 @@ class Plan:
 
 
 def _read_gt_mesh(path: Path):
-    """The ground-truth mesh for the reconstruction metrics; ValueError naming a broken file."""
-    import trimesh
+    """The ground-truth mesh for the reconstruction metrics, read as ``eval mesh`` reads it;
+    BadInput naming a broken file."""
+    from .reconstruction_metrics import read_mesh  # lazy: trimesh, only when there is a GT mesh
 
     try:
-        mesh = trimesh.load(path, force="mesh")
-    except Exception as error:  # trimesh raises many kinds of errors for bad files
-        raise BadInput(f"{path}: cannot read the ground-truth mesh ({str(error)[:200] or type(error).__name__}); "
-                       f"expected a triangle mesh (.ply), or remove it to skip the reconstruction metrics") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise BadInput(f"{path}: the ground-truth mesh holds no triangles; expected a triangle mesh (.ply)")
-    return mesh
+        return read_mesh(path)
+    except ValueError as error:
+        raise BadInput(f"ground-truth mesh {error}; fix it, or remove it to skip the reconstruction metrics") from None
 
 
 def _finished_run(out: Path) -> bool:

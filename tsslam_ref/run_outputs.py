@@ -137,8 +137,14 @@ def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
     intrinsics = sequence.uncropped_intrinsics
     camera = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height)
     poses = np.asarray(sequence.gt_poses)[::2]
-    from .reconstruction_metrics import cull_mesh, mesh_metrics  # lazy: trimesh, only when there is a GT mesh
+    from .reconstruction_metrics import cull_mesh, mesh_metrics, mesh_sizes_differ  # lazy: trimesh
 
+    sizes = mesh_sizes_differ(mesh, gt_mesh)
+    if sizes is not None:  # a GT mesh in millimetres, or of another scene: scores would be meaningless
+        note = (f"not scored: gt_mesh.ply spans {sizes[1]:.3g} and the reconstruction {sizes[0]:.3g} (bounding-box "
+                f"diagonals, the run's in metres): the ground-truth mesh must be in metres, of the same scene")
+        print(f"warning: {note}", file=sys.stderr)
+        return {"reconstruction_note": note}
     culled = cull_mesh(mesh, poses, camera)
     culled_gt = cull_mesh(gt_mesh, poses, camera)
     if len(culled.faces) == 0 or len(culled_gt.faces) == 0:
