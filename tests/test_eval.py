@@ -507,6 +507,22 @@ def test_depth_l1():
         ev.depth_l1(rendered, np.zeros_like(reference))
 
 
+def test_depth_l1_counts_a_hole_in_the_reconstruction_as_depth_zero():
+    """render_depth_zbuffer marks pixels without surface +inf; depth_l1 raised on them, so the documented
+    way to Depth L1 failed on any mesh with a hole.  Co-SLAM's renderer gives depth 0 there."""
+    plane = trimesh.Trimesh([[-1, -1, 2], [1, -1, 2], [1, 1, 2], [-1, 1, 2]], [[0, 1, 2], [0, 2, 3]], process=False)
+    half = trimesh.Trimesh([[-1, -1, 2], [0.0, -1, 2], [0.0, 1, 2], [-1, 1, 2]], [[0, 1, 2], [0, 2, 3]], process=False)
+    camera = (10.0, 10.0, 4.5, 4.5, 10, 10)  # 10 x 10 pixels, the plane fills the view at 2 m
+    reference = ev.render_depth_zbuffer(plane.vertices, plane.faces, np.eye(4), camera)
+    rendered = ev.render_depth_zbuffer(half.vertices, half.faces, np.eye(4), camera)
+    assert np.isfinite(reference).all() and np.isposinf(rendered).any()
+    hole = np.isposinf(rendered)  # the right half of the view: |2 m - 0| each
+    assert 0.3 < hole.mean() < 0.7
+    assert ev.depth_l1(rendered, reference) == pytest.approx(2.0 * hole.mean(), abs=1e-12)
+    with pytest.raises(ValueError, match="NaN or -inf"):
+        ev.depth_l1(np.full_like(reference, np.nan), reference)
+
+
 # ------------------------------------------------------------------------------------------
 # Rasteriser and culling on an analytic scene
 

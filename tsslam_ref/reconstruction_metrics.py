@@ -229,14 +229,17 @@ def depth_l1(rendered_depth, reference_depth, valid=None) -> float:
     """Depth L1 in m: mean |rendered - reference| over pixels where reference > 0 and finite.
 
     Args:
-        rendered_depth: (..., H, W) depth in m (numpy or torch).
+        rendered_depth: (..., H, W) depth in m (numpy or torch); +inf where no surface was hit (as
+            :func:`render_depth_zbuffer` marks it) counts as depth 0, so a hole in the reconstruction
+            costs the whole reference depth, as with Co-SLAM's renderer, whose background depth is 0.
         reference_depth: same shape, sensor/GT depth in m; 0 or non-finite = missing.
         valid: optional bool mask of the same shape, ANDed with the reference test.
 
     Raises:
-        ValueError: shape mismatch, no valid pixel, or a non-finite rendered depth at a valid pixel.
+        ValueError: shape mismatch, no valid pixel, or a NaN or -inf rendered depth at a valid pixel.
     """
     rendered = _to_float64(rendered_depth)
+    rendered = np.where(np.isposinf(rendered), 0.0, rendered)  # no surface: background depth 0
     reference = _to_float64(reference_depth)
     if rendered.shape != reference.shape:
         raise ValueError(f"rendered_depth {rendered.shape} and reference_depth {reference.shape} must match")
@@ -249,7 +252,7 @@ def depth_l1(rendered_depth, reference_depth, valid=None) -> float:
     if not mask.any():
         raise ValueError("depth_l1: no pixel has a valid (finite, > 0) reference depth")
     if not np.isfinite(rendered[mask]).all():
-        raise ValueError("depth_l1: rendered depth is NaN/inf at pixels with a valid reference")
+        raise ValueError("depth_l1: rendered depth is NaN or -inf at pixels with a valid reference")
     return float(np.abs(rendered[mask] - reference[mask]).mean())
 
 
