@@ -613,6 +613,9 @@ def test_cull_mesh_frustum_and_occlusion():
     depth = np.where((np.abs(2 * a) <= 0.3) & (np.abs(2 * b) <= 0.2), 2.0, 4.0)
     with_depth = _kept(mesh, ev.cull_mesh(mesh, poses, INTRINSICS, depths=depth[None]))
     np.testing.assert_array_equal(with_depth[back & (hidden | clearly_seen)], occluded[back & (hidden | clearly_seen)])
+    # the same map in raw TUM PNG units (x 5000) kept every back triangle in view, occlusion silently off
+    with pytest.raises(ValueError, match=r"depths have a median of 2e\+04 m, more than 100 m: expected metres"):
+        ev.cull_mesh(mesh, poses, INTRINSICS, depths=5000 * depth[None])
 
     # a camera turned around (looking along -z) sees only the triangle behind the first camera
     turned = np.eye(4)

@@ -33,6 +33,9 @@ OCCLUSION_EPS_M = 0.03
 """A vertex is visible if its depth < z-buffer depth + this (Co-SLAM cull_mesh.py: 3 cm)."""
 NEAR_PLANE_M = 0.01
 """Triangles with a vertex closer than this to the camera plane are not rasterised (Co-SLAM near)."""
+MAX_MEDIAN_DEPTH_M = 100.0
+"""cull_mesh refuses depth maps whose median valid depth exceeds this: RGB-D sensors reach about
+10 m, while raw PNG values (x1000, x5000) or millimetres give hundreds or thousands (ours)."""
 RASTER_PIXEL_BUDGET = 2_000_000
 """Triangle-pixel candidates processed per chunk in the rasteriser (bounds peak memory, ours)."""
 
@@ -155,7 +158,7 @@ def cull_mesh(
         mesh: triangle mesh (not modified).
         poses_c2w: (F, 4, 4) camera-to-world poses; non-finite poses are skipped.
         intrinsics: (fx, fy, cx, cy, width, height) of the raw images.
-        depths: optional (F, H, W) depth maps in m.
+        depths: optional (F, H, W) depth maps in m (a median above ``MAX_MEDIAN_DEPTH_M`` is refused).
         occlusion_eps: tolerance in m (Co-SLAM: 0.03).
         frustum_only: skip the occlusion test (iMAP / NICE-SLAM culling).
         virtual_poses_c2w: optional (G, 4, 4) extra cameras that may add observations but never
@@ -180,6 +183,10 @@ def cull_mesh(
         depths = _to_float64(depths)
         if depths.shape != (poses_c2w.shape[0], height, width):
             raise ValueError(f"depths must be (F, H, W) = {(poses_c2w.shape[0], height, width)}, got {depths.shape}")
+        measured = depths[np.isfinite(depths) & (depths > 0)]
+        if measured.size and np.median(measured) > MAX_MEDIAN_DEPTH_M:  # else nothing is occluded, silently
+            raise ValueError(f"depths have a median of {np.median(measured):.4g} m, more than {MAX_MEDIAN_DEPTH_M:g} m: "
+                             f"expected metres (raw PNG values or millimetres? divide by the depth scale)")
     in_frustum, observed = _observed_vertices(
         vertices, faces, poses_c2w, intrinsics, depths, occlusion_eps, not frustum_only
     )
