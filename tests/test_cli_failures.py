@@ -985,3 +985,18 @@ def test_an_export_from_a_finished_run_refits_only_the_last_interval_and_ctrl_c_
     monkeypatch.setattr(device_module, "compute_environment", lambda where: {**real(where), "torch": "0.0-other"})
     assert run.main(command + ["--resume", "--export-rate", "50"]) == 0
     assert "the export will not match one the run itself had written bit for bit" in capsys.readouterr().err
+
+
+def test_sigterm_stops_a_run_as_ctrl_c_does_and_it_resumes(runs):
+    """Batch schedulers end jobs with SIGTERM; the run died without a word (its checkpoint survived)."""
+    root = runs["root"]
+    script = INTERRUPT_AFTER_FRAME_4.replace("signal.SIGINT)\n    return", "signal.SIGTERM)\n    return")
+    assert "signal.SIGTERM" in script
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    stopped = subprocess.run([sys.executable, "-c", script, "--data", "room", "--out", "terminated", *CHEAP], cwd=root,
+                             env=env, capture_output=True, text=True, timeout=120)
+    assert stopped.returncode == 130 and "interrupted after frame 4 of 10" in stopped.stderr, stopped.stderr
+    assert run.load_checkpoint(root / "terminated" / "checkpoint.pt").done == 4
+    resumed = cli("run", "--data", "room", "--out", "terminated", *CHEAP, "--resume", cwd=root)
+    assert resumed.returncode == 0, resumed.stderr
+    assert (root / "terminated" / "trajectory.txt").read_bytes() == (runs["planted"] / "trajectory.txt").read_bytes()

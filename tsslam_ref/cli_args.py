@@ -62,6 +62,20 @@ def interruptible(main, prog: str) -> int:
         return 0
 
 
+def stop_on_sigterm_as_on_ctrl_c() -> None:
+    """Handle SIGTERM (a batch scheduler's time limit, ``kill``) as Ctrl-C: KeyboardInterrupt in
+    the main thread, so a run stops as documented for Ctrl-C (its last checkpoint kept, one line
+    saying how to resume) instead of dying without a word."""
+    import signal
+    import threading
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():  # signal.signal works only there
+        signal.signal(signal.SIGTERM, interrupt)
+
+
 def silence_stdout() -> None:
     """Point standard output at /dev/null after its reader went away, so that the flush at exit
     does not raise a second BrokenPipeError."""

@@ -48,7 +48,7 @@ from . import config as config_module
 from . import data as data_module
 from . import device as device_module
 from . import knot_schedule, tracking
-from .cli_args import OneLineParser, number_in, silence_stdout
+from .cli_args import OneLineParser, number_in, silence_stdout, stop_on_sigterm_as_on_ctrl_c
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
@@ -482,6 +482,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
+    stop_on_sigterm_as_on_ctrl_c()
     try:
         plan = prepare(args)
     except (ValueError, OSError) as error:
