@@ -115,6 +115,7 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--seed", str(2**32)], ["--seed", "2**32 - 1"]),  # PyTorch's generator would run it as seed 0
     (["--set", "seed=-1"], ["seed = -1"]),
     (["--frames", "0:1"], ["--frames 0:1 selects 1 frame", "at least 2"]),
+    (["--set", "data.frame_stop=1"], ["data.frame_start:frame_stop:frame_step = 0:1:1 selects 1 frame"]),  # not "has"
     (["--frames=-3:8"], ["--frames -3:8"]),
     (["--frames", "5:2"], ["--frames '5:2' selects no frames"]),
     (["--set", "spline.dt=1e6"], ["spline.dt = 1000000.0", "(0, 10]"]),

@@ -174,7 +174,9 @@ def _checked_sequence(cfg, frames: Optional[str]):
     placed from its depth; an all-zero depth is refused) and its size against the ray counts."""
     sequence = data_module.load_from_config(cfg.data)
     if len(sequence) < 2:
-        selection = f"--frames {frames} selects" if frames else f"{sequence.path} has"
+        chosen = (cfg.data.frame_start, cfg.data.frame_stop, cfg.data.frame_step)
+        selection = (f"--frames {frames} selects" if frames else f"{sequence.path} has" if chosen == (0, None, 1)
+                     else "data.frame_start:frame_stop:frame_step = {}:{}:{} selects".format(*chosen))
         raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
     knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
     sequence.check_files()
@@ -315,7 +317,7 @@ def _refuse_other_settings(changes: List[str], path: Path) -> None:
     if changes:
         raise BadInput(f"--resume refused, {path} was made with other settings: {changes[0]}"
                        + (f" (and {len(changes) - 1} more)" if len(changes) > 1 else "")
-                       + f"; only {', '.join(RESULT_NEUTRAL)} may change on --resume")
+                       + f"; only {', '.join(RESULT_NEUTRAL)} may change on --resume (and --threads, with a warning)")
 
 
 def _resume_environment(saved: Optional[dict], plan: Plan) -> dict:
