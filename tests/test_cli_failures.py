@@ -578,6 +578,7 @@ def test_user_data_without_ground_truth_or_with_a_bad_frame_mid_run(runs):
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
     metrics = json.loads((root / "no_gt_out" / "metrics.json").read_text())
     assert "ate_rmse_m" not in metrics and (root / "no_gt_out" / "mesh.ply").is_file()
+    assert "gt_mesh.ply is not scored: culling needs ground-truth camera poses" in result.stdout, result.stdout
     assert "frames/s; no ground-truth poses, so no ATE / RPE; peak RSS" in result.stdout, result.stdout
 
     bad_frame = root / "room_bad_frame"

@@ -271,6 +271,8 @@ def prepare(args: argparse.Namespace) -> Plan:
     gt_mesh_path = Path(sequence.path) / "gt_mesh.ply"
     if not args.no_mesh and gt_mesh_path.exists() and sequence.gt_poses is not None:  # culling needs GT cameras
         plan.gt_mesh = _read_gt_mesh(gt_mesh_path)  # a broken file is named now, not after the run
+    elif not args.no_mesh and gt_mesh_path.exists():
+        print(f"note: {gt_mesh_path} is not scored: culling needs ground-truth camera poses, which the data lacks")
     if args.resume:
         _prepare_resume(plan)
     return plan
