@@ -264,3 +264,13 @@ def test_assigning_a_misspelt_setting_is_refused_with_the_name_it_meant():
     cfg.tracking.iters = 5  # a real setting still assigns
     assert cfg.tracking.iters == 5 and copy.deepcopy(cfg).tracking.iters == 5
     assert dataclasses.replace(cfg.tracking, iters=7).iters == 7
+
+
+def test_a_key_given_twice_in_a_config_file_is_refused_naming_it(tmp_path):
+    """JSON allows a repeated key and Python keeps the last value: {"iters": 5, ..., "iters": 50} ran with 50."""
+    path = tmp_path / "twice.json"
+    path.write_text('{"name": "tum-cpu", "tracking": {"iters": 5, "n_rays": 256, "iters": 50}}')
+    with pytest.raises(ValueError, match=r"twice.json: key 'iters' is given twice in one object \(values 5 and 50\)"):
+        config.load(str(path))
+    path.write_text('{"name": "tum-cpu", "tracking": {"iters": 5}, "mapping": {"iters": 7}}')  # one per object: fine
+    assert config.load(str(path)).tracking.iters == 5 and config.load(str(path)).mapping.iters == 7

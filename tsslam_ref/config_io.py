@@ -179,12 +179,28 @@ def apply_overrides(cfg: Any, overrides: Sequence[str]) -> Any:
     return validate(cfg, "overrides " + " ".join(overrides) if overrides else "config")
 
 
+class _RepeatedKey(ValueError):
+    pass
+
+
+def _refuse_repeated_keys(pairs):
+    """json object hook: a key given twice would silently keep its last value."""
+    seen = {}
+    for key, value in pairs:
+        if key in seen:
+            raise _RepeatedKey(f"key '{key}' is given twice in one object (values {seen[key]!r} and {value!r})")
+        seen[key] = value
+    return seen
+
+
 def read_json_values(path: str) -> Dict[str, Any]:
     """The nested dict of a JSON config file (as :func:`save` writes); ValueError naming ``path``
-    when the file is not text, not JSON or not an object."""
+    when the file is not text, not JSON, not an object or gives a key twice in one object."""
     try:
         with open(path, encoding="utf-8") as handle:
-            values = json.load(handle)
+            values = json.load(handle, object_pairs_hook=_refuse_repeated_keys)
+    except _RepeatedKey as error:
+        raise ValueError(f"{path}: {error}; expected each key once") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text file; expected a JSON config object") from None
     except json.JSONDecodeError as error:
