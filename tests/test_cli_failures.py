@@ -1002,3 +1002,25 @@ def test_sigterm_stops_a_run_as_ctrl_c_does_and_it_resumes(runs):
     resumed = cli("run", "--data", "room", "--out", "terminated", *CHEAP, "--resume", cwd=root)
     assert resumed.returncode == 0, resumed.stderr
     assert (root / "terminated" / "trajectory.txt").read_bytes() == (runs["planted"] / "trajectory.txt").read_bytes()
+
+
+def test_eval_mesh_cull_like_a_run_gives_the_runs_reconstruction_numbers(runs):
+    """metrics.json's reconstruction numbers could be reproduced only from Python (eval mesh does not
+    cull); --cull-like OUT reads the run's config.json and culls and samples as the run did.  mesh.ply
+    holds float32 vertices (about 1e-7 m at a few metres), the run scored its float64 mesh: equal to
+    a micrometre, and the ratio to a few of the 50,000 samples."""
+    root = runs["root"]
+    with_mesh = [argument for argument in CHEAP if argument != "--no-mesh"]
+    assert cli("run", "--data", "room", "--out", "meshed", *with_mesh, "--seed", "3", cwd=root).returncode == 0
+    metrics = json.loads((root / "meshed" / "metrics.json").read_text())
+    assert metrics["sampling_seed"] == 3 and metrics["culling"]["cameras"] == 5
+    result = cli("eval", "mesh", "meshed/mesh.ply", "room/gt_mesh.ply", "--cull-like", "meshed", "--json", cwd=root)
+    assert result.returncode == 0, result.stderr
+    scored = json.loads(result.stdout)
+    for key, tolerance in (("accuracy_m", 1e-6), ("completion_m", 1e-6), ("completion_ratio", 3 / 50_000)):
+        assert scored[key] == pytest.approx(metrics[key], abs=tolerance), key
+    assert scored["n_points"] == metrics["n_points"] == 50_000 and scored["sampling_seed"] == 3
+    plain = json.loads(cli("eval", "mesh", "meshed/mesh.ply", "room/gt_mesh.ply", "--json", cwd=root).stdout)
+    assert plain["accuracy_m"] > 2 * metrics["accuracy_m"]  # unculled: the whole box's surface against the seen part
+    refused(cli("eval", "mesh", "meshed/mesh.ply", "room/gt_mesh.ply", "--cull-like", "room", cwd=root),
+            "--cull-like room: no config.json there")

@@ -193,8 +193,11 @@ def test_a_run_culls_with_the_raw_camera_whatever_the_crop(tmp_path):
     poses = cropped.gt_poses[::2]
     expected = mesh_metrics(cull_mesh(reconstruction, poses, raw), cull_mesh(gt_mesh, poses, raw), n_points=50_000,
                             threshold=0.05, seed=0)
-    assert reconstruction_metrics(reconstruction, gt_mesh, cropped, seed=0) == expected
-    assert reconstruction_metrics(reconstruction, gt_mesh, data.load_sequence(folder), seed=0) == expected
+    for sequence in (cropped, data.load_sequence(folder)):
+        result = reconstruction_metrics(reconstruction, gt_mesh, sequence, seed=0)
+        assert {key: result[key] for key in expected} == expected
+        assert result["culling"]["camera"] == dict(zip(("fx", "fy", "cx", "cy", "width", "height"), raw))
+        assert result["culling"]["cameras"] == 3 and result["sampling_seed"] == 0
 
 
 def test_a_ground_truth_mesh_in_millimetres_is_not_scored_but_named(tmp_path, capsys):
@@ -208,5 +211,5 @@ def test_a_ground_truth_mesh_in_millimetres_is_not_scored_but_named(tmp_path, ca
     in_millimetres.apply_scale(1000.0)
     result = reconstruction_metrics(gt_mesh, in_millimetres, data.load_sequence(folder), seed=0)
     assert list(result) == ["reconstruction_note"] and "must be in metres" in result["reconstruction_note"], result
-    assert "warning: not scored: gt_mesh.ply spans" in capsys.readouterr().err
+    assert "warning: reconstruction metrics: not scored: the ground-truth mesh spans" in capsys.readouterr().err
     assert "accuracy_m" in reconstruction_metrics(gt_mesh, gt_mesh, data.load_sequence(folder), seed=0)

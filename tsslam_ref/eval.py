@@ -23,7 +23,9 @@ from tsslam_ref.reconstruction_metrics import (  # noqa: F401  (re-exported)
     NEAR_PLANE_M,
     OCCLUSION_EPS_M,
     RASTER_PIXEL_BUDGET,
+    RUN_POINTS,
     cull_mesh,
+    culled_metrics,
     depth_l1,
     mesh_metrics,
     mesh_sizes_differ,
@@ -41,9 +43,9 @@ from tsslam_ref.trajectory_metrics import (  # noqa: F401  (re-exported)
 )
 
 __all__ = [
-    "DEFAULT_MAX_DIFF_S", "NEAR_PLANE_M", "OCCLUSION_EPS_M", "RASTER_PIXEL_BUDGET", "associate", "ate",
-    "cull_mesh", "depth_l1", "evaluate_trajectory", "horn_alignment", "main", "mesh_metrics", "mesh_sizes_differ",
-    "read_mesh", "render_depth_zbuffer", "rpe", "trajectory_errors_over_time",
+    "DEFAULT_MAX_DIFF_S", "NEAR_PLANE_M", "OCCLUSION_EPS_M", "RASTER_PIXEL_BUDGET", "RUN_POINTS", "associate", "ate",
+    "cull_mesh", "culled_metrics", "depth_l1", "evaluate_trajectory", "horn_alignment", "main", "mesh_metrics",
+    "mesh_sizes_differ", "read_mesh", "render_depth_zbuffer", "rpe", "trajectory_errors_over_time",
 ]
 
 
@@ -58,6 +60,23 @@ def _warn_if_other_units(rec: trimesh.Trimesh, gt: trimesh.Trimesh, rec_path: st
     if sizes is not None:
         print(f"warning: {rec_path} spans {sizes[0]:.3g} and {gt_path} {sizes[1]:.3g} (bounding-box diagonals): "
               f"both must be in metres, of the same scene", file=sys.stderr)
+
+
+def _as_the_run_culled(rec: trimesh.Trimesh, gt: trimesh.Trimesh, args) -> Dict[str, object]:
+    """:func:`culled_metrics` with the sequence and seed of the run in folder ``args.cull_like``."""
+    from tsslam_ref import config as config_module
+    from tsslam_ref.data import load_from_config
+
+    saved = os.path.join(args.cull_like, "config.json")
+    if not os.path.isfile(saved):
+        raise ValueError(f"--cull-like {args.cull_like}: no config.json there; expected the output folder of a run")
+    cfg = config_module.load(saved)
+    sequence = load_from_config(cfg.data)
+    if sequence.gt_poses is None:
+        raise ValueError(f"--cull-like {args.cull_like}: its data {sequence.path} has no ground-truth poses to "
+                         f"cull with")
+    seed = cfg.seed if args.seed is None else args.seed
+    return culled_metrics(rec, gt, sequence, seed, args.threshold, args.points or RUN_POINTS)
 
 
 def _print_result(result: Dict[str, object], keys: Sequence[str], as_json: bool) -> None:
@@ -93,9 +112,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     mesh.add_argument("gt", help="ground-truth mesh of the same scene, in metres")
     mesh.add_argument("--threshold", type=number_in("--threshold", 0, 100, low_open=True), default=0.05,
                       help="completion-ratio threshold (m), in (0, 100]; default 0.05")
-    mesh.add_argument("--points", type=number_in("--points", 1, 10**8, integer=True), default=200_000,
-                      help="surface samples per mesh, 1 to 1e8; default 200000")
-    mesh.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=0)
+    mesh.add_argument("--points", type=number_in("--points", 1, 10**8, integer=True), default=None,
+                      help="surface samples per mesh, 1 to 1e8; default 200000 (50000 with --cull-like)")
+    mesh.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=None,
+                      help="sampling seed; default 0 (the run's seed with --cull-like)")
+    mesh.add_argument("--cull-like", metavar="RUN", default=None,
+                      help="cull both meshes as the run in folder RUN did (its config.json: data, frames, seed) and "
+                           "score them by its protocol: metrics.json's reconstruction numbers")
     mesh.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
     try:
@@ -118,8 +141,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         else:
             rec, gt = read_mesh(args.rec), read_mesh(args.gt)
             _warn_if_other_units(rec, gt, args.rec, args.gt)
-            result = mesh_metrics(rec, gt, args.points, args.threshold, args.seed)
             keys = ["accuracy_m", "completion_m", "completion_ratio", "threshold_m", "n_points"]
+            if args.cull_like is None:
+                result = mesh_metrics(rec, gt, args.points or 200_000, args.threshold, args.seed or 0)
+            else:
+                result = _as_the_run_culled(rec, gt, args)
+                keys = list(result) if "reconstruction_note" in result else keys + ["sampling_seed"]
     except (ValueError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -185,8 +185,8 @@ def cull_mesh(
             raise ValueError(f"depths must be (F, H, W) = {(poses_c2w.shape[0], height, width)}, got {depths.shape}")
         measured = depths[np.isfinite(depths) & (depths > 0)]
         if measured.size and np.median(measured) > MAX_MEDIAN_DEPTH_M:  # else nothing is occluded, silently
-            raise ValueError(f"depths have a median of {np.median(measured):.4g} m, more than {MAX_MEDIAN_DEPTH_M:g} m: "
-                             f"expected metres (raw PNG values or millimetres? divide by the depth scale)")
+            raise ValueError(f"depths have a median of {np.median(measured):.4g} m, more than {MAX_MEDIAN_DEPTH_M:g} "
+                             f"m: expected metres (raw PNG values or millimetres? divide by the depth scale)")
     in_frustum, observed = _observed_vertices(
         vertices, faces, poses_c2w, intrinsics, depths, occlusion_eps, not frustum_only
     )
@@ -230,6 +230,45 @@ def mesh_metrics(rec_mesh, gt_mesh, n_points: int = 200_000, threshold: float = 
         "threshold_m": float(threshold),
         "n_points": int(n_points),
     }
+
+
+RUN_POINTS = 50_000
+"""Surface samples per mesh in a run's reconstruction metrics: a quarter of Co-SLAM's 200,000, to
+keep the end of a run short (a sampling floor of 0.5 sqrt(area / 50,000), twice Co-SLAM's; ours)."""
+CULL_EVERY = 2
+"""A run culls with the ground-truth camera of every second frame (Co-SLAM ``cull_mesh.py --skip 2``)."""
+
+
+def culled_metrics(rec_mesh, gt_mesh, sequence, seed: int = 0, threshold: float = 0.05,
+                   n_points: int = RUN_POINTS) -> Dict[str, object]:
+    """A run's reconstruction protocol: both meshes culled (frustum and occlusion, :func:`cull_mesh`)
+    with the ground-truth cameras of every :data:`CULL_EVERY`-th frame of ``sequence`` in the raw
+    images' camera (``sequence.uncropped_intrinsics``: no crop, at the working width; Co-SLAM adds
+    hand-picked virtual cameras, which we do not have), then :func:`mesh_metrics`.
+
+    Returns:
+        mesh_metrics' dict plus ``sampling_seed`` and ``culling`` (cameras, camera, areas in m²), or
+        ``{"reconstruction_note": why}`` when the meshes' sizes differ ten-fold (a mesh in
+        millimetres) or nothing is left after culling.
+    """
+    sizes = mesh_sizes_differ(rec_mesh, gt_mesh)
+    if sizes is not None:
+        return {"reconstruction_note": f"not scored: the ground-truth mesh spans {sizes[1]:.3g} and the reconstruction "
+                                       f"{sizes[0]:.3g} (bounding-box diagonals, the reconstruction in metres): the "
+                                       f"ground-truth mesh must be in metres, of the same scene"}
+    camera = sequence.uncropped_intrinsics
+    intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
+    poses = np.asarray(sequence.gt_poses)[::CULL_EVERY]
+    culled, culled_gt = cull_mesh(rec_mesh, poses, intrinsics), cull_mesh(gt_mesh, poses, intrinsics)
+    if len(culled.faces) == 0 or len(culled_gt.faces) == 0:
+        return {"reconstruction_note": "nothing left after culling"}
+    result: Dict[str, object] = dict(mesh_metrics(culled, culled_gt, n_points=n_points, threshold=threshold, seed=seed))
+    result["sampling_seed"] = int(seed)
+    cameras = int(np.isfinite(poses.reshape(len(poses), -1)).all(axis=1).sum())  # cull_mesh skips unknown poses
+    result["culling"] = {"cameras": cameras, "every_nth_frame": CULL_EVERY,
+                         "camera": dict(zip(("fx", "fy", "cx", "cy", "width", "height"), intrinsics)),
+                         "area_m2": {"reconstruction": float(culled.area), "ground_truth": float(culled_gt.area)}}
+    return result
 
 
 def depth_l1(rendered_depth, reference_depth, valid=None) -> float:

@@ -127,29 +127,16 @@ def trajectory_metrics(sequence, timestamps: np.ndarray, poses: np.ndarray) -> d
 
 
 def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
-    """Accuracy / completion / ratio after Co-SLAM-style culling of both meshes.
+    """Accuracy / completion / ratio of the run's mesh by the run's protocol
+    (``reconstruction_metrics.culled_metrics``: both meshes culled with the ground-truth cameras of
+    every second frame, raw camera, 50,000 points); a ``reconstruction_note`` (meshes of ten-fold
+    different sizes, nothing left after culling) is also printed as a warning."""
+    from .reconstruction_metrics import culled_metrics  # lazy: trimesh, only when there is a GT mesh
 
-    Both meshes are culled (frustum + occlusion, eval.cull_mesh) with the ground-truth cameras of
-    every second frame, so that only what the sequence observed is compared (Co-SLAM culls with the
-    GT poses too, in its ``cull_mesh.py``; it also adds hand-picked virtual cameras, which we do not have).
-    The cameras are the raw images' (no ``crop_edge``), as Co-SLAM's, at the run's working width.
-    """
-    intrinsics = sequence.uncropped_intrinsics
-    camera = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height)
-    poses = np.asarray(sequence.gt_poses)[::2]
-    from .reconstruction_metrics import cull_mesh, mesh_metrics, mesh_sizes_differ  # lazy: trimesh
-
-    sizes = mesh_sizes_differ(mesh, gt_mesh)
-    if sizes is not None:  # a GT mesh in millimetres, or of another scene: scores would be meaningless
-        note = (f"not scored: gt_mesh.ply spans {sizes[1]:.3g} and the reconstruction {sizes[0]:.3g} (bounding-box "
-                f"diagonals, the run's in metres): the ground-truth mesh must be in metres, of the same scene")
-        print(f"warning: {note}", file=sys.stderr)
-        return {"reconstruction_note": note}
-    culled = cull_mesh(mesh, poses, camera)
-    culled_gt = cull_mesh(gt_mesh, poses, camera)
-    if len(culled.faces) == 0 or len(culled_gt.faces) == 0:
-        return {"reconstruction_note": "nothing left after culling"}
-    return mesh_metrics(culled, culled_gt, n_points=50_000, threshold=0.05, seed=seed)
+    result = culled_metrics(mesh, gt_mesh, sequence, seed)
+    if "reconstruction_note" in result:
+        print(f"warning: reconstruction metrics: {result['reconstruction_note']}", file=sys.stderr)
+    return result
 
 
 def save_plots(out: Path, sequence, timestamps: np.ndarray, poses: np.ndarray) -> None:
