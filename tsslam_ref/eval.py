@@ -88,8 +88,8 @@ def _print_result(result: Dict[str, object], keys: Sequence[str], as_json: bool)
             print(f"{key}: {value:.6f}" if isinstance(value, float) else f"{key}: {value}")
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    """``python -m tsslam_ref.eval trajectory GT EST`` or ``... mesh REC GT``; bad input -> exit 2."""
+def _build_parser():
+    """The command line: ``trajectory GT EST`` and ``mesh REC GT`` with their options."""
     from tsslam_ref.cli_args import OneLineParser, number_in
 
     parser = OneLineParser(prog="python -m tsslam_ref.eval", description=__doc__.split("\n")[0],
@@ -120,7 +120,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                       help="cull both meshes as the run in folder RUN did (its config.json: data, frames, seed) and "
                            "score them by its protocol: metrics.json's reconstruction numbers")
     mesh.add_argument("--json", action="store_true", help="print one JSON object")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """``python -m tsslam_ref.eval trajectory GT EST`` or ``... mesh REC GT``; bad input -> exit 2."""
+    args = _build_parser().parse_args(argv)
     try:
         if args.command == "trajectory":
             gt_times, gt_poses = read_tum_trajectory(args.gt)
