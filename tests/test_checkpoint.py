@@ -60,6 +60,7 @@ def recorded(tmp_path_factory):
                 "optimizer_state": copy.deepcopy(current.map_optimizer.state_dict()["state"])}
 
     slam.run_slam(sequence, cheap_config("tsslam"), device=torch.device("cpu"), on_frame=keep)
+    kept["live"]["sequence"] = sequence
     return kept["state"], kept["live"]
 
 
@@ -270,3 +271,17 @@ def test_frames_tracked_ahead_of_mapping_are_left_out_so_the_checkpoint_loads(st
     assert sorted(back.tracking_output) == sorted(state.tracking_output)
     assert sorted(back.window_rays) == sorted(state.window_rays)
     assert all(frame < done for frame in back.tracking_output)
+
+
+def test_a_state_loaded_on_the_cpu_is_refused_by_a_run_on_another_device_naming_the_fix(recorded):
+    """``run_slam(..., state=checkpoint.load(path))`` on a CUDA machine resolved 'auto' to CUDA and
+    failed frames later with a tensor on the wrong device; 'meta' stands in for the GPU here."""
+    from tsslam_ref.device import state_on_device
+
+    state, live = recorded
+    assert state_on_device(state, torch.device("cpu")) is state
+    with pytest.raises(ValueError, match=r"lives on cpu, the run on meta: load it there, "
+                                         r"checkpoint.load\(path, device='meta'\)"):
+        state_on_device(state, torch.device("meta"))
+    with pytest.raises(ValueError, match="lives on cpu, the run on meta"):
+        slam.prepare_run(live["sequence"], state.cfg, torch.device("meta"), state)

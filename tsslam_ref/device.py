@@ -28,6 +28,17 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
+def state_on_device(state, device: torch.device):
+    """``state`` (a loop state to resume) when its map lives on ``device``'s kind; ValueError naming
+    both and the fix otherwise (``checkpoint.load`` puts a state on the CPU unless told; a CUDA run
+    from it failed frames later with a tensor on the wrong device)."""
+    where = next(state.field.parameters()).device
+    if where.type != device.type:
+        raise ValueError(f"the state to resume lives on {where}, the run on {device}: load it there, "
+                         f"checkpoint.load(path, device={str(device)!r}), or run it on {where.type}")
+    return state
+
+
 def compute_environment(device: torch.device) -> dict:
     """What decides a run's last bits besides the seed: PyTorch, the device, the CPU kernels, the threads.
 

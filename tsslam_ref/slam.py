@@ -24,7 +24,7 @@
 * **finish** (:func:`finish_run`): TS-SLAM maps the last, incomplete interval; the output poses
   are the spline's at the frames' timestamps (``export.py``).
 
-The loop is sequential and deterministic for a seed; ``parallel.run_slam_in_two_threads`` runs
+The loop is sequential and, on the CPU, deterministic for a seed; ``parallel.run_slam_in_two_threads`` runs
 the same steps in two threads (the caller chooses, as ``run.py`` does).  ``run_slam`` takes a
 progress callback so the command line can show progress, write partial results and checkpoints.
 
@@ -43,7 +43,7 @@ import torch
 from . import knot_schedule, local_ba
 from .bundle import KeyframeDatabase
 from .config import Config, validate
-from .device import FrameTensors, frame_to_device, resolve_device
+from .device import FrameTensors, frame_to_device, resolve_device, state_on_device
 from .export import estimated_trajectory
 from .field import SceneField
 from .geometry import invert_pose
@@ -145,8 +145,7 @@ def prepare_run(sequence, cfg: Config, device: Optional[torch.device], state: Op
     knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
     check_ray_budget(cfg, *sequence[0].depth.shape)
     device = device or resolve_device(cfg.device)
-    if state is None:
-        state = initial_state(sequence, cfg, device)
+    state = initial_state(sequence, cfg, device) if state is None else state_on_device(state, device)
     return state, device, getattr(torch, cfg.dtype)
 
 
