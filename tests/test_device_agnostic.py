@@ -153,3 +153,20 @@ def test_a_frame_on_the_device_keeps_its_dtype_shape_pixel_order_and_sampling_bo
     sampled_rows = np.round(sampled.rgb[:, 0].numpy() * 10)
     sampled_cols = np.round(sampled.rgb[:, 1].numpy() * 100)
     assert set(sampled_rows) == {2.0} and set(sampled_cols) <= {2.0, 3.0, 4.0}  # the 1 x 3 inner pixels
+
+
+def test_render_image_puts_a_numpy_pose_on_the_fields_device(small_sequence):
+    """render_image invites a NumPy pose; it took the device from the pose (the CPU), so a map on
+    the GPU met CPU rays."""
+    from tsslam_ref.field import SceneField
+    from tsslam_ref.render import render_image
+
+    cfg = small_config("tsslam")
+    sequence = data.load_sequence(small_sequence)
+    field = SceneField(cfg.field, [[-3.0, 3.0], [-3.0, 3.0], [-3.0, 3.0]], generator=torch.Generator().manual_seed(0))
+    pose = sequence.gt_poses[0]
+    plain = render_image(field, pose, sequence.intrinsics, cfg.render, chunk=1024)
+    with VirtualDevice():
+        moved = render_image(field.to(VIRTUAL), pose, sequence.intrinsics, cfg.render, chunk=1024)
+        assert on_virtual(moved["depth"]) and on_virtual(moved["rgb"])
+    assert torch.equal(moved["depth"], plain["depth"]) and torch.equal(moved["rgb"], plain["rgb"])

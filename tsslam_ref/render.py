@@ -354,10 +354,12 @@ def render_image(
         chunk: rays per chunk (default ``cfg.chunk``).
 
     Returns:
-        dict rgb (H, W, 3), depth (H, W) on ``c2w``'s device.
+        dict rgb (H, W, 3), depth (H, W) on ``c2w``'s device (a NumPy ``c2w``: the field's).
     """
     height, width = _render_size(intrinsics, depth, height, width)
-    c2w = torch.as_tensor(c2w)  # a NumPy pose too
+    if not isinstance(c2w, torch.Tensor):  # a NumPy pose: onto the map's device (a module's parameters)
+        parameter = next(iter(field_fn.parameters()), None) if isinstance(field_fn, torch.nn.Module) else None
+        c2w = torch.as_tensor(c2w, device=None if parameter is None else parameter.device)
     if c2w.shape != (4, 4):
         raise ValueError(f"render_image renders one camera: c2w must be one (4, 4) camera-to-world pose, "
                          f"got {tuple(c2w.shape)}")
