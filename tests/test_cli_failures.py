@@ -1024,3 +1024,13 @@ def test_eval_mesh_cull_like_a_run_gives_the_runs_reconstruction_numbers(runs):
     assert plain["accuracy_m"] > 2 * metrics["accuracy_m"]  # unculled: the whole box's surface against the seen part
     refused(cli("eval", "mesh", "meshed/mesh.ply", "room/gt_mesh.ply", "--cull-like", "room", cwd=root),
             "--cull-like room: no config.json there")
+
+
+def test_resume_naming_the_device_the_run_used_is_not_refused(runs, tmp_path, monkeypatch, capsys):
+    """A run started with the default --device auto (the CPU here) was refused on --resume --device cpu
+    ("device was auto"): the device actually used is compared, as part of the environment."""
+    _interrupted_beside_its_data(runs, tmp_path)
+    monkeypatch.chdir(tmp_path)
+    assert run.main([*CHEAP, "--data", "room", "--out", "stopped", "--resume", "--device", "cpu"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert (tmp_path / "stopped" / "trajectory.txt").read_bytes() == (runs["planted"] / "trajectory.txt").read_bytes()

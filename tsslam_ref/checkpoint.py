@@ -203,11 +203,14 @@ def _data_folder(path: str) -> str:
 def config_differences(saved: Dict[str, Any], cfg: config_module.Config,
                        saved_in: str = "the checkpoint") -> List[str]:
     """'key: saved -> now' for every config value that differs from the saved config (``saved_in``
-    names where it was saved, for the message)."""
+    names where it was saved, for the message); not ``device``, whose resolved value
+    :func:`environment_changes` compares (a warning)."""
     old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))
     changes = []
     for key in sorted(set(old) | set(new)):
         before, after = old.get(key, "<absent>"), new.get(key, "<absent>")
+        if key == "device":  # "auto" and "cpu" may name one device: the one used is compared as environment
+            continue
         if key == "data.path" and isinstance(before, str) and isinstance(after, str):
             same = _data_folder(before) == _data_folder(after)
         else:
