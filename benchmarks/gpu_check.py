@@ -6,8 +6,9 @@ by centimetres although no computation is wrong (measured on an H200: 2.5 cm for
 cm for Co-SLAM over 40 frames, while a CPU run itself moves that much from one seed to the next).
 So it checks
 
-* **kernels, same inputs**: the map (colour, SDF and the gradient of the hash table and MLPs at
-  4096 random points, float32) and the spline (pose, velocity, acceleration, angular rate and
+* **kernels, same inputs**: the map (colour, SDF and the gradients of the hash table, the MLPs and
+  the points at 4096 random points, float32; the CPU with its compiled kernels against the device
+  on the PyTorch path, which a GPU takes) and the spline (pose, velocity, acceleration, angular rate and
   angular acceleration at 200 times, float64) on the CPU and on ``--device``.  Passes when the
   largest difference, relative to the largest value, is below 1e-4 (float32) and 1e-10 (float64);
 * **runs, same seeds**: both methods (TS-SLAM, Co-SLAM baseline) on the bundled TUM fr3/teddy slice
@@ -21,8 +22,9 @@ So it checks
 
 It writes every figure to ``--json`` (default ``runs/gpu_check.json``; an existing file is kept
 unless ``--overwrite``).  Exit status: 0 every check holds, 1 one does not, 2 the device cannot be
-used.  On a machine without CUDA, ``--device cpu`` runs the whole script as a dry run (CPU against
-CPU, which must agree exactly).
+used.  On a machine without CUDA, ``--device cpu`` runs the whole script as a dry run (the map's
+compiled kernels against its PyTorch path, which agree to rounding; the spline and the runs CPU
+against CPU, exactly).  Run it as a script (``python benchmarks/gpu_check.py``), not with ``-m``.
 
 Usage: python benchmarks/gpu_check.py [--frames 0:20] [--seeds 0 1 2] [--device cuda] [--threads 2] [--json FILE]
 
@@ -30,7 +32,7 @@ tests/test_gpu_check.py checks its pieces on the CPU (the kernel comparison, the
 refusals); the figures are in the README's "Results".
 """
 
-import copy
+import dataclasses
 import json
 import os
 import sys
@@ -89,16 +91,21 @@ def points_in_box(n_points: int, seed: int) -> torch.Tensor:
 
 
 def field_agreement(cfg: config.Config, device: torch.device, n_points: int = 4096) -> Dict[str, float]:
-    """Colour, SDF and every parameter's gradient of one map forward + backward at the same
-    (n_points, 3) points with the same weights on both devices: relative difference per output."""
+    """Colour, SDF, every parameter's gradient and the points' gradient (what tracking and BA use) of
+    one map forward + backward at the same (n_points, 3) points with the same weights: the CPU with
+    the config's kernels against ``device`` on the PyTorch path a GPU takes (on the CPU too, so that
+    a dry run compares the two paths, which agree to rounding); relative difference per output."""
     cpu_field = SceneField(cfg.field, BOX, generator=torch.Generator().manual_seed(0))
-    other_field = copy.deepcopy(cpu_field).to(device)
-    points = points_in_box(n_points, seed=1)
+    pytorch_path = dataclasses.replace(cfg.field, compiled_kernel=False, compiled_oneblob=False)
+    other_field = SceneField(pytorch_path, BOX)
+    other_field.load_state_dict(cpu_field.state_dict())
+    other_field = other_field.to(device)
     outputs = {}
     for field, where in ((cpu_field, "cpu"), (other_field, "device")):
-        rgb, sdf = field(points.to(device if where == "device" else "cpu"))
+        points = points_in_box(n_points, seed=1).to(device if where == "device" else "cpu").requires_grad_(True)
+        rgb, sdf = field(points)
         (rgb.square().mean() + sdf.square().mean()).backward()
-        outputs[where] = {"rgb": rgb.detach(), "sdf": sdf.detach(),
+        outputs[where] = {"rgb": rgb.detach(), "sdf": sdf.detach(), "grad points": points.grad,
                           **{f"grad {name}": parameter.grad for name, parameter in field.named_parameters()}}
     return {name: relative_difference(value, outputs["device"][name]) for name, value in outputs["cpu"].items()}
 
