@@ -170,3 +170,17 @@ def test_render_image_puts_a_numpy_pose_on_the_fields_device(small_sequence):
         moved = render_image(field.to(VIRTUAL), pose, sequence.intrinsics, cfg.render, chunk=1024)
         assert on_virtual(moved["depth"]) and on_virtual(moved["rgb"])
     assert torch.equal(moved["depth"], plain["depth"]) and torch.equal(moved["rgb"], plain["rgb"])
+
+
+def test_a_map_off_the_cpu_asks_for_no_cpu_kernel(small_sequence):
+    """The compiled kernels are CPU only: a GPU run built them anyway (about 30 s) and, without a
+    compiler, recorded a kernel_error that did not apply.  'meta' stands in for the GPU (the
+    stand-in above reports itself as a CPU device)."""
+    cfg = config.tiny()
+    assert cfg.field.compiled_kernel and cfg.field.compiled_oneblob
+    assert device_module.field_settings_for(torch.device("cpu"), cfg.field) is cfg.field
+    state = slam.initial_state(data.load_sequence(small_sequence), cfg, torch.device("meta"))
+    assert state.field.grid.table.device.type == "meta"
+    assert not state.field.grid.compiled and not state.field.oneblob.compiled
+    assert "kernel_error" not in device_module.map_kernels(state.field, torch.device("meta"))
+    assert cfg.field.compiled_kernel  # the run's config (checkpoint, metrics.json) is unchanged

@@ -129,6 +129,7 @@ def _trajectory_from_plain(plain: Dict[str, Any], device):
 def from_plain(values: Dict[str, Any], device=None):
     """Rebuild a ``slam.SLAMState`` from :func:`to_plain`'s dict (tensors moved to ``device``)."""
     from .bundle import KeyframeDatabase
+    from .device import field_settings_for
     from .field import SceneField
     from .mapping import make_map_optimizer
     from .slam import SLAMState
@@ -137,7 +138,7 @@ def from_plain(values: Dict[str, Any], device=None):
     cfg = config_module.from_dict(json.loads(values["config"]), source="the checkpoint's config")
     device = torch.device(device) if device is not None else values["frame_poses"].device
     dtype = getattr(torch, cfg.dtype)
-    field_model = SceneField(cfg.field, values["field"]["bound"]).to(device=device, dtype=dtype)
+    field_model = SceneField(field_settings_for(device, cfg.field), values["field"]["bound"]).to(device, dtype)
     field_model.load_state_dict(values["field"])
     optimizer = make_map_optimizer(field_model, cfg.mapping)
     optimizer.load_state_dict(values["map_optimizer"])

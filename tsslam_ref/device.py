@@ -5,6 +5,7 @@ by ``slam``, ``parallel``, ``run`` and ``checkpoint``.
 """
 
 import ctypes
+import dataclasses
 import sys
 from dataclasses import dataclass
 
@@ -26,6 +27,15 @@ def resolve_device(name: str) -> torch.device:
         raise ValueError(f"device {name!r} was asked for but this machine has {torch.cuda.device_count()} CUDA "
                          f"device(s), numbered from 0")
     return device
+
+
+def field_settings_for(device: torch.device, field_cfg):
+    """``field_cfg`` (``config.FieldConfig``) for a map on ``device``: off the CPU the compiled
+    kernels, which are CPU only, are not asked for, so a GPU run neither builds them (about 30 s,
+    with a compiler) nor records a ``kernel_error`` that does not apply to it."""
+    if device.type == "cpu":
+        return field_cfg
+    return dataclasses.replace(field_cfg, compiled_kernel=False, compiled_oneblob=False)
 
 
 def state_on_device(state, device: torch.device):

@@ -43,7 +43,7 @@ import torch
 from . import knot_schedule, local_ba
 from .bundle import KeyframeDatabase
 from .config import Config, validate
-from .device import FrameTensors, frame_to_device, resolve_device, state_on_device
+from .device import FrameTensors, field_settings_for, frame_to_device, resolve_device, state_on_device
 from .export import estimated_trajectory
 from .field import SceneField
 from .geometry import invert_pose
@@ -180,7 +180,7 @@ def initial_state(sequence, cfg: Config, device: torch.device) -> SLAMState:
     else:
         bound = estimate_bound([first], torch.as_tensor(first_pose[None]), cfg.field.bound_margin,
                                max_depth=min(cfg.data.depth_trunc, cfg.render.far))
-    field_model = SceneField(cfg.field, torch.as_tensor(bound, dtype=dtype)).to(device=device, dtype=dtype)
+    field_model = SceneField(field_settings_for(device, cfg.field), torch.as_tensor(bound, dtype=dtype)).to(device, dtype)
     poses = torch.eye(4, dtype=dtype, device=device).repeat(len(sequence), 1, 1)
     poses[0] = torch.as_tensor(first_pose, dtype=dtype, device=device)
     return SLAMState(
