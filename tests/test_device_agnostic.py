@@ -184,3 +184,13 @@ def test_a_map_off_the_cpu_asks_for_no_cpu_kernel(small_sequence):
     assert not state.field.grid.compiled and not state.field.oneblob.compiled
     assert "kernel_error" not in device_module.map_kernels(state.field, torch.device("meta"))
     assert cfg.field.compiled_kernel  # the run's config (checkpoint, metrics.json) is unchanged
+
+
+def test_a_trajectory_answers_covers_for_times_on_the_device_as_evaluate_takes_them():
+    from tsslam_ref.trajectory import BSplineTrajectory
+
+    trajectory = BSplineTrajectory.empty(0.0, 0.1, torch.eye(4, dtype=torch.float64)[None])
+    times = np.array([-0.05, 0.0, 0.05, 0.1, 0.3])
+    expected = trajectory.covers(times)
+    with VirtualDevice():
+        assert np.array_equal(trajectory.covers(torch.from_numpy(times).to(VIRTUAL)), expected)

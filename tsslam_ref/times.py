@@ -29,5 +29,5 @@ def float64_seconds(times, name: str) -> np.ndarray:
     after :func:`check_float64_seconds`."""
     check_float64_seconds(name, times)
     if isinstance(times, torch.Tensor):
-        return times.detach().numpy(force=True).astype(np.float64, copy=True)
+        return times.detach().cpu().numpy().astype(np.float64, copy=True)  # from any device
     return np.array(times, dtype=np.float64, copy=True)

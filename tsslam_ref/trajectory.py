@@ -40,6 +40,7 @@ import torch
 from . import knots as knots_module
 from . import spline as spline_module
 from .geometry import make_pose, so3_exp, so3_log
+from .times import float64_seconds
 
 _ROTATION_JUMP_WARN = 0.5 * np.pi
 
@@ -198,7 +199,7 @@ class BSplineTrajectory:
     def covers(self, times) -> np.ndarray:
         """(times' shape) bool: start <= t < end, the one membership rule (module docstring)."""
         start, end = self.domain()
-        times = np.asarray(times, dtype=np.float64)
+        times = float64_seconds(times, "times")  # tensors on any device, as evaluate() takes them
         return (times >= start) & (times < end)
 
     # --- evaluation
