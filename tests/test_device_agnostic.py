@@ -3,8 +3,8 @@
 Oracle: PyTorch's own device rules for CUDA tensors, enforced by ``device_audit.VirtualDevice``
 (an accelerator stand-in that marks tensors instead of moving them).  The first tests show that
 the stand-in raises on each mistake CUDA raises on; then both methods, the adaptive knots, the
-two-thread loop and the command line run on the stand-in, on the PyTorch path of the hash grid
-that a GPU takes, and must give exactly the plain CPU run's trajectory (the stand-in moves
+two-thread loop and the command line run on the stand-in, on the PyTorch paths of the hash grid
+and the OneBlob encoding that a GPU takes, and must give exactly the plain CPU run's trajectory (the stand-in moves
 nothing, so any difference would be a bug of the stand-in itself).
 """
 
@@ -30,6 +30,7 @@ def small_config(method: str, knots: str = "uniform") -> config.Config:
     cfg.local_ba.window = 4
     cfg.tracking.iters = 4
     cfg.field.compiled_kernel = False  # the hash grid's PyTorch path, the one a GPU runs
+    cfg.field.compiled_oneblob = False  # and the OneBlob encoding's (the stand-in is a CPU device to the field)
     return config.apply_overrides(cfg, [f"spline.knots={knots}"])
 
 
