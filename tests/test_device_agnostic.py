@@ -115,7 +115,8 @@ def test_the_command_line_in_two_threads_runs_on_the_stand_in(small_sequence, tm
     monkeypatch.setattr(device_module, "resolve_device", lambda name: VIRTUAL)
     out = tmp_path / "out"
     arguments = ["--data", str(small_sequence), "--config", "tiny", "--method", method, "--out", str(out), "--quiet",
-                 "--parallel", "--set", "field.compiled_kernel=false", "--set", "tracking.iters=4"]
+                 "--parallel", "--set", "field.compiled_kernel=false", "--set", "field.compiled_oneblob=false",
+                 "--set", "tracking.iters=4"]
     if method == "tsslam":
         arguments += ["--export-rate", "60"]
     with VirtualDevice():
