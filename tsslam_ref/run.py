@@ -319,7 +319,8 @@ def _refuse_other_settings(changes: List[str], path: Path) -> None:
     if changes:
         raise BadInput(f"--resume refused, {path} was made with other settings: {changes[0]}"
                        + (f" (and {len(changes) - 1} more)" if len(changes) > 1 else "")
-                       + f"; only {', '.join(RESULT_NEUTRAL)} may change on --resume (and --device, --threads, with a warning)")
+                       + f"; only {', '.join(RESULT_NEUTRAL)} may change on --resume (--device and --threads too, "
+                         f"with a warning)")
 
 
 def _resume_environment(saved: Optional[dict], plan: Plan) -> dict:
