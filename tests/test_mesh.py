@@ -176,7 +176,7 @@ def test_the_grid_has_round_extent_over_voxel_cells_spanning_the_bound_exactly()
 
 def test_a_run_culls_with_the_raw_camera_whatever_the_crop(tmp_path):
     """Co-SLAM culls with the raw images' camera (its YAML values), not the cropped one the run tracks
-    with; a run with crop_edge used to cull with the cropped frustum (an audit measured completion
+    with; a run with crop_edge used to cull with the cropped frustum (completion measured
     3.4x better).  Oracle: the same meshes culled with the folder's own calibration, which no crop changes."""
     from tsslam_ref import data, synthetic
     from tsslam_ref.reconstruction_metrics import cull_mesh, mesh_metrics
