@@ -161,6 +161,17 @@ def _knot_rule_hint(failing: set, rows: dict, parsed: dict, times: np.ndarray) -
     return []
 
 
+SHIFT_SHARE = 0.9
+"""A shifted model (index convention, control points against knots) is named when it equals the
+candidate at this share of the times where it is defined: code that clamps its index at a domain
+end breaks the shift at a few."""
+
+
+def _pose_rows_equal(cands, inside: np.ndarray, model: Dict[str, np.ndarray]) -> np.ndarray:
+    """(inside.sum(),) bool: the candidate's p and R at the ``inside`` times equal ``model``'s."""
+    return _close_rows(cands["p"][inside], model["p"]) & _close_rows(cands["R"][inside], model["R"])
+
+
 def _convention_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
     """An index convention shifted by whole segments (uniform knots only)."""
     if parsed["knots"] is not None or "p" not in failing:
@@ -172,9 +183,8 @@ def _convention_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> Li
         inside = (shifted >= t_min) & (shifted <= t_max)
         if inside.sum() < max(3, len(times) // 4):
             continue
-        model = conformance.evaluate_parsed(parsed, shifted[inside])
-        same = _close_rows(cands["p"][inside], model["p"]) & _close_rows(cands["R"][inside], model["R"])
-        if same.mean() >= 0.9:  # most times: a clamped index at a domain end breaks the shift at a few
+        same = _pose_rows_equal(cands, inside, conformance.evaluate_parsed(parsed, shifted[inside]))
+        if same.mean() >= SHIFT_SHARE:
             return [f"the candidate at t equals the reference at t {'+' if shift > 0 else '-'} {abs(shift)} dt "
                     f"({int(same.sum())} of {same.size} times where that is inside the domain): "
                     f"an index convention shifted by {abs(shift)} segment(s) (paper: segment [t_i, t_i+1) uses "
@@ -226,9 +236,8 @@ def _knot_vector_hints(failing: set, cands, parsed: dict, times: np.ndarray) -> 
         inside = (times >= t_min) & (times <= t_max)
         if inside.sum() < max(3, len(times) // 2):
             continue
-        model = conformance.evaluate_parsed(shifted, times[inside])
-        same = _close_rows(cands["p"][inside], model["p"]) & _close_rows(cands["R"][inside], model["R"])
-        if same.mean() >= 0.9:  # a clamped index at a domain end breaks the shift at a few times
+        same = _pose_rows_equal(cands, inside, conformance.evaluate_parsed(shifted, times[inside]))
+        if same.mean() >= SHIFT_SHARE:
             return [f"the candidate equals the reference with the control points shifted by {shift:+d} against the "
                     f"knots ({int(same.sum())} of {same.size} times where that is defined): segment s, on "
                     f"[k_{{s+2}}, k_{{s+3}}], uses control points s..s+3 and the knots k_s..k_{{s+5}}"]
