@@ -118,6 +118,7 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--set", "data.frame_stop=1"], ["data.frame_start:frame_stop:frame_step = 0:1:1 selects 1 frame"]),  # not "has"
     (["--frames=-3:8"], ["--frames -3:8"]),
     (["--frames", "5:2"], ["--frames '5:2' selects no frames"]),
+    (["--frames", "0:5000"], ["stop=5000 is beyond the 100 usable frames", "none (START:)"]),  # ran 100, said 5000
     (["--set", "spline.dt=1e6"], ["spline.dt = 1000000.0", "(0, 10]"]),
     (["--method", "coslam", "--export-rate", "5"], ["--export-rate needs --method tsslam"]),
     (["--set", "method=coslam", "--export-rate", "5"], ["--export-rate needs --method tsslam", "coslam"]),

@@ -117,11 +117,14 @@ def trajectory_origin(path) -> float:
 
 
 def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int, path: Path):
-    """Indices of the frames ``[frame_start:frame_stop:frame_step]``; ValueError for none, or two of
-    them less than 1 µs apart."""
+    """Indices of the frames ``[frame_start:frame_stop:frame_step]``; ValueError for none, for a stop
+    beyond the last frame, or for two of them less than 1 µs apart."""
     n = len(index.timestamps)
     if frame_step < 1 or frame_start < 0 or (frame_stop is not None and frame_stop < 0):
         raise ValueError(f"invalid frame range start={frame_start} stop={frame_stop} step={frame_step} (need start, stop >= 0, step >= 1)")
+    if frame_stop is not None and frame_stop > n:  # slicing would run fewer frames than asked, silently
+        raise ValueError(f"{path}: frame range stop={frame_stop} is beyond the {n} usable frames (0 to {n - 1}); "
+                         f"give a stop of at most {n}, or none (START:) for every frame from START")
     chosen = np.arange(n)[frame_start:frame_stop:frame_step]
     if len(chosen) == 0:
         raise ValueError(f"{path}: frame range start={frame_start} stop={frame_stop} step={frame_step} selects no frame out of {n}")

@@ -107,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", default=None, help="output folder (default runs/<sequence>-<method>)")
     parser.add_argument("--seed", type=_seed, default=None, help="random seed, an integer in [0, 2**32 - 1] (default from the config: 0)")
     parser.add_argument("--device", default=None, choices=["cpu", "cuda", "auto"], help="compute device (default auto)")
-    parser.add_argument("--frames", default=None, help="START:STOP[:STEP] frame selection, 0 <= START < STOP")
+    parser.add_argument("--frames", default=None, help="START:STOP[:STEP] frame selection, 0 <= START < STOP <= frames")
     parser.add_argument("--parallel", action="store_true",
                         help="track and map in two threads (not deterministic; default: the sequential loop)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
