@@ -2,15 +2,21 @@
 
 Code that runs on ``cuda`` fails where it mixes a tensor on the GPU with a CPU tensor of one or
 more dimensions in one operation, turns a GPU tensor into a NumPy array, or draws GPU random
-numbers from a CPU generator.  Without a GPU those mistakes pass unnoticed, because every tensor
+numbers from a CPU generator (the full list below).  Without a GPU those mistakes pass unnoticed, because every tensor
 is on the CPU.  :class:`VirtualDevice` marks tensors instead: a tensor sent to ``VIRTUAL``
 (``torch.device("cpu", 0)``, an ordinary CPU tensor) and everything computed from it counts as
 "on the accelerator", its ``.device`` reads ``VIRTUAL``, and the three mistakes above raise
 :class:`DeviceMixError` with the operation's name, as CUDA would.
 
 Rules (PyTorch's own for CUDA tensors):
-* an operation may mix accelerator tensors with CPU tensors of zero dimensions only;
-* indexing (``t[idx]``, ``t[idx] = v``), ``copy_`` and ``.to`` move between devices freely;
+* an operation may mix accelerator tensors with CPU tensors of zero dimensions only, and joining
+  (``torch.stack``, ``torch.cat``) mixes none;
+* ``copy_``, ``.to`` and indexing move between devices, within CUDA's limits: CPU indices may index
+  an accelerator tensor, not the other way round, and values assigned through advanced indexing
+  (``t[idx] = v`` with a tensor or list in ``idx``) must be on ``t``'s device unless they have
+  zero dimensions (a plain slice copies from anywhere);
+* random numbers for an accelerator tensor (``torch.rand(..., device=)``, ``t.uniform_()``) come
+  from a generator on the accelerator, not a CPU one;
 * ``.cpu()``, ``.to("cpu")``, ``.item()``, ``.tolist()`` and ``float()`` leave the accelerator;
   ``.numpy()`` and ``np.asarray`` of an accelerator tensor fail.
 
@@ -74,6 +80,27 @@ _TO_NUMPY = {torch.Tensor.numpy, torch.Tensor.__array__}
 _UNCHECKED = {torch.autograd.grad, torch.autograd.backward, torch.Tensor.backward}  # torch makes their seeds
 _MOVE = {torch.Tensor.to, torch.Tensor.copy_, torch.Tensor.__getitem__, torch.Tensor.__setitem__,
          torch.Tensor.type}
+
+
+_INDEXING = {torch.Tensor.__getitem__, torch.Tensor.__setitem__}
+_JOIN = {torch.stack, torch.cat, torch.concat, torch.concatenate, torch.hstack, torch.vstack, torch.dstack}
+
+
+def _check_indexing(name: str, args) -> None:
+    """CUDA's indexing limits: no accelerator index into a CPU tensor; through an advanced index,
+    no CPU values of one or more dimensions into an accelerator tensor."""
+    indexed, index = args[0], args[1]
+    index_leaves = tree_flatten(index if isinstance(index, tuple) else (index,))[0]
+    index_tensors = [leaf for leaf in index_leaves if isinstance(leaf, torch.Tensor)]
+    if not on_virtual(indexed) and any(on_virtual(t) and t.dim() > 0 for t in index_tensors):
+        raise DeviceMixError(f"{name}: an index on the accelerator into a CPU tensor {tuple(indexed.shape)}")
+    advanced = bool(index_tensors) or isinstance(index, list) or any(isinstance(leaf, list) for leaf in
+                                                                      (index if isinstance(index, tuple) else ()))
+    values = args[2] if len(args) > 2 else None
+    if (on_virtual(indexed) and advanced and isinstance(values, torch.Tensor) and not on_virtual(values)
+            and values.dim() > 0):
+        raise DeviceMixError(f"{name}: CPU values {tuple(values.shape)} assigned through an advanced index into an "
+                             f"accelerator tensor (move them to its device first)")
 
 
 def _marking(transform):
@@ -178,8 +205,14 @@ class VirtualDevice(TorchFunctionMode):
             raise DeviceMixError(f"{name}: a tensor on the accelerator cannot become a NumPy array (call .cpu() first)")
         target = _target_device(func, args, kwargs)
         generator = kwargs.get("generator")
-        if target == VIRTUAL and isinstance(generator, torch.Generator) and generator.device.type == "cpu":
+        filled = args[0] if args and isinstance(args[0], torch.Tensor) else None  # t.uniform_(generator=...)
+        if (target == VIRTUAL or (filled is not None and on_virtual(filled))) and isinstance(
+                generator, torch.Generator) and generator.device.type == "cpu":
             raise DeviceMixError(f"{name}: random numbers on the accelerator from a CPU generator")
+        if func in _INDEXING:
+            _check_indexing(name, args)
+        if func in _JOIN and virtual and len(virtual) < len(tensors):
+            raise DeviceMixError(f"{name}: joins accelerator and CPU tensors (CUDA joins only tensors on one device)")
         if virtual and func not in _MOVE and func not in _LEAVE and func not in _UNCHECKED:
             cpu = [t for t in tensors if not on_virtual(t) and t.dim() > 0]
             if cpu:

@@ -47,6 +47,17 @@ def test_the_stand_in_raises_where_cuda_raises():
             np.asarray(on_device)
         with pytest.raises(DeviceMixError, match="CPU generator"):
             torch.rand(3, device=VIRTUAL, generator=torch.Generator().manual_seed(0))
+        with pytest.raises(DeviceMixError, match="CPU generator"):
+            on_device.uniform_(generator=torch.Generator().manual_seed(0))
+        with pytest.raises(DeviceMixError, match="index on the accelerator"):
+            torch.zeros(4)[torch.tensor([0, 2], device=VIRTUAL)]
+        with pytest.raises(DeviceMixError, match="advanced index"):
+            on_device[torch.tensor([0, 2])] = torch.zeros(2, 3)
+        on_device[0:2] = torch.zeros(2, 3)  # a slice copies from the CPU
+        on_device[torch.tensor([0, 2])] = torch.tensor(5.0)  # and so does a 0-d value through an index
+        assert on_virtual(on_device) and float(on_device.sum()) == 33.0  # rows 5, 0, 5, 1
+        with pytest.raises(DeviceMixError, match="joins"):
+            torch.stack([on_device.sum(), torch.tensor(1.0)])
         parameter = torch.nn.Parameter(torch.zeros(3, device=VIRTUAL))
         assert on_virtual(parameter) and on_virtual(torch.func.jacrev(lambda x: x * 2)(parameter))
         module = torch.nn.Linear(3, 2).to(VIRTUAL)
