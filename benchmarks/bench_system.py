@@ -43,6 +43,7 @@ Every number comes from runs made by this script; nothing is hard-coded.
 """
 
 import argparse
+import hashlib
 import json
 import os
 import time
@@ -54,7 +55,7 @@ import torch
 
 from tsslam_ref import config, data, parallel, slam, spline_fit
 from tsslam_ref.cli_args import OneLineParser, number_in
-from tsslam_ref.device import compute_environment, peak_memory, tune_cpu_allocator
+from tsslam_ref.device import compute_environment, map_kernels, peak_memory, tune_cpu_allocator
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
 from tsslam_ref.run_outputs import ground_truth_known
 
@@ -94,7 +95,8 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
     wall = time.perf_counter() - start
     runtime = result.state.timings.table()
     row = dict(metrics_cm(sequence, result.timestamps, result.poses),
-               wall_fps=len(sequence) / wall, runtime=runtime)
+               wall_fps=len(sequence) / wall, runtime=runtime,
+               map_kernels=map_kernels(result.state.field, benchmark_device(cfg)))
     if cfg.method == "coslam":
         row["spline_fit"] = spline_fit_control(sequence, result, cfg.spline.dt)
     if cfg.method == "tsslam" and result.state.intervals_done:
@@ -116,6 +118,13 @@ def mean_rows(rows: List[Dict]) -> Dict[str, float]:
     summary["runs"] = len(good)
     summary["failed_runs"] = len(rows) - len(good)
     return summary
+
+
+def mean_runtime(rows: List[Dict]) -> Dict[str, Dict[str, float]]:
+    """Per loop stage, ms per iteration and iterations per call averaged over the rows (seeds) that ran it."""
+    stages = dict.fromkeys(stage for row in rows for stage in row["runtime"])
+    return {stage: {key: float(np.mean([row["runtime"][stage][key] for row in rows if stage in row["runtime"]]))
+                    for key in ("ms_per_iteration", "iterations_per_call")} for stage in stages}
 
 
 def runtime_line(name: str, runtime: Dict[str, Dict[str, float]]) -> str:
@@ -159,9 +168,21 @@ def write_rows(path: str, settings: Dict, results: Dict, **extra) -> None:
     atomic_write_text(Path(path), json.dumps({"settings": settings, "results": results, **extra}, indent=2))
 
 
-SAME_RUN_KEYS = ("preset", "sequence", "frames", "frame_range", "seeds", "ablation_seeds")
+SAME_RUN_KEYS = ("preset", "sequence", "frames", "frame_range", "seeds", "ablation_seeds", "data_fingerprint")
 """Settings that must agree for a stored file's rows to be runs on the same frames with the same
-seeds; ``--set`` may differ (a candidate setting against the stored presets)."""
+seeds; ``--set`` may differ (a candidate setting against the stored presets).  ``data_fingerprint``
+is compared where the stored file has one (files written before it was recorded lack it)."""
+
+
+def data_fingerprint(sequence) -> str:
+    """What tells two folders of one name apart: the image size, the frames' time stamps and the
+    first frame's colour and depth as loaded (pixels, not file bytes, which differ by encoder),
+    hashed (SHA-1, hex)."""
+    first = sequence[0]
+    digest = hashlib.sha1(f"{sequence.intrinsics.width}x{sequence.intrinsics.height}".encode())
+    for array in (np.asarray(sequence.timestamps, dtype=np.float64), first.rgb, first.depth):
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
 
 
 def load_stored(path: str, settings: Dict) -> Dict:
@@ -177,6 +198,8 @@ def load_stored(path: str, settings: Dict) -> Dict:
     if not isinstance(stored, dict) or not isinstance(stored.get("settings"), dict) or not isinstance(stored.get("results"), dict):
         raise ValueError(f"--against {path}: expected a file written by --json, with 'settings' and 'results'")
     for key in SAME_RUN_KEYS:
+        if key == "data_fingerprint" and key not in stored["settings"]:
+            continue  # said in the comparison's closing lines
         if stored["settings"].get(key) != settings[key]:
             raise ValueError(f"--against {path}: its {key} is {stored['settings'].get(key)!r}, this run's is "
                              f"{settings[key]!r}; compare runs of the same preset, sequence, frames and seeds")
@@ -236,10 +259,34 @@ def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mi
     stored_rss = stored.get("peak_rss_mib")
     lines.append(f"peak RSS: {peak_rss_mib:.0f} MiB now, "
                  + (f"{stored_rss:.0f} MiB stored" if stored_rss is not None else "not in the stored file"))
-    if stored["settings"].get("environment") != environment:
-        lines.append(f"environment differs (stored {stored['settings'].get('environment')}): the same seed gives "
-                     "the same numbers only with the same kernels and threads")
+    lines.extend(environment_lines(stored["settings"].get("environment") or {}, environment))
+    if "data_fingerprint" not in stored["settings"]:
+        lines.append("the stored file does not record the data's fingerprint (image size, time stamps, first "
+                     "images): only the sequence's name, frame count and range were compared")
     return lines
+
+
+def environment_lines(stored: Dict, now: Dict) -> List[str]:
+    """What differs between the stored run's environment and this one's, in one line, or none.
+
+    A file written before ``map_kernels`` was recorded says nothing about the map's code path; then
+    a run of this one off the compiled kernels (no compiler, ``TSSLAM_NO_COMPILED_KERNEL``) is named.
+    """
+    differing = {key: (stored.get(key), now.get(key)) for key in sorted(set(stored) | set(now))
+                 if key in stored and stored.get(key) != now.get(key)}
+    kernels = now.get("map_kernels", {})
+    if "map_kernels" not in stored and any(path != "compiled" for key, path in kernels.items() if key != "kernel_error"):
+        differing["map_kernels"] = ("not recorded", kernels)
+    if not differing:
+        return []
+    listed = "; ".join(f"{key}: stored {was}, now {is_}" for key, (was, is_) in differing.items())
+    return [f"environment differs ({listed}): the same seed gives the same numbers only with the same kernels, "
+            "map code path and threads"]
+
+
+def _seed(option: str):
+    """A seed option's values: integers the run's generator keeps whole, as ``run --seed`` takes them."""
+    return number_in(option, 0, 2**32 - 1, integer=True, interval="[0, 2**32 - 1]")
 
 
 def main() -> None:
@@ -247,11 +294,12 @@ def main() -> None:
     parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM slice)")
     parser.add_argument("--config", default="tum-cpu")
     parser.add_argument("--frames", default=None, help="START:STOP[:STEP]")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--seeds", type=_seed("--seeds"), nargs="+", default=[0])
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     parser.add_argument("--ablations", action="store_true", help="also run w/o B-S., w/o DR, w/o LBA, + LBA joint stage and the paper schedule")
-    parser.add_argument("--dts", type=float, nargs="+", default=[], help="dt values for the sweep (s)")
-    parser.add_argument("--ablation-seeds", type=int, nargs="+", default=None,
+    parser.add_argument("--dts", type=number_in("--dts", 0, 10, low_open=True, hint="spline.dt's range, seconds"),
+                        nargs="+", default=[], help="dt values for the sweep (s)")
+    parser.add_argument("--ablation-seeds", type=_seed("--ablation-seeds"), nargs="+", default=None,
                         help="seeds for the ablation and dt-sweep rows (default: the first of --seeds)")
     parser.add_argument("--adaptive", action="store_true",
                         help="also run TS-SLAM with knots placed by the motion (spline.knots=adaptive) on --seeds")
@@ -265,6 +313,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.json and os.path.exists(args.json) and not args.overwrite:
         parser.error(f"--json {args.json} exists; pass --overwrite to replace it")
+    if args.json and not Path(args.json).resolve().parent.is_dir():  # found out only after the first run
+        parser.error(f"--json {args.json}: the folder {Path(args.json).parent} does not exist")
     torch.set_num_threads(args.threads)
     tune_cpu_allocator()
 
@@ -310,6 +360,7 @@ def main() -> None:
     ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else args.seeds[:1]
     settings = {"preset": base.name, "data": args.data or "bundled", "sequence": sequence.name,
                 "frames": len(sequence), "frame_range": args.frames, "threads": args.threads,
+                "data_fingerprint": data_fingerprint(sequence),
                 "overrides": args.overrides, "seeds": args.seeds, "ablation_seeds": ablation_seeds,
                 "variants": variants, "environment": environment, "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
     stored = None
@@ -325,6 +376,8 @@ def main() -> None:
             cfg = config.apply_overrides(base, overrides + [f"seed={seed}"])
             row = run_once(sequence, cfg)
             rows.append(row)
+            if "map_kernels" in row:  # which code ran the map: known once a run has built one
+                environment.setdefault("map_kernels", row["map_kernels"])
             summary = "failed: " + row["failed"] if "failed" in row else (
                 f"ATE {row['ate_cm']:.2f} cm, RPE {row['rpe_cm']:.3f} cm / {row['rpe_deg']:.3f} deg, {row['wall_fps']:.2f} frames/s"
                 + (f", {row['intervals']} intervals (mean {row['mean_interval_s']:.3f} s)" if "intervals" in row else ""))
@@ -347,13 +400,16 @@ def main() -> None:
               f"| {mean['rpe_deg']:.3f} | {mean['runs']} |")
     print_ratios(results)
 
-    print("\n| method | tracking ms x it | LBA init ms x it | LBA others ms x it | GBA ms x it | map update ms x it | first frame ms x it | wall FPS | theoretical FPS |")
+    print("\n(means over each row's seeds)")
+    print("| method | tracking ms x it | LBA init ms x it | LBA others ms x it | GBA ms x it | map update ms x it | first frame ms x it | wall FPS | theoretical FPS |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name, result in results.items():
         good = [row for row in result["rows"] if "failed" not in row and "runtime" in row]
         if good:
-            line = runtime_line(name, good[0]["runtime"])
-            print(f"{line} {result['mean']['wall_fps']:.2f} | {result['mean']['theoretical_fps']:.2f} |")
+            runtime = mean_runtime(good)
+            tracking = runtime.get("tracking")
+            theoretical = f"{1000.0 / (tracking['ms_per_iteration'] * tracking['iterations_per_call']):.2f}" if tracking else "-"
+            print(f"{runtime_line(name, runtime)} {result['mean']['wall_fps']:.2f} | {theoretical} |")
     speed_line = adaptive_speed_line(results)
     if speed_line:
         print(speed_line)

@@ -73,9 +73,58 @@ def test_comparison_table_rows_rss_and_environment():
     assert cells[5] == "21 / 25"  # tracking ms per iteration, means
     assert cells[6] == "-" and cells[7] == "-"  # stages neither side ran
     assert "not in the stored file: TS-SLAM dt=0.15 s" in lines
-    assert "812 MiB now, 900 MiB stored" in lines[-1]
+    assert any("812 MiB now, 900 MiB stored" in line for line in lines)
     other = dict(environment, cpu_capability="AVX512")
     assert any(line.startswith("environment differs") for line in bench.comparison_lines(results, stored, other, 1.0))
+
+
+def test_the_runtime_table_averages_every_column_over_the_seeds():
+    """Three seeds' tracking at 102, 66 and 62 ms: the row shows their mean (it showed seed 0's
+    beside the seeds' mean frames/s), and a stage one seed lacks is averaged over those that ran it."""
+    bench = _bench_system()
+    rows = [_row(5.0, 0.4, tracking_ms=ms) for ms in (102.0, 66.0, 62.0)]
+    rows[0]["runtime"]["lba_init"] = {"ms_per_iteration": 18.0, "iterations_per_call": 9.0}
+    runtime = bench.mean_runtime(rows)
+    assert runtime["tracking"] == {"ms_per_iteration": (102.0 + 66.0 + 62.0) / 3, "iterations_per_call": 20.0}
+    assert runtime["lba_init"] == {"ms_per_iteration": 18.0, "iterations_per_call": 9.0}
+    assert bench.runtime_line("TS-SLAM", runtime).startswith("| TS-SLAM | 77 x 20 | 18 x 9 | - |")
+
+
+def test_environment_lines_name_what_differs_and_a_map_path_a_stored_file_did_not_record():
+    bench = _bench_system()
+    stored = {"torch": "2.13.0+cpu", "device": "cpu", "cpu_capability": "AVX2", "threads": 2}
+    compiled = dict(stored, map_kernels={"hash_grid": "compiled", "oneblob": "compiled"})
+    assert bench.environment_lines(stored, compiled) == []  # a file from before the record: nothing to say
+    assert bench.environment_lines(compiled, compiled) == []
+    pytorch = dict(stored, map_kernels={"hash_grid": "pytorch", "oneblob": "pytorch"})
+    for lines in (bench.environment_lines(stored, pytorch), bench.environment_lines(compiled, pytorch)):
+        assert len(lines) == 1 and lines[0].startswith("environment differs (map_kernels: stored ") and "pytorch" in lines[0]
+    (line,) = bench.environment_lines(stored, dict(compiled, threads=1))
+    assert "threads: stored 2, now 1" in line and "map_kernels" not in line
+
+
+def test_against_compares_the_data_fingerprint_where_the_stored_file_has_one(tmp_path):
+    """Two folders of one name at another image size are told apart by the fingerprint; a stored
+    file without one (written before it was recorded) is compared and the closing lines say how."""
+    from tsslam_ref import data
+
+    bench = _bench_system()
+    sequence = data.load_sequence(data.default_sequence_path(), frame_stop=4)
+    smaller = data.load_sequence(data.default_sequence_path(), frame_stop=4, resize_width=80)
+    settings = {"preset": "tum-cpu", "sequence": sequence.name, "frames": 4, "frame_range": "0:4", "seeds": [0],
+                "ablation_seeds": [0], "data_fingerprint": bench.data_fingerprint(sequence)}
+    assert bench.data_fingerprint(smaller) != settings["data_fingerprint"]
+    assert bench.data_fingerprint(data.load_sequence(data.default_sequence_path(), frame_stop=4)) == \
+        settings["data_fingerprint"]  # the same folder read again
+    stored = {"settings": dict(settings), "results": {}}
+    path = tmp_path / "stored.json"
+    path.write_text(json.dumps(stored))
+    with pytest.raises(ValueError, match="data_fingerprint"):
+        bench.load_stored(str(path), dict(settings, data_fingerprint=bench.data_fingerprint(smaller)))
+    del stored["settings"]["data_fingerprint"]
+    path.write_text(json.dumps(stored))
+    assert bench.load_stored(str(path), settings) == stored
+    assert any("does not record the data's fingerprint" in line for line in bench.comparison_lines({}, stored, {}, 1.0))
 
 
 def test_against_a_file_of_other_frames_is_refused_before_any_run(tmp_path):
@@ -183,6 +232,10 @@ def test_bench_mesh_chunked_and_whole_grid_give_the_same_mesh():
     ("gpu_check.py", ["--device", "cpu", "--frames", "0:1", "--json", "check.json"], "selects 1 frame"),
     ("bench_system.py", ["--frames", "6:2"], "--frames '6:2'"),
     ("bench_system.py", ["--skip", "baseline", "tsslam"], "leaves nothing to run"),
+    ("bench_system.py", ["--seeds", "0", "-1"], "--seeds -1"),  # were tracebacks after the first runs
+    ("bench_system.py", ["--ablations", "--dts", "0"], "--dts 0"),
+    ("bench_system.py", ["--ablation-seeds", "-2"], "--ablation-seeds -2"),
+    ("bench_system.py", ["--json", "no_such_folder/rows.json"], "the folder no_such_folder does not exist"),
 ])
 def test_benchmarks_refuse_bad_arguments_in_one_line(tmp_path, script, arguments, needle):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
