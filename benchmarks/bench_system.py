@@ -389,7 +389,8 @@ def main() -> None:
             if args.json:  # after every run, so that an interrupted benchmark keeps what it measured
                 write_rows(args.json, settings, results)
 
-    print("\n| method | ATE RMSE (cm) | RPE RMSE (cm) | RPE (deg) | runs |")
+    print("\n(mean +- standard deviation over the seeds, population form: numpy.std)")
+    print("| method | ATE RMSE (cm) | RPE RMSE (cm) | RPE (deg) | runs |")
     print("|---|---|---|---|---|")
     for name, result in results.items():
         mean = result["mean"]

@@ -63,7 +63,7 @@ def main(argv=None):
     parser.add_argument("--fps", type=number_in("--fps", 0, 1000, low_open=True), default=30.0)
     parser.add_argument("--dts", type=float, nargs="+", default=[0.30, 0.25, 0.15, 0.10])
     parser.add_argument("--noise", type=number_in("--noise", 0, 1), default=0.001, help="position noise (m) on the fitted poses")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seed", type=number_in("--seed", 0, 2**32 - 1, integer=True), default=1)
     args = parser.parse_args(argv)
     if args.frames < 4 or min(args.dts) <= 0:
         parser.error(f"--frames must be >= 4 and --dts > 0, got {args.frames} and {args.dts}")

@@ -10,8 +10,8 @@ is not at its random start), then profiles
   one pose per frame, render_loss with the smoothness term -> backward -> map and pose Adam steps.
 
 For each it prints the median wall time of ``--repeats`` plain runs (no profiler) and the top
-operators by self CPU time of one profiled run (their share of the profiled total).  Absolute times
-depend on the machine's load; compare shares, or rows of the same run.
+operators by self CPU time, per run averaged over three profiled runs (their share of the profiled
+total).  Absolute times depend on the machine's load; compare shares, or rows of the same run.
 
 ``--tracking-rays 32 64 ... 1024`` instead times the tracking iteration at each ray count and fits
 time = fixed + per-ray x rays by least squares: what a smaller ray budget can save, and how much

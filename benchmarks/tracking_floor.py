@@ -100,9 +100,12 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     tune_cpu_allocator()
-    base = config.apply_overrides(config.load(args.preset), [f"seed={args.seed}"])
-    variants = [("preset", base)] + [(text, config.apply_overrides(base, text.split(","))) for text in args.variants]
-    sequence = data.load_sequence(args.data or data.default_sequence_path(), frame_stop=args.frames)
+    try:  # a preset, setting or folder that is not there: one line, as the other benchmarks say it
+        base = config.apply_overrides(config.load(args.preset), [f"seed={args.seed}"])
+        variants = [("preset", base)] + [(text, config.apply_overrides(base, text.split(","))) for text in args.variants]
+        sequence = data.load_sequence(args.data or data.default_sequence_path(), frame_stop=args.frames)
+    except (ValueError, OSError) as error:
+        parser.error(str(error))
     if sequence.gt_poses is None:
         raise SystemExit(f"{sequence.name}: no ground-truth poses; this script needs them for the map and the scores")
     frames = [frame_to_device(sequence[i], torch.device("cpu"), torch.float32) for i in range(len(sequence))]

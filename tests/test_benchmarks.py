@@ -229,6 +229,9 @@ def test_bench_mesh_chunked_and_whole_grid_give_the_same_mesh():
     ("bench_field.py", ["--presets", "nosuch"], "nosuch"),
     ("profile_step.py", ["--threads", "0"], "--threads 0"),
     ("curve_floor.py", ["--noise", "-1"], "--noise -1"),
+    ("curve_floor.py", ["--seed", "-1"], "--seed -1"),  # was numpy's traceback
+    ("tracking_floor.py", ["--preset", "bogus"], "config 'bogus'"),  # were tracebacks
+    ("tracking_floor.py", ["--try", "tracking.iters=0"], "tracking.iters = 0"),
     ("gpu_check.py", ["--device", "cpu", "--frames", "0:1", "--json", "check.json"], "selects 1 frame"),
     ("bench_system.py", ["--frames", "6:2"], "--frames '6:2'"),
     ("bench_system.py", ["--skip", "baseline", "tsslam"], "leaves nothing to run"),

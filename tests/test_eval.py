@@ -705,6 +705,7 @@ def test_cli_interpolate_scores_at_the_estimate_stamps_as_a_run_does(tmp_path, c
     assert ev.main(arguments + ["--interpolate"]) == 0
     interpolated = json.loads(capsys.readouterr().out)
     assert interpolated["n_matched"] == 40 and interpolated["ate_rmse_m"] < 1e-7 and interpolated["rpe_rot_rmse_deg"] < 1e-5
+    assert interpolated["n_gt"] == 300 and interpolated["n_est"] == 40  # the poses read from each file (n_gt was 40)
     assert ev.main(arguments) == 0
     nearest = json.loads(capsys.readouterr().out)
     assert nearest["ate_rmse_m"] > 1e-3  # 4 ms at 0.86 m/s

@@ -129,6 +129,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if args.command == "trajectory":
             gt_times, gt_poses = read_tum_trajectory(args.gt)
+            n_gt_read = len(gt_times)
             est_times, est_poses = read_tum_trajectory(args.est, unique_stamps=True)  # one pose per frame
             if args.interpolate:  # GT at the estimate's own stamps, then matched one to one
                 at_estimate = ground_truth_at(est_times, gt_times, gt_poses, args.max_diff)
@@ -141,6 +142,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             result = evaluate_trajectory(
                 gt_times, gt_poses, est_times, est_poses, args.max_diff, args.scale, args.delta
             )
+            result["n_gt"] = n_gt_read  # the poses read, not those interpolated at the estimate's stamps
             keys = ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "n_est", "n_gt", "delta_frames",
                     "scale"]
         else:
