@@ -101,6 +101,7 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
         row["spline_fit"] = spline_fit_control(sequence, result, cfg.spline.dt)
     if cfg.method == "tsslam" and result.state.intervals_done:
         row["intervals"] = int(result.state.intervals_done)
+        # the frames' time span over the intervals mapped (docs/system.md's "intervals (mean)"), not the knots' span
         row["mean_interval_s"] = float(result.timestamps[-1] - result.timestamps[0]) / result.state.intervals_done
     if "tracking" in runtime:
         tracking = runtime["tracking"]
@@ -380,7 +381,8 @@ def main() -> None:
                 environment.setdefault("map_kernels", row["map_kernels"])
             summary = "failed: " + row["failed"] if "failed" in row else (
                 f"ATE {row['ate_cm']:.2f} cm, RPE {row['rpe_cm']:.3f} cm / {row['rpe_deg']:.3f} deg, {row['wall_fps']:.2f} frames/s"
-                + (f", {row['intervals']} intervals (mean {row['mean_interval_s']:.3f} s)" if "intervals" in row else ""))
+                + (f", {row['intervals']} intervals (frames' time span / intervals: {row['mean_interval_s']:.3f} s)"
+                   if "intervals" in row else ""))
             print(f"  {name:22s} seed {seed}: {summary}", flush=True)
             results[name] = {"rows": rows, "mean": mean_rows(rows)}
             if name == "Co-SLAM (baseline)":
