@@ -560,7 +560,9 @@ def test_ground_truth_on_another_clock_is_named_and_can_be_set_aside(runs):
     late = root / "room_late_gt"
     shutil.copytree(root / "room", late)
     _shifted_ground_truth(late, 0.0, drop_first=3)
-    result = cli("run", "--data", late.name, "--out", "late_out", *CHEAP, cwd=root)
+    refused(cli("run", "--data", late.name, "--out", "late_out", *CHEAP, cwd=root),  # 0:10 of the 9 left: named
+            "stop=10 is beyond the 9 usable frames", "3 frame(s) without a ground-truth pose are left out")
+    result = cli("run", "--data", late.name, "--out", "late_out", *CHEAP, "--frames", "0:9", cwd=root)
     assert result.returncode == 0 and "note: 3 frame(s)" in result.stdout and "require_gt=false" in result.stdout, (
         result.stdout + result.stderr)
 
@@ -688,7 +690,8 @@ def test_a_camera_standing_still_or_turning_in_place_gets_its_ate(tmp_path, caps
         arguments = [a for a in CHEAP if a != "coslam"]
         arguments[arguments.index("--method") + 1:arguments.index("--method") + 1] = [method]
         out = tmp_path / f"out_{method}"
-        assert run.main(arguments + ["--data", str(tmp_path / "room"), "--out", str(out)]) == 0, capsys.readouterr().err
+        assert run.main(arguments + ["--data", str(tmp_path / "room"), "--out", str(out), "--frames", "0:8"]) == 0, (
+            capsys.readouterr().err)
         metrics = json.loads((out / "metrics.json").read_text())
         assert np.isfinite(metrics["ate_rmse_m"]) and metrics["ate_rmse_m"] < 0.5, metrics
         assert ("spline" in metrics) == (method == "tsslam")
@@ -1035,3 +1038,34 @@ def test_resume_naming_the_device_the_run_used_is_not_refused(runs, tmp_path, mo
     assert run.main([*CHEAP, "--data", "room", "--out", "stopped", "--resume", "--device", "cpu"]) == 0
     assert "warning" not in capsys.readouterr().err
     assert (tmp_path / "stopped" / "trajectory.txt").read_bytes() == (runs["planted"] / "trajectory.txt").read_bytes()
+
+
+def test_a_view_past_the_maps_box_is_warned_about_once_and_recorded(capsys):
+    """A tracked frame whose measured surface lies mostly outside the map's box: one warning naming
+    the frame, its share and the box, however many frames follow; metrics.json's summary (hand-made
+    log: the largest share, its frame, the frames over the warning share)."""
+    from types import SimpleNamespace
+
+    from tsslam_ref.run_outputs import OUTSIDE_BOX_WARNING, advance, outside_box_summary
+
+    state = SimpleNamespace(log=[], field=SimpleNamespace(bound=torch.tensor([[-0.6, 3.0], [-1.0, 1.0], [0.0, 2.5]])),
+                            cfg=config_module.load("tum-cpu"))
+    reached = {}
+    for frame, share in enumerate([0.02, 0.1, 0.48, 1.0, 0.3]):
+        state.log.append({"frame": frame + 1, "tracking_loss": 1.0, "outside_box": share})
+        advance(None, state, reached)
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning")]
+    assert len(warnings) == 1, warnings
+    assert warnings[0].startswith("warning: frame 3: 48 % of its measured surface lies outside the map's box")
+    assert "[-0.60, 3.00], [-1.00, 1.00], [0.00, 2.50] m, set from frame 0's view" in warnings[0]
+    assert "--set 'field.bound=" in warnings[0]
+    assert outside_box_summary(state.log) == {"outside_box": {"max_share": 1.0, "frame": 4, "frames_over_warning": 3,
+                                                              "warning_share": OUTSIDE_BOX_WARNING}}
+    assert outside_box_summary([{"frame": 1, "tracking_loss": 1.0}]) == {}  # a log from before the record
+
+
+def test_a_finished_run_records_its_largest_share_outside_the_box(runs):
+    metrics = json.loads((runs["planted"] / "metrics.json").read_text())
+    summary = metrics["outside_box"]
+    assert 0.0 <= summary["max_share"] <= 1.0 and summary["frames_over_warning"] >= 0
+    assert 1 <= summary["frame"] < metrics["frames"]

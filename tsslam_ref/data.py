@@ -116,14 +116,17 @@ def trajectory_origin(path) -> float:
     return float(np.min(read_tum_trajectory(path)[0]))
 
 
-def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int, path: Path):
+def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int, path: Path, without_gt: int = 0):
     """Indices of the frames ``[frame_start:frame_stop:frame_step]``; ValueError for none, for a stop
-    beyond the last frame, or for two of them less than 1 µs apart."""
+    beyond the last frame, or for two of them less than 1 µs apart.  ``without_gt``: frames already
+    left out for want of a ground-truth pose (named in the message)."""
     n = len(index.timestamps)
     if frame_step < 1 or frame_start < 0 or (frame_stop is not None and frame_stop < 0):
         raise ValueError(f"invalid frame range start={frame_start} stop={frame_stop} step={frame_step} (need start, stop >= 0, step >= 1)")
     if frame_stop is not None and frame_stop > n:  # slicing would run fewer frames than asked, silently
-        raise ValueError(f"{path}: frame range stop={frame_stop} is beyond the {n} usable frames (0 to {n - 1}); "
+        left_out = (f" ({without_gt} frame(s) without a ground-truth pose are left out; data.require_gt=false "
+                    f"keeps them)") if without_gt else ""
+        raise ValueError(f"{path}: frame range stop={frame_stop} is beyond the {n} usable frames (0 to {n - 1}){left_out}; "
                          f"give a stop of at most {n}, or none (START:) for every frame from START")
     chosen = np.arange(n)[frame_start:frame_stop:frame_step]
     if len(chosen) == 0:
@@ -219,7 +222,7 @@ def load_sequence(
         raise ValueError(f"fps must be > 0, got {fps}")
     index = _parse_layout(folder, kind, fps, max_time_diff)
     without_gt = _keep_frames_with_gt(index, folder, max_time_diff) if require_gt and index.gt_poses is not None else 0
-    chosen = _select(index, frame_start, frame_stop, frame_step, folder)
+    chosen = _select(index, frame_start, frame_stop, frame_step, folder, without_gt)
     return RGBDSequence(
         name=folder.resolve().name,
         kind=kind,
