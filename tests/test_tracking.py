@@ -424,3 +424,41 @@ def test_track_frame_and_the_loss_name_a_numpy_pose_instead_of_failing_inside_to
         track_frame(None, None, torch.eye(4).expand(2, 4, 4), cfg.tracking, None)
     with pytest.raises(TypeError, match=r"c2w must be a torch tensor, got ndarray: torch.as_tensor\(c2w\)"):
         rays_to_world(torch.zeros(5, 3), np.eye(4))
+
+
+def test_floyd_sample_draws_every_subset_equally_often_without_repeats():
+    """Oracle: the uniform distribution over the 20 three-element subsets of six (a chi-square test
+    at p = 1e-6: 19 degrees of freedom, threshold 61.6); and at the size of a long run's keyframe
+    pool, n_rays distinct indices inside it, with every part of the pool reached."""
+    from collections import Counter
+    from itertools import combinations
+
+    from tsslam_ref.bundle import floyd_sample
+
+    generator = torch.Generator().manual_seed(0)
+    draws = 20000
+    counts = Counter(tuple(sorted(floyd_sample(6, 3, generator).tolist())) for _ in range(draws))
+    assert set(counts) == set(combinations(range(6), 3))
+    expected = draws / 20
+    assert sum((count - expected) ** 2 / expected for count in counts.values()) < 61.6, counts
+    picks = floyd_sample(4_600_000, 1024, generator)
+    assert picks.dtype == torch.long and len(set(picks.tolist())) == 1024
+    assert 0 <= int(picks.min()) and int(picks.max()) < 4_600_000
+    assert len(set((picks // 460_000).tolist())) == 10  # every tenth of the pool
+
+
+def test_draw_rays_permutes_small_pools_and_samples_large_ones_without_repeats():
+    """Up to PERMUTATION_POOL_LIMIT rays the draw is the first n of torch.randperm with the same
+    generator state (what every CPU-preset run draws); above it, n distinct rays of the pool."""
+    from tsslam_ref.bundle import PERMUTATION_POOL_LIMIT
+
+    def pool_of(n):
+        return RayBatch(directions_cam=torch.zeros(n, 3), rgb=torch.zeros(n, 3), depth=torch.arange(n, dtype=torch.float32),
+                        frame_ids=torch.zeros(n, dtype=torch.long))
+
+    small = pool_of(PERMUTATION_POOL_LIMIT)
+    drawn = bundle_draw(small, 100, torch.Generator().manual_seed(3))
+    assert torch.equal(drawn.depth.long(), torch.randperm(len(small), generator=torch.Generator().manual_seed(3))[:100])
+    large = pool_of(PERMUTATION_POOL_LIMIT + 1)
+    drawn = bundle_draw(large, 1000, torch.Generator().manual_seed(3))
+    assert len(drawn) == 1000 and len(set(drawn.depth.long().tolist())) == 1000
