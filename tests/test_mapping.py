@@ -172,3 +172,22 @@ def test_estimate_bound_ignores_flying_pixels_and_depth_at_the_limit():
     frame.depth[:, 20:] = 5.0
     limited = estimate_bound([frame], np.eye(4)[None], 0.1, 0.0, 1, max_depth=5.0)
     assert limited[2, 1] == pytest.approx(2.1) and limited[0, 1] == pytest.approx(0.1)  # the 5 m half is gone
+
+
+def test_share_outside_bound_counts_measured_surface_points_past_the_box():
+    """Oracle by hand: rays straight ahead (+z) at depths 1, 3 and 5 m against the box z in [0, 2]:
+    one of three inside, so 2/3 outside; no depth (0) and depth at the cut-off are not counted;
+    the same rays from a camera turned half a turn about y land at z < 0, all outside."""
+    from tsslam_ref.mapping import share_outside_bound
+    from tsslam_ref.render import RayBatch
+
+    n = 5
+    rays = RayBatch(directions_cam=torch.tensor([[0.0, 0.0, 1.0]]).repeat(n, 1), rgb=torch.zeros(n, 3),
+                    depth=torch.tensor([1.0, 3.0, 5.0, 0.0, 8.0]), frame_ids=torch.zeros(n, dtype=torch.long))
+    bound = torch.tensor([[-1.0, 1.0], [-1.0, 1.0], [0.0, 2.0]])
+    assert share_outside_bound(bound, rays, torch.eye(4), max_depth=8.0) == pytest.approx(2 / 3)
+    assert share_outside_bound(bound, rays, torch.eye(4), max_depth=2.0) == 0.0  # only the 1 m ray counts
+    turned = torch.eye(4, dtype=torch.float64)
+    turned[:3, :3] = torch.as_tensor(Rotation.from_euler("y", 180, degrees=True).as_matrix())
+    assert share_outside_bound(bound, rays, turned, max_depth=8.0) == 1.0
+    assert share_outside_bound(bound, rays, torch.eye(4), max_depth=0.5) == 0.0  # no ray counted: 0, not NaN

@@ -26,7 +26,7 @@ import torch
 from .config import MappingConfig
 from .geometry import pixel_to_ray
 from .losses import RenderLossSettings, render_loss
-from .render import RayBatch, _as_tensor, _intrinsic_values
+from .render import RayBatch, _as_tensor, _intrinsic_values, rays_to_world
 
 # Adam betas of Co-SLAM's map optimiser (``coslam.py``).
 MAP_ADAM_BETAS = (0.9, 0.99)
@@ -183,3 +183,27 @@ def estimate_bound(
     low = np.minimum(low, poses[:, :3, 3].min(axis=0))
     high = np.maximum(high, poses[:, :3, 3].max(axis=0))
     return np.stack([low - margin, high + margin], axis=-1)
+
+
+def share_outside_bound(bound: torch.Tensor, rays: RayBatch, pose: torch.Tensor, max_depth: float) -> float:
+    """Share of the rays' measured surface points (0 < depth < ``max_depth``) outside ``bound``.
+
+    The map's box is set once, from frame 0's view (:func:`estimate_bound`); a camera that later
+    looks at a part of the scene beyond it sees surface the map cannot hold (on the coarse levels
+    such points wrap around the grid, as tiny-cuda-nn's do).  The loop records this share per
+    tracked frame and the run warns when it is large.
+
+    Args:
+        bound: (3, 2) [[xmin, xmax], ...] metres.  rays: (R,) camera-frame rays with measured depth.
+        pose: (4, 4) camera-to-world.  max_depth: depth at and beyond which a ray is not counted.
+
+    Returns:
+        The share in [0, 1]; 0 when no ray has a measured depth below ``max_depth``.
+    """
+    measured = (rays.depth > 0) & (rays.depth < max_depth)
+    origins, directions = rays_to_world(rays.directions_cam[measured], pose)
+    points = origins + directions * rays.depth[measured].unsqueeze(-1).to(directions.dtype)  # (M, 3) world
+    box = bound.to(points)
+    outside = ((points < box[:, 0]) | (points > box[:, 1])).any(dim=-1)
+    return float(outside.float().mean()) if len(outside) else 0.0
+

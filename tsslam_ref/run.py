@@ -52,7 +52,7 @@ from .cli_args import OneLineParser, number_in, silence_stdout, stop_on_sigterm_
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
-from .run_outputs import check_output_folder, export_file_name, write_outputs, write_partial_trajectory
+from .run_outputs import advance, check_output_folder, export_file_name, write_outputs, write_partial_trajectory
 from .export import MAX_EXPORT_RATE, export_times
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
@@ -376,8 +376,7 @@ def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
 
     def on_frame(current) -> None:
         reached["done"] = current.done
-        if progress is not None:
-            progress.update(1)
+        advance(progress, current, reached)  # the bar, and a warning once a frame looks past the map's box
         if every and (current.done % every == 0 or current.done == len(plan.sequence)):
             # the checkpoint first: trajectory.txt never gets ahead of it
             if plan.environment is None:

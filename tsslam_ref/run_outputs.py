@@ -88,6 +88,41 @@ def remove_previous_outputs(out: Path) -> List[Path]:
     return removed
 
 
+OUTSIDE_BOX_WARNING = 0.25
+"""A tracked frame whose measured surface lies outside the map's box by more than this share gets
+the run's one warning (``mapping.share_outside_bound``)."""
+
+
+def advance(progress, state, reached: dict) -> None:
+    """One frame done: move the progress bar (None: there is none), and warn once when the frame's
+    measured surface lies mostly outside the map's box, set from frame 0's view."""
+    if progress is not None:
+        progress.update(1)
+    entry = state.log[-1] if state.log else {}
+    if entry.get("outside_box", 0.0) > OUTSIDE_BOX_WARNING and not reached.get("outside_box_warned"):
+        reached["outside_box_warned"] = True
+        low, high = state.field.bound[:, 0].tolist(), state.field.bound[:, 1].tolist()
+        box = ", ".join(f"[{a:.2f}, {b:.2f}]" for a, b in zip(low, high))
+        origin = "set from frame 0's view" if state.cfg.field.bound is None else "field.bound"
+        say = progress.write if progress is not None else print  # tqdm's write keeps the bar whole
+        say(f"warning: frame {entry['frame']}: {100 * entry['outside_box']:.0f} % of its measured surface lies outside "
+            f"the map's box ({box} m, {origin}); the map cannot hold that surface and the mesh misses it. If the "
+            f"camera leaves the box, give one that covers the scene: --set "
+            f"'field.bound=[[xmin,xmax],[ymin,ymax],[zmin,zmax]]' (docs/map.md)", file=sys.stderr)
+
+
+def outside_box_summary(log) -> dict:
+    """metrics.json's ``outside_box``: the largest share of a tracked frame's measured surface
+    outside the map's box, that frame, and how many frames were over :data:`OUTSIDE_BOX_WARNING`."""
+    shares = [(entry["outside_box"], entry["frame"]) for entry in log if "outside_box" in entry]
+    if not shares:
+        return {}
+    largest, frame = max(shares)
+    over = sum(share > OUTSIDE_BOX_WARNING for share, _ in shares)
+    return {"outside_box": {"max_share": largest, "frame": frame, "frames_over_warning": over,
+                            "warning_share": OUTSIDE_BOX_WARNING}}
+
+
 def write_partial_trajectory(state, out: Path) -> None:
     """The trajectory estimated so far as ``out/trajectory.txt`` (TUM format), atomically."""
     from .export import estimated_trajectory
@@ -131,8 +166,11 @@ def reconstruction_metrics(mesh, gt_mesh, sequence, seed: int) -> dict:
     (``reconstruction_metrics.culled_metrics``: both meshes culled with the ground-truth cameras of
     every second frame, raw camera, 50,000 points); a ``reconstruction_note`` (meshes of ten-fold
     different sizes, nothing left after culling) is also printed as a warning."""
-    from .reconstruction_metrics import culled_metrics  # lazy: trimesh, only when there is a GT mesh
+    from .reconstruction_metrics import CULL_EVERY, culled_metrics  # lazy: trimesh, only when there is a GT mesh
 
+    cameras = len(range(0, len(sequence), CULL_EVERY))
+    print(f"scoring the mesh against gt_mesh.ply: culling both meshes with {cameras} ground-truth cameras "
+          f"(at 640x480 about 0.4 s each; --no-mesh skips it)", flush=True)
     result = culled_metrics(mesh, gt_mesh, sequence, seed)
     if "reconstruction_note" in result:
         print(f"warning: reconstruction metrics: {result['reconstruction_note']}", file=sys.stderr)
@@ -243,6 +281,7 @@ def write_outputs(plan, result) -> None:
     metrics.update(trajectory_metrics(sequence, result.timestamps, result.poses))
     if cfg.method == "tsslam" and cfg.local_ba.use_spline:
         metrics["spline"] = spline_summary(result.state.trajectory, cfg.spline.knots)
+    metrics.update(outside_box_summary(result.state.log))
     metrics["runtime"] = result.state.timings.table()
     metrics["environment"] = run_environment(plan.device, result.state.field)
     if plan.environment is not None and plan.environment != metrics["environment"]:  # resumed elsewhere

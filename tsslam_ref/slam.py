@@ -49,7 +49,7 @@ from .field import SceneField
 from .geometry import invert_pose
 from .global_ba import CurrentFrame, coslam_global_ba, tsslam_global_ba
 from .losses import RenderLossSettings
-from .mapping import estimate_bound, fit_map, make_map_optimizer
+from .mapping import estimate_bound, fit_map, make_map_optimizer, share_outside_bound
 from .render import RayBatch
 from .timings import Timings
 from .tracking import TrackingResult, check_ray_budget, constant_velocity_init, track_frame
@@ -271,7 +271,8 @@ def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneFiel
         state.tracking_output[i] = result.pose.clone()
         state.tracking_output.pop(i - 2, None)
         state.window_rays[i] = rays
-        state.log.append({"frame": i, "tracking_loss": best_loss})
+        state.log.append({"frame": i, "tracking_loss": best_loss, "outside_box": share_outside_bound(
+            state.field.bound, rays, result.pose, min(cfg.data.depth_trunc, cfg.render.far))})
 
 
 def check_tracking(result: TrackingResult, reference: List[float], cfg: Config, frame: FrameTensors) -> float:
