@@ -893,7 +893,9 @@ def test_tracking_keeps_the_newest_two_outputs_and_judges_divergence_on_the_firs
         return TrackingResult(pose=pose, losses=[losses[int(rays.split()[1])]], best_iteration=0)
 
     monkeypatch.setattr(slam, "track_frame", stub)
+    monkeypatch.setattr(slam, "share_outside_bound", lambda *args: 0.0)  # the stand-in rays hold no depth
     state = hand_built_state("tsslam")
+    state.field = SimpleNamespace(bound=torch.tensor([[-1.0, 1.0]] * 3))  # read for that share
     state.tracking_output = {0: state.frame_poses[0].clone()}
     for i in range(1, 4):
         slam.track(state, frame_at(state, i))

@@ -119,7 +119,7 @@ plan = SimpleNamespace(args=SimpleNamespace(no_mesh=True, export_rate=None, chec
                        environment=None, device=torch.device("cpu"))
 result = SimpleNamespace(timestamps=np.array([0.0, 0.1]), poses=np.repeat(np.eye(4)[None], 2, axis=0),
                          frames_per_second=1.0, frames_processed=2,
-                         state=SimpleNamespace(timings=SimpleNamespace(table=lambda: {}), field=None))
+                         state=SimpleNamespace(timings=SimpleNamespace(table=lambda: {}), field=None, log=[]))
 run_outputs.write_outputs(plan, result)
 seen["reported"] = json.load(open("metrics.json"))["peak_rss_mib"]
 print(json.dumps(seen))
