@@ -449,3 +449,15 @@ def test_hints_do_not_blame_the_representation_for_a_time_scaling_or_a_single_ba
     split_path.write_text(json.dumps(conformance.evaluate_input(split_twin, "split twin")))
     code, text = _check_data(split_path, json.loads(joint.read_text()), tmp_path, capsys)
     assert code == 1 and "JOINT SE(3) spline of the same control points" in text, text
+
+
+@pytest.mark.parametrize("dt", [1e300, 0.0, -0.1])
+def test_cli_refuses_a_knot_spacing_outside_its_range_in_one_line(tmp_path, capsys, dt):
+    """dt = 1e300 overflowed in 1 / dt**2 and ended in a traceback; it is refused naming the key."""
+    data = {"convention": "paper", "dt": dt, "t0": 0.0, "rotvecs": [[0, 0, 0]] * 5,
+            "translations": [[0, 0, 0]] * 5, "times": [0.1]}
+    source = tmp_path / "in.json"
+    source.write_text(json.dumps(data))
+    assert spline_kit.main(["evaluate", str(source), "-o", str(tmp_path / "o.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "key 'dt' must be in (0, 1e+06] seconds" in err and len(err.splitlines()) == 1, err

@@ -931,3 +931,19 @@ def test_each_frame_reads_the_depth_file_its_stamp_associates_to(tmp_path):
     folder = make_tum(tmp_path / "t", rgb, depth, rgb, _random_poses(4))
     sequence = data.load_sequence(folder)
     np.testing.assert_allclose([sequence[i].depth.mean() for i in range(4)], 1.0 + 0.1 * (np.arange(4) + 2), atol=1e-6)
+
+
+@pytest.mark.parametrize("block, words", [
+    (np.diag([1.0, 1.0, -1.0]), ["det -1"]),  # one flipped camera axis: was written as the identity
+    (2.0 * np.eye(3), ["det 8"]),
+    (np.array([[1.0, 0.075, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), ["largest |RᵀR − I| entry 0.075"]),  # a shear
+])
+def test_a_pose_that_is_no_rotation_is_refused_not_written_as_another(tmp_path, block, words):
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[1, :3, :3] = block
+    with pytest.raises(ValueError, match=r"poses\[1\] \(t = 1.000000 s\) is not a rotation") as refusal:
+        data.write_tum_trajectory(tmp_path / "t.txt", [0.0, 1.0, 2.0], poses)
+    assert all(word in str(refusal.value) for word in words) and not (tmp_path / "t.txt").exists()
+    drifted = np.tile(np.eye(4), (3, 1, 1))  # float32 rounding of a long chain of rotations: written
+    drifted[1, :3, :3] = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix().astype(np.float32) * (1 + 1e-5)
+    data.write_tum_trajectory(tmp_path / "t.txt", [0.0, 1.0, 2.0], drifted)

@@ -170,7 +170,11 @@ BAD_CONTROL_POINTS = [
     ("rotation_vectors", lambda R, P: (torch.ones(8, 3, dtype=F64), P), ValueError,
      "control_rotations must be (N, 3, 3), got (8, 3)"),
     ("numpy", lambda R, P: (R.numpy(), P.numpy()), TypeError,
-     "control_rotations must be a torch tensor, got ndarray"),
+     "control_rotations must be a float32 or float64 torch tensor, got ndarray"),
+    ("half", lambda R, P: (R.half(), P.half()), TypeError,  # ran silently, 1e-2 off in R(t) and 0.3 in omega dot
+     "control_rotations must be a float32 or float64 torch tensor, got a tensor of torch.float16"),
+    ("integers", lambda R, P: (R.long(), P.long()), TypeError,  # failed inside torch.finfo, naming nothing
+     "control_rotations must be a float32 or float64 torch tensor, got a tensor of torch.int64"),
     ("R_float32", lambda R, P: (R.float(), P), ValueError,
      "control rotations (torch.float32) and translations (torch.float64) must share a dtype"),
     ("P_float32", lambda R, P: (R, P.float()), ValueError,

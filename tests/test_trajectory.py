@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import knots, spline
+from tsslam_ref import knots, spline, spline_fit
 from tsslam_ref.bundle import SplinePoses, dynamics_term
 from tsslam_ref.config import DynamicsConfig
 from tsslam_ref.geometry import make_pose, so3_exp, so3_log
@@ -343,3 +343,54 @@ def test_a_window_keeps_the_stored_knots_it_may_plan_with():
     traj = uneven_trajectory(40, 11)
     window = traj.window(2, 7)
     assert [window.knot_time(k) for k in range(-2, 8)] == [traj.knot_time(2 + k) for k in range(-2, 8)]
+
+
+STAMP = 1305031102.175304  # a TUM stamp: float32's spacing there is 128 s
+_IDENTITY_ROTATIONS = torch.eye(3, dtype=torch.float64).repeat(6, 1, 1)
+_ZERO_TRANSLATIONS = torch.zeros(6, 3, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("name, call", [
+    ("times", lambda: spline.time_in_domain(np.float32([STAMP + 0.2]), 6, 0.1, STAMP)),
+    ("times", lambda: spline.time_in_domain(torch.tensor([STAMP + 0.2]), 6, 0.1, STAMP)),  # torch's default float32
+    ("boundaries", lambda: knots.knots_from_boundaries(np.float32([STAMP, STAMP + 300.0]), 0.1)),
+    ("knot_vector", lambda: knots.start_weights(np.float32(STAMP + 0.1 * np.arange(6)))),
+    ("knots", lambda: knots.greville_times(np.float32([0, 1, 2, 3, 4, 5, 6]))),
+    ("t0", lambda: BSplineTrajectory(_IDENTITY_ROTATIONS, _ZERO_TRANSLATIONS, 0.1, t0=torch.tensor(STAMP))),
+    ("dt", lambda: BSplineTrajectory(_IDENTITY_ROTATIONS, _ZERO_TRANSLATIONS, np.float32(0.1), 0.0)),
+    ("knots", lambda: BSplineTrajectory(_IDENTITY_ROTATIONS, _ZERO_TRANSLATIONS, 0.1, 0.0,
+                                        knots=np.float32(0.1 * np.arange(8)))),
+    ("first_time", lambda: BSplineTrajectory.empty(np.float32(STAMP), 0.1, _IDENTITY_ROTATIONS)),
+    ("knot_time", lambda: BSplineTrajectory(_IDENTITY_ROTATIONS, _ZERO_TRANSLATIONS, 0.1, 0.0).push_back(
+        torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), knot_time=np.float32(0.7))),
+])
+def test_float32_times_are_refused_naming_the_argument(name, call):
+    """Each took a float32 stamp and rounded it by up to a minute (the spline placed 62 s early,
+    time_in_domain answering False for numpy and True for torch): now a TypeError naming it."""
+    with pytest.raises(TypeError, match=f"^{name} must be float64 seconds"):
+        call()
+
+
+@pytest.mark.parametrize("name, call", [
+    ("t0", lambda: spline_fit.control_point_times(6, 0.1, np.float32(STAMP))),
+    ("times", lambda: spline_fit.fit_trajectory(np.float32(STAMP + np.arange(30) / 30.0),
+                                                torch.eye(4, dtype=torch.float64).repeat(30, 1, 1), 0.1)),
+    ("times", lambda: spline_fit.fit_control_points(np.float32(np.arange(4) / 30.0),
+                                                    torch.eye(4, dtype=torch.float64).repeat(4, 1, 1), 0.1, -0.2, 6)),
+])
+def test_the_curve_fit_refuses_float32_times_naming_them(name, call):
+    """fit_trajectory on float32 TUM stamps said "not increasing" (the stamps had merged)."""
+    with pytest.raises(TypeError, match=f"^{name} must be float64 seconds"):
+        call()
+
+
+@pytest.mark.parametrize("last", [0.3, 0.3 + 3e-13, 0.30000000001, 0.35])
+def test_fit_trajectory_reaches_a_last_time_just_past_a_whole_number_of_intervals(last):
+    """Oracle: the spline's own domain rule (time_in_domain) and the poses themselves (identity
+    poses fit to identity).  A last time 3e-13 s past 3 dt got 3 intervals and then failed on its own
+    evaluation ("outside the spline domain"); it gets a fourth, and 0.3 exactly keeps three."""
+    times = np.array([0.0, 0.1, 0.2, last])
+    fitted = spline_fit.fit_trajectory(times, torch.eye(4, dtype=torch.float64).repeat(4, 1, 1), 0.1)
+    assert fitted.n_ctrl == (6 if last == 0.3 else 7)
+    assert spline.time_in_domain(times, fitted.n_ctrl, fitted.dt, fitted.t0).all()
+    assert torch.allclose(fitted.poses(times), torch.eye(4, dtype=torch.float64).expand(4, 4, 4), atol=1e-9)

@@ -37,6 +37,8 @@ from tsslam_ref import knots, spline
 from tsslam_ref.geometry import so3_exp, so3_log
 
 INPUT_KEYS = ("convention", "dt", "t0", "rotvecs", "translations", "times")
+MAX_DT = 1e6
+"""The longest knot spacing an input may give, seconds (11.6 days; far beyond any trajectory)."""
 OPTIONAL_INPUT_KEYS = ("representation", "knots")
 REPRESENTATIONS = ("split", "se3")
 OUTPUT_KEYS = ("R", "p", "v", "a", "omega_body", "omegadot_body")
@@ -141,8 +143,8 @@ def parse_input(data: dict, source: str = "input") -> dict:
     if representation not in REPRESENTATIONS:
         raise ConformanceError(f"{source}: key 'representation' must be one of {REPRESENTATIONS}, got {representation!r}")
     dt = _scalar(data, "dt", source)
-    if dt <= 0:
-        raise ConformanceError(f"{source}: key 'dt' must be > 0, got {dt}")
+    if not 0 < dt <= MAX_DT:  # 1e300 overflowed in the acceleration's 1 / dt**2, a traceback
+        raise ConformanceError(f"{source}: key 'dt' must be in (0, {MAX_DT:g}] seconds, got {dt}")
     parsed = {"representation": representation, "convention": convention, "dt": dt, "t0": _scalar(data, "t0", source),
               "knots": None}
     return _parse_control_points(data, source, parsed)

@@ -207,8 +207,7 @@ def load_sequence(
         depth_scale: PNG value per metre; None = the calibration file's (never overridden: a
             different value is refused), else the layout's standard.
         depth_trunc: stored on the sequence for the losses; depth is never zeroed here.
-        frame_start, frame_stop, frame_step: Python slice over the usable frames (a stop beyond them
-            is refused, not cut short).
+        frame_start, frame_stop, frame_step: Python slice over the usable frames; a stop past them is refused.
         fps: frame rate for layouts without timestamps (time = frame number / fps).
         require_gt: drop frames whose ground-truth pose is unknown (no effect without GT).
         max_time_diff: association tolerance in s (TUM: 0.02).

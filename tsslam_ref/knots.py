@@ -75,6 +75,7 @@ def knots_from_boundaries(boundaries, spacing: float) -> np.ndarray:
     The valid range [κ_2, κ_{N-1}] is [e_0, e_m] (N = m + 3 control points); the two knots
     before and the two after are ``spacing`` (s) apart, as the SLAM trajectory continues its knots.
     """
+    spline.check_float64_seconds("boundaries", boundaries), spline.check_float64_seconds("spacing", spacing)
     boundaries = np.asarray(boundaries, dtype=np.float64).reshape(-1)
     if boundaries.shape[0] < 2:
         raise ValueError(f"need at least 2 interval boundaries, got {boundaries.shape[0]}")
@@ -94,6 +95,7 @@ def start_weights(knot_vector) -> Tuple[float, float]:
     Read from :func:`cumulative_weights` of segment 0 at u = 0 (the same basis as the curve).
     knot_vector: at least its first six knots κ_0..κ_5 (s).
     """
+    spline.check_float64_seconds("knot_vector", knot_vector)
     knots = torch.as_tensor(np.asarray(knot_vector, dtype=np.float64)[:6])
     weights = cumulative_weights(knots, torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.float64)).value
     return float(weights[0, 0]), float(weights[0, 1])
@@ -111,6 +113,7 @@ def greville_times(knots: np.ndarray) -> np.ndarray:
     time the spline of a linear motion puts it at (control points on a line at these times give
     that line exactly).  Equally spaced knots: κ_{k+1}, the uniform spline's peak time.
     """
+    spline.check_float64_seconds("knots", knots)
     knots = np.asarray(knots, dtype=np.float64)
     return (knots[:-2] + knots[1:-1] + knots[2:]) / 3.0
 

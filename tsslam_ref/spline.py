@@ -222,6 +222,7 @@ def time_in_domain(times: TimesLike, n_ctrl: int, dt: float, t0: float, conventi
     rounding (:func:`_end_tolerance`); the same rule for absolute stamps and relative times
     (1.2e-6 s at ends near a 1.3e9 s stamp, 5e-17 s at ends near 0.06 s).  NaN is outside.
     """
+    check_float64_seconds("times", times)  # a float32 time compares as a time up to a minute away
     t_min, t_max = valid_time_range(n_ctrl, dt, t0, convention)
     if not isinstance(times, torch.Tensor):
         times = np.asarray(times, dtype=np.float64)
@@ -454,8 +455,9 @@ def check_control_points(control_rotations: torch.Tensor, control_translations: 
     """N, once the control points are tensors (..., N, 3, 3) and (..., N, 3) of one dtype (``batched``
     False: (N, 3, 3) and (N, 3)); TypeError or ValueError naming what was given otherwise."""
     for name, value in (("control_rotations", control_rotations), ("control_translations", control_translations)):
-        if not isinstance(value, torch.Tensor):
-            raise TypeError(f"{name} must be a torch tensor, got {type(value).__name__} (use torch.as_tensor)")
+        if not isinstance(value, torch.Tensor) or value.dtype not in (torch.float32, torch.float64):  # f16: 1e-2 off
+            got = f"a tensor of {value.dtype}" if isinstance(value, torch.Tensor) else type(value).__name__
+            raise TypeError(f"{name} must be a float32 or float64 torch tensor, got {got} (use torch.as_tensor)")
     shape, lead = tuple(control_rotations.shape), "..., " if batched else ""
     if shape[-2:] != (3, 3) or len(shape) < 3 or not (batched or len(shape) == 3):
         hint = (" (rotation matrices: convert quaternions or rotation vectors first, e.g. geometry.so3_exp)"

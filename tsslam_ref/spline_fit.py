@@ -18,7 +18,9 @@ import torch
 
 from tsslam_ref import knots as knots_module
 from tsslam_ref.geometry import so3_exp, so3_log
-from tsslam_ref.spline import CumulativeWeights, _locate, evaluate_weights, first_segment_offset, uniform_weights
+from tsslam_ref.spline import (CumulativeWeights, _locate, evaluate_weights, first_segment_offset, time_in_domain,
+                               uniform_weights)
+from tsslam_ref.times import check_float64_seconds, float64_seconds
 from tsslam_ref.trajectory import BSplineTrajectory
 
 
@@ -32,6 +34,7 @@ def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "pa
     """
     if knots is not None:
         return knots_module.greville_times(knots_module.check_knots(knots, n_ctrl))
+    check_float64_seconds("t0", t0), check_float64_seconds("dt", dt)
     offset = first_segment_offset(convention)
     return float(t0) + dt * (np.arange(n_ctrl, dtype=np.float64) + offset - 1)
 
@@ -49,6 +52,7 @@ def initial_control_points_from_poses(
     Returns:
         rotations (N, 3, 3), translations (N, 3) in target_poses' dtype and device.
     """
+    check_float64_seconds("times", times)
     times = np.asarray(times, dtype=np.float64)
     order = np.argsort(times)
     ctrl_times = control_point_times(n_ctrl, dt, t0, convention, knots)
@@ -102,7 +106,7 @@ def fit_control_points(
 
     Differs from: Eq. (11) sums unsquared norms; we square them (same minimiser for exact data, less robust).
     """
-    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    times = float64_seconds(times, "times").reshape(-1)  # dt and t0 are checked by the segment rule
     if target_poses.shape != (times.shape[0], 4, 4):
         raise ValueError(f"target_poses must be ({times.shape[0]}, 4, 4) to match times, got {tuple(target_poses.shape)}")
     out_dtype, device = target_poses.dtype, target_poses.device
@@ -242,6 +246,7 @@ def fit_trajectory(
     Returns:
         the fitted :class:`trajectory.BSplineTrajectory` (poses' dtype and device).
     """
+    check_float64_seconds("times", times), check_float64_seconds("dt", dt)
     if boundaries is not None:
         return _fit_on_boundaries(np.asarray(times, dtype=np.float64).reshape(-1), poses, dt, convention, iters,
                                   boundaries)
@@ -252,8 +257,10 @@ def fit_trajectory(
     offset = first_segment_offset(convention)
     if not dt > 0:
         raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
-    intervals = max(1, math.ceil((times[-1] - times[0]) / dt - 1e-9))
+    intervals = max(1, math.ceil((times[-1] - times[0]) / dt - 1e-9))  # k dt up to rounding: k intervals
     n_ctrl, t0 = 3 + intervals, float(times[0]) - offset * dt
+    if not time_in_domain(times[-1:], n_ctrl, dt, t0, convention)[0]:  # a last time just past k dt: one more
+        n_ctrl += 1
     rotations, translations = fit_control_points(times, poses, dt, t0, n_ctrl, iters=iters, convention=convention)
     return BSplineTrajectory(rotations, translations, dt, t0, convention)
 

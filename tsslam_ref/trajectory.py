@@ -40,7 +40,7 @@ import torch
 from . import knots as knots_module
 from . import spline as spline_module
 from .geometry import make_pose, so3_exp, so3_log
-from .times import float64_seconds
+from .times import check_float64_seconds, float64_seconds
 
 _ROTATION_JUMP_WARN = 0.5 * np.pi
 
@@ -72,6 +72,7 @@ class BSplineTrajectory:
             raise ValueError(f"BSplineTrajectory takes (N, 3) translations for N = {control_rotations.shape[0]} "
                              f"rotations, got {tuple(control_translations.shape)}")
         spline_module.first_segment_offset(convention)  # ValueError for an unknown convention
+        check_float64_seconds("dt", dt), check_float64_seconds("t0", t0)  # float32 moves a 1.3e9 s stamp by 64 s
         if not dt > 0:
             raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
         self.control_rotations = control_rotations
@@ -87,6 +88,7 @@ class BSplineTrajectory:
 
     def _set_knots(self, knots, knot_offset: int) -> None:
         """Store a checked run of knot times; t0 must be its knot 0."""
+        check_float64_seconds("knots", knots)
         values = np.array(knots, dtype=np.float64).reshape(-1)
         knot_offset = int(knot_offset)
         if not knot_offset <= 0 < values.shape[0] + knot_offset:
@@ -122,6 +124,7 @@ class BSplineTrajectory:
     @classmethod
     def empty(cls, first_time: float, dt: float, like: torch.Tensor, convention: str = "paper") -> "BSplineTrajectory":
         """No control points yet; interval 0 starts at ``first_time`` (s).  ``like``: dtype and device."""
+        check_float64_seconds("first_time", first_time), check_float64_seconds("dt", dt)
         offset = spline_module.first_segment_offset(convention)
         return cls(like.new_zeros(0, 3, 3), like.new_zeros(0, 3), dt, float(first_time) - offset * float(dt), convention)
 
@@ -232,6 +235,8 @@ class BSplineTrajectory:
             angle = float(torch.linalg.vector_norm(so3_log(self.control_rotations[-1].T @ rotation)))
             if angle > _ROTATION_JUMP_WARN:
                 warnings.warn(f"pushed control rotation is {angle:.3f} rad from the previous one (> pi/2)")
+        if knot_time is not None:
+            check_float64_seconds("knot_time", knot_time)
         if knot_time is not None and float(knot_time) != self.knot_time(self.n_ctrl):
             self._set_knot(self.n_ctrl, float(knot_time))
         self.control_rotations = torch.cat([self.control_rotations, rotation[None]], dim=0)

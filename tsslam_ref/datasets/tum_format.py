@@ -133,6 +133,24 @@ def read_tum_trajectory(path, unique_stamps: bool = False) -> Tuple[np.ndarray, 
     return np.asarray(stamps, dtype=np.float64), tum_to_pose(np.asarray(rows))
 
 
+ROTATION_TOLERANCE = 1e-2
+"""Largest |RᵀR − I| entry a written pose may have: far above float32 drift over long runs, far
+below a reflection (one flipped axis), a scaled matrix or a visible shear."""
+
+
+def _check_rotations(poses: np.ndarray, known: np.ndarray, timestamps: np.ndarray) -> None:
+    """ValueError naming the first known pose whose 3x3 block is no rotation (a quaternion would
+    write some other rotation in its place, silently)."""
+    rotations = poses[known, :3, :3]
+    deviation = np.abs(np.swapaxes(rotations, 1, 2) @ rotations - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    bad = np.flatnonzero((deviation > ROTATION_TOLERANCE) | (np.linalg.det(rotations) <= 0))
+    if bad.size:
+        j = int(np.flatnonzero(known)[bad[0]])
+        raise ValueError(f"poses[{j}] (t = {timestamps[j]:.6f} s) is not a rotation: det {np.linalg.det(poses[j, :3, :3]):.4g}, "
+                         f"largest |RᵀR − I| entry {deviation[bad[0]]:.3g} (a flipped camera axis gives det −1); "
+                         f"a TUM quaternion cannot hold it")
+
+
 def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Path:
     """Write camera-to-world poses as a TUM trajectory, atomically (``files.atomic_write_text``).
 
@@ -144,7 +162,7 @@ def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Pa
     Args:
         path: output file.
         timestamps: (N,) float64 s (float32 is refused: it cannot hold the stamps).
-        poses: (N, 4, 4) camera-to-world.
+        poses: (N, 4, 4) camera-to-world; each 3x3 block a rotation (ValueError otherwise).
         overwrite: replace an existing file; otherwise FileExistsError.
     """
     path = Path(path)
@@ -155,6 +173,7 @@ def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Pa
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
     known = np.isfinite(poses).all(axis=(1, 2))
+    _check_rotations(poses, known, timestamps)
     values = trajectory_to_tum(poses[known])  # no q -> -q jump between neighbouring lines
     lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes)"]
     for stamp, row in zip(timestamps[known], values):
