@@ -119,6 +119,8 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--frames=-3:8"], ["--frames -3:8"]),
     (["--frames", "5:2"], ["--frames '5:2' selects no frames"]),
     (["--frames", "0:5000"], ["stop=5000 is beyond the 100 usable frames", "none (START:)"]),  # ran 100, said 5000
+    (["--config", "replica"], ["data.dataset = 'replica' (preset replica)", "no --data names one"]),  # named the
+    (["--config", "scannet"], ["data.dataset = 'scannet' (preset scannet)", "bundled TUM slice"]),  # bundled folder
     (["--set", "spline.dt=1e6"], ["spline.dt = 1000000.0", "(0, 10]"]),
     (["--method", "coslam", "--export-rate", "5"], ["--export-rate needs --method tsslam"]),
     (["--set", "method=coslam", "--export-rate", "5"], ["--export-rate needs --method tsslam", "coslam"]),
@@ -445,7 +447,7 @@ def test_ctrl_c_resume_refusals_and_resume(runs):
     assert runs["stopped_code"] == 130, runs["stopped_err"]
     assert "Traceback" not in runs["stopped_err"]
     message = runs["stopped_err"].strip().splitlines()[-1]
-    assert message.startswith("interrupted after frame") and "--resume" in message, message
+    assert message.startswith("interrupted with 4 of 10 frames done") and "--resume" in message, message
     assert run.load_checkpoint(stopped / "checkpoint.pt").done == 4  # stopped mid-way, checkpoint readable
     before = snapshot(stopped)
     config_json = (stopped / "config.json").read_bytes()
@@ -530,7 +532,7 @@ def test_ctrl_c_in_a_resumed_run_without_checkpoints_points_to_the_checkpoint_it
                              "--resume"], cwd=root, env=env, capture_output=True, text=True, timeout=120)
     assert second.returncode == 130, second.stderr
     message = second.stderr.strip().splitlines()[-1]
-    assert "interrupted after frame 7" in message and "holds 4 frames" in message and "--resume" in message, message
+    assert "interrupted with 7 of 10 frames done" in message and "holds 4 frames" in message and "--resume" in message, message
     assert run.load_checkpoint(root / "twice" / "checkpoint.pt").done == 4
 
 
@@ -1001,7 +1003,7 @@ def test_sigterm_stops_a_run_as_ctrl_c_does_and_it_resumes(runs):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     stopped = subprocess.run([sys.executable, "-c", script, "--data", "room", "--out", "terminated", *CHEAP], cwd=root,
                              env=env, capture_output=True, text=True, timeout=120)
-    assert stopped.returncode == 130 and "interrupted after frame 4 of 10" in stopped.stderr, stopped.stderr
+    assert stopped.returncode == 130 and "interrupted with 4 of 10 frames done" in stopped.stderr, stopped.stderr
     assert run.load_checkpoint(root / "terminated" / "checkpoint.pt").done == 4
     resumed = cli("run", "--data", "room", "--out", "terminated", *CHEAP, "--resume", cwd=root)
     assert resumed.returncode == 0, resumed.stderr

@@ -40,7 +40,9 @@ SYNTHETIC: Values = {
     "spline": {"dt": 0.3},
     "mesh": {"voxel_final": 0.02},
 }
-"""Co-SLAM's NeuralRGBD synthetic settings (its ``configs/Synthetic`` YAML); also our synthetic scenes."""
+"""Co-SLAM's NeuralRGBD synthetic settings (its ``configs/Synthetic`` YAML); also our synthetic scenes.
+Its scene files set ``far`` per scene (breakfast_room 5 m; complete_kitchen, green_room, whiteroom
+8 m; the others 4 m, as here): ``--set render.far=...`` for those."""
 
 SCANNET: Values = {
     "name": "scannet",
@@ -51,7 +53,10 @@ SCANNET: Values = {
     "mapping": {"first_iters": 500, "iters": 10, "optim_cur": False, "min_pixels_cur": 20},
     "spline": {"dt": 0.3},
 }
-"""Co-SLAM's ScanNet settings (its ``configs/ScanNet`` YAML)."""
+"""Co-SLAM's ScanNet settings (its ``configs/ScanNet`` YAML), with two values its scene files
+override: the hash table, 2^19 in the base file and 2^12-2^16 per scene (16 as scene0000 and
+scene0169; 12 scene0059; 14 scene0106, scene0181, scene0207: ``--set field.log2_hashmap_size=...``),
+and ``far``, 5 m in scene0106 and scene0207 (8 m here and in the others)."""
 
 TUM: Values = {
     "name": "tum",

@@ -143,12 +143,8 @@ def _join_dash_values(argv: List[str]) -> List[str]:
 def resolve_config(args) -> config_module.Config:
     """Preset or file, then command-line options, then ``--set`` overrides."""
     cfg = config_module.load(args.config or "tum-cpu")
-    if args.method:
-        cfg.method = args.method
-    if args.seed is not None:
-        cfg.seed = args.seed
-    if args.device:
-        cfg.device = args.device
+    cfg.method, cfg.device = args.method or cfg.method, args.device or cfg.device
+    cfg.seed = cfg.seed if args.seed is None else args.seed
     if args.data:
         cfg.data.path = args.data
     if args.parallel:
@@ -163,6 +159,10 @@ def resolve_config(args) -> config_module.Config:
     if frames is not None:
         cfg.data.frame_start, cfg.data.frame_stop, cfg.data.frame_step = frames
     cfg = config_module.apply_overrides(cfg, args.overrides)
+    if not cfg.data.path and cfg.data.dataset not in ("auto", "tum"):  # it named the layout, not the folder
+        raise BadInput(f"data.dataset = '{cfg.data.dataset}' (preset {cfg.name}) reads {cfg.data.dataset} folders, "
+                       f"but no --data names one: give it, e.g. --data PATH/TO/SCENE (without it the run reads the "
+                       f"bundled TUM slice)")
     if cfg.data.path:  # the folder itself, not a path from where this command ran: --resume compares it
         cfg.data.path = str(Path(cfg.data.path).expanduser().resolve())
     return cfg
@@ -403,7 +403,7 @@ def _interrupted(plan: Plan, progress, reached: Dict[str, int]) -> int:
                  f"run the same command with --resume to continue")
     else:
         where = "no checkpoint was written; run the same command with --overwrite to start again"
-    print(f"interrupted after frame {reached['done']} of {len(plan.sequence)}; {where}", file=sys.stderr)
+    print(f"interrupted with {reached['done']} of {len(plan.sequence)} frames done; {where}", file=sys.stderr)
     return EXIT_INTERRUPTED
 
 
