@@ -947,3 +947,35 @@ def test_a_pose_that_is_no_rotation_is_refused_not_written_as_another(tmp_path, 
     drifted = np.tile(np.eye(4), (3, 1, 1))  # float32 rounding of a long chain of rotations: written
     drifted[1, :3, :3] = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix().astype(np.float32) * (1 + 1e-5)
     data.write_tum_trajectory(tmp_path / "t.txt", [0.0, 1.0, 2.0], drifted)
+
+
+def _tum_folder_without_calibration(folder):
+    """Two 640x480 frames in TUM layout, no intrinsics.json: the camera comes from the folder's name."""
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    for stamp in ("1.000000", "1.033333"):
+        Image.fromarray(np.zeros((480, 640, 3), np.uint8)).save(folder / "rgb" / f"{stamp}.png")
+        Image.fromarray(np.full((480, 640), 5000, np.uint16)).save(folder / "depth" / f"{stamp}.png")
+    for listing, kind in (("rgb.txt", "rgb"), ("depth.txt", "depth")):
+        (folder / listing).write_text("".join(f"{s} {kind}/{s}.png\n" for s in ("1.000000", "1.033333")))
+    return folder
+
+
+def test_a_tum_folder_naming_no_camera_says_it_gets_freiburg3s():
+    """fr1 data in a folder called 'desk' was read with fr3's camera (fx 535.4 against 517.3) without
+    a word; the sequence now carries a note (printed by the run and by `data info`), and a folder that
+    names its camera gets that camera and no note."""
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as root:
+        unnamed = data.load_sequence(_tum_folder_without_calibration(Path(root) / "desk"))
+        assert unnamed.intrinsics.fx == 535.4 and "no freiburg1/2/3 in the folder's name" in unnamed.camera_note
+        assert data.sequence_info(unnamed, depth_samples=1)["camera_note"] == unnamed.camera_note
+        from tsslam_ref.run_outputs import data_notes
+
+        assert data_notes(unnamed) == [unnamed.camera_note]  # the run's notes before it starts
+        named = data.load_sequence(_tum_folder_without_calibration(Path(root) / "rgbd_dataset_freiburg1_desk"))
+        assert named.intrinsics.fx == 517.3 and named.camera_note == ""
+        assert "camera_note" not in data.sequence_info(named, depth_samples=1)
+        assert data.load_sequence(data.default_sequence_path()).camera_note == ""  # its intrinsics.json decides

@@ -236,7 +236,7 @@ def load_sequence(
         crop_edge=crop_edge,
         resize_width=resize_width,
         depth_trunc=depth_trunc,
-        frames_without_gt=without_gt, colour_without_depth=index.colour_without_depth,
+        frames_without_gt=without_gt, colour_without_depth=index.colour_without_depth, camera_note=index.camera_note,
     )
 
 
@@ -311,6 +311,7 @@ def sequence_info(sequence: RGBDSequence, depth_samples: int = 5) -> dict:
         "depth_scale": sequence.depth_scale,
         "duration_s": float(sequence.timestamps[-1] - sequence.timestamps[0]),
         "depth_valid_fraction": float(np.mean(valid)),
+        **({"camera_note": sequence.camera_note} if sequence.camera_note else {}),
     }
 
 

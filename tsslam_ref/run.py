@@ -52,7 +52,8 @@ from .cli_args import OneLineParser, number_in, silence_stdout, stop_on_sigterm_
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
-from .run_outputs import advance, check_output_folder, export_file_name, write_outputs, write_partial_trajectory
+from .run_outputs import advance, check_output_folder, data_notes, export_file_name, write_outputs
+from .run_outputs import write_partial_trajectory
 from .export import MAX_EXPORT_RATE, export_times
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
@@ -453,12 +454,8 @@ def execute(plan: Plan) -> int:
     print(f"{cfg.method}: {len(sequence)} frames of {sequence.name} ({sequence.kind}, "
           f"{data_module.timing_summary(sequence.timestamps)}), preset {cfg.name}, device {plan.device} ({kernels}), "
           f"output {out}")
-    if sequence.frames_without_gt:
-        print(f"note: {sequence.frames_without_gt} frame(s) of {sequence.path} have no ground-truth pose and are not "
-              f"used (--frames counts the frames that have one); --set data.require_gt=false keeps them")
-    if sequence.colour_without_depth:
-        print(f"note: {sequence.colour_without_depth} colour image(s) in {sequence.path / 'rgb.txt'} have no depth "
-              f"image within 0.02 s and are not used")
+    for note in data_notes(sequence):  # frames left out, a camera chosen by default
+        print(f"note: {note}")
     for ignored in config_module.overrides_without_effect(cfg.method, plan.args.overrides):
         print(f"note: --set {ignored} has no effect with --method {cfg.method}")
     try:

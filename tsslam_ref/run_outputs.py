@@ -88,6 +88,18 @@ def remove_previous_outputs(out: Path) -> List[Path]:
     return removed
 
 
+def data_notes(sequence) -> List[str]:
+    """What the run says about its data before it starts: frames left out, a camera chosen by default."""
+    notes = []
+    if sequence.frames_without_gt:
+        notes.append(f"{sequence.frames_without_gt} frame(s) of {sequence.path} have no ground-truth pose and are not "
+                     f"used (--frames counts the frames that have one); --set data.require_gt=false keeps them")
+    if sequence.colour_without_depth:
+        notes.append(f"{sequence.colour_without_depth} colour image(s) in {sequence.path / 'rgb.txt'} have no depth "
+                     f"image within 0.02 s and are not used")
+    return notes + ([sequence.camera_note] if sequence.camera_note else [])
+
+
 OUTSIDE_BOX_WARNING = 0.25
 """A tracked frame whose measured surface lies outside the map's box by more than this share gets
 the run's one warning (``mapping.share_outside_bound``)."""

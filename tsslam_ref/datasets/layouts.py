@@ -56,6 +56,7 @@ class LayoutIndex:
     depth_scale: Optional[float]  # from a calibration file, else None (use DEPTH_SCALES)
     gt_span: Optional[Tuple[float, float]] = None  # first and last time of the ground-truth file, s
     colour_without_depth: int = 0  # TUM: colour stamps left out, no depth stamp within the tolerance
+    camera_note: str = ""  # TUM: said when the camera is fr3's by default (no calibration file, no camera name)
 
 
 def natural_key(name: str):
@@ -164,11 +165,16 @@ def listed_file(folder: Path, listing: Path, line: int, name: str) -> Path:
 
 def tum_camera(folder: Path) -> str:
     """'freiburg1' | 'freiburg2' | 'freiburg3' from the folder name (fr3 when none is named)."""
+    return named_tum_camera(folder) or "freiburg3"
+
+
+def named_tum_camera(folder: Path) -> Optional[str]:
+    """The TUM camera the folder's name names ('freiburg1', 'fr2', ...), or None."""
     name = folder.resolve().name.lower()
     for number in ("1", "2", "3"):
         if f"freiburg{number}" in name or re.search(rf"(^|[^a-z0-9])fr{number}([^0-9]|$)", name):
             return f"freiburg{number}"
-    return "freiburg3"
+    return None
 
 
 def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
@@ -204,13 +210,17 @@ def parse_tum(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
         gt_poses = ground_truth_at(timestamps, gt_times, gt_all, max_time_diff)
         gt_span = (gt_times[0], gt_times[-1])
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
+    camera_note = ""
     if calibrated is not None:
         intrinsics, depth_scale = calibrated
     else:
         camera = TUM_INTRINSICS[tum_camera(folder)]
         intrinsics, depth_scale = _builtin_camera(camera, depth_paths[0], folder, "the published TUM values"), None
+        if named_tum_camera(folder) is None:  # fr1 data in a renamed folder: 3.5 % off in fx, silently
+            camera_note = (f"{folder.name}: no intrinsics.json and no freiburg1/2/3 in the folder's name, so the camera "
+                           f"is freiburg3's (fx {camera.fx}); for fr1 or fr2 data name the folder so or add intrinsics.json")
     return LayoutIndex("tum", rgb_paths, depth_paths, timestamps, gt_poses, intrinsics, depth_scale, gt_span,
-                       colour_without_depth=len(rgb_times) - len(keep))
+                       colour_without_depth=len(rgb_times) - len(keep), camera_note=camera_note)
 
 
 def _read_matrix_lines(path: Path, per_line: int, what: str):

@@ -58,6 +58,8 @@ class RGBDSequence:
         ground-truth pose is unknown (``require_gt``).
         colour_without_depth: TUM colour images left out because no depth image was taken within
         the association tolerance (0.02 s); 0 for the other layouts.
+        camera_note: why the camera may not be the data's (a TUM folder whose name names no camera
+        and that has no calibration file gets freiburg3's); "" otherwise.
     """
 
     def __init__(
@@ -76,6 +78,7 @@ class RGBDSequence:
         depth_trunc: Optional[float] = None,
         frames_without_gt: int = 0,
         colour_without_depth: int = 0,
+        camera_note: str = "",
     ):
         if not (len(rgb_paths) == len(depth_paths) == len(timestamps)):
             raise ValueError(
@@ -101,6 +104,7 @@ class RGBDSequence:
         self.depth_trunc = depth_trunc
         self.frames_without_gt = int(frames_without_gt)
         self.colour_without_depth = int(colour_without_depth)
+        self.camera_note = camera_note
         width, height = output_size(native_intrinsics.width, native_intrinsics.height, self.crop_edge, resize_width)
         edge = self.crop_edge
         self.intrinsics = native_intrinsics.cropped(edge, edge, edge, edge).resized(width, height)
