@@ -126,8 +126,8 @@ def _select(index, frame_start: int, frame_stop: Optional[int], frame_step: int,
     if frame_stop is not None and frame_stop > n:  # slicing would run fewer frames than asked, silently
         left_out = (f" ({without_gt} frame(s) without a ground-truth pose are left out; data.require_gt=false "
                     f"keeps them)") if without_gt else ""
-        raise ValueError(f"{path}: frame range stop={frame_stop} is beyond the {n} usable frames (0 to {n - 1}){left_out}; "
-                         f"give a stop of at most {n}, or none (START:) for every frame from START")
+        raise ValueError(f"{path}: frame range stop={frame_stop} is beyond the {n} usable frames (0 to {n - 1})"
+                         f"{left_out}; give a stop of at most {n}, or none (START:) for every frame from START")
     chosen = np.arange(n)[frame_start:frame_stop:frame_step]
     if len(chosen) == 0:
         raise ValueError(f"{path}: frame range start={frame_start} stop={frame_stop} step={frame_step} selects no frame out of {n}")

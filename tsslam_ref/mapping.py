@@ -206,4 +206,3 @@ def share_outside_bound(bound: torch.Tensor, rays: RayBatch, pose: torch.Tensor,
     box = bound.to(points)
     outside = ((points < box[:, 0]) | (points > box[:, 1])).any(dim=-1)
     return float(outside.float().mean()) if len(outside) else 0.0
-

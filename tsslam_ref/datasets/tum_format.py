@@ -146,9 +146,10 @@ def _check_rotations(poses: np.ndarray, known: np.ndarray, timestamps: np.ndarra
     bad = np.flatnonzero((deviation > ROTATION_TOLERANCE) | (np.linalg.det(rotations) <= 0))
     if bad.size:
         j = int(np.flatnonzero(known)[bad[0]])
-        raise ValueError(f"poses[{j}] (t = {timestamps[j]:.6f} s) is not a rotation: det {np.linalg.det(poses[j, :3, :3]):.4g}, "
-                         f"largest |RᵀR − I| entry {deviation[bad[0]]:.3g} (a flipped camera axis gives det −1); "
-                         f"a TUM quaternion cannot hold it")
+        determinant = np.linalg.det(poses[j, :3, :3])
+        raise ValueError(f"poses[{j}] (t = {timestamps[j]:.6f} s) is not a rotation: det {determinant:.4g}, largest "
+                         f"|RᵀR − I| entry {deviation[bad[0]]:.3g} (a flipped camera axis gives det −1); a TUM "
+                         f"quaternion cannot hold it")
 
 
 def write_tum_trajectory(path, timestamps, poses, overwrite: bool = False) -> Path:
