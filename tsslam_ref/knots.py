@@ -75,7 +75,8 @@ def knots_from_boundaries(boundaries, spacing: float) -> np.ndarray:
     The valid range [κ_2, κ_{N-1}] is [e_0, e_m] (N = m + 3 control points); the two knots
     before and the two after are ``spacing`` (s) apart, as the SLAM trajectory continues its knots.
     """
-    spline.check_float64_seconds("boundaries", boundaries), spline.check_float64_seconds("spacing", spacing)
+    spline.check_float64_seconds("boundaries", boundaries)
+    spline.check_float64_seconds("spacing", spacing)
     boundaries = np.asarray(boundaries, dtype=np.float64).reshape(-1)
     if boundaries.shape[0] < 2:
         raise ValueError(f"need at least 2 interval boundaries, got {boundaries.shape[0]}")

@@ -34,7 +34,8 @@ def control_point_times(n_ctrl: int, dt: float, t0: float, convention: str = "pa
     """
     if knots is not None:
         return knots_module.greville_times(knots_module.check_knots(knots, n_ctrl))
-    check_float64_seconds("t0", t0), check_float64_seconds("dt", dt)
+    check_float64_seconds("t0", t0)
+    check_float64_seconds("dt", dt)
     offset = first_segment_offset(convention)
     return float(t0) + dt * (np.arange(n_ctrl, dtype=np.float64) + offset - 1)
 
@@ -246,7 +247,8 @@ def fit_trajectory(
     Returns:
         the fitted :class:`trajectory.BSplineTrajectory` (poses' dtype and device).
     """
-    check_float64_seconds("times", times), check_float64_seconds("dt", dt)
+    check_float64_seconds("times", times)
+    check_float64_seconds("dt", dt)
     if boundaries is not None:
         return _fit_on_boundaries(np.asarray(times, dtype=np.float64).reshape(-1), poses, dt, convention, iters,
                                   boundaries)

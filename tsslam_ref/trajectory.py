@@ -72,7 +72,8 @@ class BSplineTrajectory:
             raise ValueError(f"BSplineTrajectory takes (N, 3) translations for N = {control_rotations.shape[0]} "
                              f"rotations, got {tuple(control_translations.shape)}")
         spline_module.first_segment_offset(convention)  # ValueError for an unknown convention
-        check_float64_seconds("dt", dt), check_float64_seconds("t0", t0)  # float32 moves a 1.3e9 s stamp by 64 s
+        check_float64_seconds("dt", dt)
+        check_float64_seconds("t0", t0)  # a float32 stamp near 1.3e9 s is up to 64 s off
         if not dt > 0:
             raise ValueError(f"knot spacing dt must be > 0 s, got {dt}")
         self.control_rotations = control_rotations
@@ -124,7 +125,8 @@ class BSplineTrajectory:
     @classmethod
     def empty(cls, first_time: float, dt: float, like: torch.Tensor, convention: str = "paper") -> "BSplineTrajectory":
         """No control points yet; interval 0 starts at ``first_time`` (s).  ``like``: dtype and device."""
-        check_float64_seconds("first_time", first_time), check_float64_seconds("dt", dt)
+        check_float64_seconds("first_time", first_time)
+        check_float64_seconds("dt", dt)
         offset = spline_module.first_segment_offset(convention)
         return cls(like.new_zeros(0, 3, 3), like.new_zeros(0, 3), dt, float(first_time) - offset * float(dt), convention)
 
