@@ -736,6 +736,9 @@ def test_depth_mostly_beyond_the_map_range_is_warned_about_before_the_run(tmp_pa
     assert "warning: 99 % of frame 0's measured depth lies beyond 4 m" in warning and "data.depth_scale = 1000" in warning
     run.prepare(run.build_parser().parse_args(common + ["--set", "data.depth_scale=5000"]))
     assert "warning" not in capsys.readouterr().err
+    run.prepare(run.build_parser().parse_args(common + ["--set", "data.depth_scale=50000"]))  # ten times too near
+    warning = capsys.readouterr().err  # the room's median is 1.60 m (data info), read as 0.16 m
+    assert "warning: frame 0's median measured depth is 0.16 m" in warning and "data.depth_scale = 50000" in warning
     assert not (tmp_path / "out").exists()
 
 

@@ -707,6 +707,7 @@ def test_cli_info(tum_folder, capsys):
         assert key in summary
     assert summary["type"] == "tum" and summary["frames"] == 5 and summary["depth_valid_fraction"] == 1.0
     assert summary["colour_without_depth"] == 1  # the fixture's frame 3: its depth is 0.026 s away
+    assert summary["depth_median_m"] == pytest.approx(1.2)  # frames at 1.0, 1.1, 1.2, 1.4, 1.5 m (3 is dropped)
 
 
 def test_colour_without_depth_counts_only_association_drops(tum_folder):

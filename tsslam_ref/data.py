@@ -295,11 +295,14 @@ def sequence_info(sequence: RGBDSequence, depth_samples: int = 5) -> dict:
     """Summary of a sequence (the ``info`` command): size, intrinsics, duration, depth coverage.
 
     ``depth_valid_fraction`` is the mean share of pixels with depth > 0 over ``depth_samples``
-    frames spread evenly through the sequence.
+    frames spread evenly through the sequence, ``depth_median_m`` the median of their measured depth
+    (a check of the depth scale: a room seen from 0.3 m or less is unusual).
     """
     k = sequence.intrinsics
     picks = np.unique(np.linspace(0, len(sequence) - 1, min(depth_samples, len(sequence))).round().astype(int))
-    valid = [float((sequence[int(i)].depth > 0).mean()) for i in picks]
+    depths = [sequence[int(i)].depth for i in picks]
+    valid = [float((depth > 0).mean()) for depth in depths]
+    measured = np.concatenate([depth[depth > 0] for depth in depths])
     return {
         "type": sequence.kind,
         "name": sequence.name,
@@ -311,6 +314,7 @@ def sequence_info(sequence: RGBDSequence, depth_samples: int = 5) -> dict:
         "depth_scale": sequence.depth_scale,
         "duration_s": float(sequence.timestamps[-1] - sequence.timestamps[0]),
         "depth_valid_fraction": float(np.mean(valid)),
+        "depth_median_m": float(np.median(measured)) if measured.size else float("nan"),
         **({"camera_note": sequence.camera_note} if sequence.camera_note else {}),
     }
 

@@ -189,14 +189,18 @@ def _checked_sequence(cfg, frames: Optional[str]):
 
 def _warn_if_depth_beyond_range(cfg, sequence, depth: np.ndarray) -> None:
     """A warning (the run goes on) when most of frame 0's measured depth lies beyond the range the
-    map uses, min(data.depth_trunc, render.far): the usual sign of a wrong depth scale, which
-    otherwise gives a map built from a few pixels and an empty reconstruction."""
+    map uses, min(data.depth_trunc, render.far), or its median is nearer than 0.3 m: the usual signs
+    of a wrong depth scale (a map built from a few pixels; millimetre PNGs read at 5000 per metre)."""
     limit = min(cfg.data.depth_trunc, cfg.render.far)
     measured = depth[depth > 0]
     if measured.size and np.mean(measured < limit) < 0.5:
         print(f"warning: {100 * np.mean(measured >= limit):.0f} % of frame 0's measured depth lies beyond {limit:g} m "
               f"(data.depth_trunc, render.far; median {np.median(measured):.2f} m); check the depth scale "
               f"(data.depth_scale = {sequence.depth_scale:g} PNG values per metre)", file=sys.stderr)
+    elif measured.size and np.median(measured) < 0.3:
+        print(f"warning: frame 0's median measured depth is {np.median(measured):.2f} m; unless the camera films a "
+              f"close-up, check the depth scale (data.depth_scale = {sequence.depth_scale:g} PNG values per metre; "
+              f"millimetre PNGs have 1000)", file=sys.stderr)
 
 
 @dataclass
