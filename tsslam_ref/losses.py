@@ -4,6 +4,7 @@ TS-SLAM §III-A, Eq. (4) (``eq:lossfuc``): L_NeRF = L_rgb + L_d + L_sdf + L_fs +
 term weighted as in Co-SLAM @3bb904e:
 
     L_rgb    = mean_{r, ch} (a_r C_hat_r - a_r C_r)^2,  a_r = 1 (valid depth) or rgb_missing
+               (Co-SLAM's boolean weight tensor stores any non-zero rgb_missing as 1: docs/deviations.md)
     L_d      = mean_{valid r} (D_hat_r - D_r)^2
     L_sdf    = (1 - n_sdf / n) mean_{r, i} m_sdf (z_i + s_i tr - D_r)^2     band |z - D| <= tr, D > 0
     L_fs     = (1 - n_fs / n)  mean_{r, i} m_fs (s_i - 1)^2                 front z < D - tr

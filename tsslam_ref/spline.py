@@ -340,7 +340,7 @@ def uniform_weights(u: torch.Tensor, dt: float, derivatives: int = 0) -> Cumulat
 
 
 def _gather_windows(control_rotations: torch.Tensor, control_translations: torch.Tensor, first_index: torch.Tensor):
-    """d_j and Δt_j = t_{k+j} − t_{k+j−1}, j = 1..3, of each sample's window: (..., M, 3, 3) each.
+    """d_j and Δp_j = t_{k+j} − t_{k+j−1} (translations), j = 1..3, of each window: (..., M, 3, 3) each.
 
     Only the knot pairs some sample needs are used (each Log computed once, then gathered).
     """
@@ -352,7 +352,7 @@ def _gather_windows(control_rotations: torch.Tensor, control_translations: torch
     window = (first_index - lo)[:, None] + torch.arange(3, device=device)  # (M, 3): pair j = 1..3
     d = knot_rotation_differences(used_rotations)  # (..., hi-lo+3, 3): one Log per knot pair
     delta_p = used_translations[..., 1:, :] - used_translations[..., :-1, :]  # (..., hi-lo+3, 3)
-    return d[..., window, :], delta_p[..., window, :]  # [..., m, j-1, :] = d_j, Δt_j
+    return d[..., window, :], delta_p[..., window, :]  # [..., m, j-1, :] = d_j, Δp_j
 
 
 def _angular_recursion(A: torch.Tensor, d: torch.Tensor, B_dot: torch.Tensor, B_ddot: Optional[torch.Tensor]):
@@ -386,7 +386,7 @@ def evaluate_weights(
 
     Eq. (5) t(t) = t_{k} + Σ_{j=1..3} B_j (t_{k+j} − t_{k+j−1});
     Eq. (6) R(t) = R_{k} Π_{j=1..3} Exp(B_j d_j);
-    Eq. (8) a = Σ B̈_j Δt_j (v likewise with Ḃ);
+    Eq. (8) a = Σ B̈_j Δp_j (v likewise with Ḃ; Δp_j the control-point translation differences);
     Eq. (9) ω^(j+1) = A_jᵀ ω^(j) + Ḃ_j d_j, ω̇^(j+1) = Ḃ_j ω^(j+1) × d_j + A_jᵀ ω̇^(j) + B̈_j d_j,
     with ω^(1) = ω̇^(1) = 0; ω^(4), ω̇^(4) are body-frame.  The same for a uniform and a
     non-uniform knot vector: only the weights differ.
