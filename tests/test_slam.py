@@ -57,8 +57,11 @@ def test_slam_tracks_a_synthetic_sequence(synthetic_sequence, method):
     assert result.poses.shape == (len(sequence), 4, 4) and np.isfinite(result.poses).all()
     metrics = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
     assert metrics["n_matched"] == len(sequence)
-    # The camera moves ~6 cm in 0.8 s; a lost tracker ends decimetres away.
-    assert metrics["ate_rmse_m"] < 0.03, metrics
+    # The camera moves ~14 cm in 0.8 s; a lost tracker ends decimetres away, and one that stopped
+    # optimising scores near a camera standing still at frame 0's pose (4.3 cm here): half of that.
+    standing_still = np.repeat(sequence.gt_poses[:1], len(sequence), axis=0)
+    still = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, sequence.timestamps, standing_still)
+    assert metrics["ate_rmse_m"] < min(0.03, 0.5 * still["ate_rmse_m"]), (metrics, still["ate_rmse_m"])
     if method == "coslam":
         assert np.allclose(result.poses[0], sequence.gt_poses[0], atol=1e-5)  # frame 0 anchors the map
     else:
@@ -162,18 +165,27 @@ def test_tsslam_map_update_between_intervals_moves_only_the_map(synthetic_sequen
 
 
 def test_without_local_ba_the_run_ends_cleanly(synthetic_sequence):
-    """Paper Table V: without local BA TS-SLAM fails.  Ours either completes with finite poses (on
-    this slow, smooth sequence the extrapolated control points can stay close) or stops with a
-    TrackingFailure that says why - never NaNs, never a hang."""
+    """Paper Table V: without local BA TS-SLAM fails.  Ours either completes with finite poses that
+    follow the camera better than a camera standing still would (on this slow, smooth sequence the
+    extrapolated control points can stay close) or stops with a TrackingFailure that names the
+    spline leaving tracking or tracking's divergence - never NaNs (the non-finite failure was once
+    accepted here too, as any message holding "tracking"), never a hang."""
     cfg = small_config("tsslam")
     cfg.local_ba.enabled = False
     sequence = data.load_sequence(synthetic_sequence)
     try:
         result = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
     except slam.TrackingFailure as failure:
-        assert "local BA is switched off" in str(failure) or "tracking" in str(failure)
+        message = str(failure)
+        assert "non-finite" not in message and ("local BA is switched off" in message
+                                               or "tracking diverged" in message), message
     else:
         assert np.isfinite(result.poses).all()
+        standing_still = np.repeat(sequence.gt_poses[:1], len(sequence), axis=0)  # the oracle's lower bar
+        ate = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, result.timestamps, result.poses)
+        still = evaluation.evaluate_trajectory(sequence.timestamps, sequence.gt_poses, sequence.timestamps,
+                                               standing_still)
+        assert ate["ate_rmse_m"] < 0.5 * still["ate_rmse_m"], (ate["ate_rmse_m"], still["ate_rmse_m"])
 
 
 def test_a_spline_that_leaves_tracking_stops_the_run_with_a_message():
