@@ -273,8 +273,7 @@ def environment_lines(stored: Dict, now: Dict) -> List[str]:
     A file written before ``map_kernels`` was recorded says nothing about the map's code path; then
     a run of this one off the compiled kernels (no compiler, ``TSSLAM_NO_COMPILED_KERNEL``) is named.
     """
-    differing = {key: (stored.get(key), now.get(key)) for key in sorted(set(stored) | set(now))
-                 if key in stored and stored.get(key) != now.get(key)}
+    differing = {key: (stored[key], now.get(key)) for key in sorted(stored) if stored[key] != now.get(key)}
     kernels = now.get("map_kernels", {})
     if "map_kernels" not in stored and any(path != "compiled" for key, path in kernels.items() if key != "kernel_error"):
         differing["map_kernels"] = ("not recorded", kernels)
