@@ -1073,6 +1073,8 @@ def test_a_finished_run_records_its_largest_share_outside_the_box(runs):
     """metrics.json's outside_box is the largest of the per-frame shares the loop logged (read back
     from the run's last checkpoint, which holds every frame's log entry)."""
     metrics = json.loads((runs["planted"] / "metrics.json").read_text())
-    logged = [(entry["outside_box"], entry["frame"]) for entry in run.load_checkpoint(runs["planted"] / "checkpoint.pt").log]
-    assert len(logged) == metrics["frames"] - 1 and all(0.0 <= share <= 1.0 for share, _ in logged)  # frame 0 is not tracked
+    state = run.load_checkpoint(runs["planted"] / "checkpoint.pt")
+    logged = [(entry["outside_box"], entry["frame"]) for entry in state.log]
+    assert len(logged) == metrics["frames"] - 1  # every frame but frame 0, which is not tracked
+    assert all(0.0 <= share <= 1.0 for share, _ in logged)
     assert (metrics["outside_box"]["max_share"], metrics["outside_box"]["frame"]) == max(logged)
