@@ -980,3 +980,16 @@ def test_a_tum_folder_naming_no_camera_says_it_gets_freiburg3s():
         assert named.intrinsics.fx == 517.3 and named.camera_note == ""
         assert "camera_note" not in data.sequence_info(named, depth_samples=1)
         assert data.load_sequence(data.default_sequence_path()).camera_note == ""  # its intrinsics.json decides
+
+
+def test_a_datasets_root_given_for_one_scene_names_the_scenes_inside(tmp_path):
+    """A Replica/ or ScanNet root passed as --data got only the generic list of layouts tried; the
+    message now names the scene folders inside (and a folder of another kind keeps the list)."""
+    for name in ("scene_b", "scene_a"):
+        _tum_folder_without_calibration(tmp_path / "root" / name)
+    (tmp_path / "root" / "notes").mkdir()
+    with pytest.raises(ValueError, match=r"root holds dataset folders, not one: scene_a \(tum\), scene_b \(tum\); "
+                                         r"pass one of them"):
+        data.load_sequence(tmp_path / "root")
+    with pytest.raises(ValueError, match="not a recognised RGB-D dataset folder. Layouts tried"):
+        data.load_sequence(tmp_path / "root" / "notes")

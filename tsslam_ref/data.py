@@ -36,6 +36,7 @@ from tsslam_ref.datasets.layouts import (
     DEPTH_SCALES,
     LAYOUTS,
     detect_dataset,
+    matching_layouts,
     other_layout_hint,
     parse_folder,
     parse_neural_rgbd,
@@ -139,7 +140,14 @@ def _layout_of(folder: Path, dataset: str) -> str:
     """The layout of ``folder``: ``dataset`` itself, or detected for 'auto'; raises for a missing
     folder or an unknown layout name."""
     require_dataset_folder(folder)
-    kind = detect_dataset(folder) if dataset == "auto" else dataset
+    try:
+        kind = detect_dataset(folder) if dataset == "auto" else dataset
+    except ValueError as error:  # a dataset's root (Replica/, a ScanNet download) given for one scene?
+        scenes = [f"{child.name} ({matching_layouts(child)[0]})" for child in sorted(folder.iterdir())
+                  if child.is_dir() and matching_layouts(child)]
+        more = f" and {len(scenes) - 3} more" if len(scenes) > 3 else ""
+        raise ValueError(f"{folder} holds dataset folders, not one: {', '.join(scenes[:3])}{more}; pass one of them"
+                         if scenes else str(error)) from None
     if kind not in LAYOUTS:
         raise ValueError(f"dataset '{dataset}' unknown; expected 'auto' or one of {sorted(LAYOUTS)}")
     hint = other_layout_hint(folder, kind) if dataset != "auto" else None

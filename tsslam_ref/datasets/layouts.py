@@ -481,6 +481,11 @@ def _looks_like(folder: Path) -> dict:
     }
 
 
+def matching_layouts(folder: Path) -> List[str]:
+    """The layouts whose entries ``folder`` has (usually one; none for a folder of another kind)."""
+    return [kind for kind, missing in _looks_like(folder).items() if not missing]
+
+
 def read_calibration_exists(folder: Path) -> bool:
     return (folder / "intrinsics.json").is_file() or (folder / "calibration.txt").is_file()
 
