@@ -172,6 +172,16 @@ def _pose_rows_equal(cands, inside: np.ndarray, model: Dict[str, np.ndarray]) ->
     return _close_rows(cands["p"][inside], model["p"]) & _close_rows(cands["R"][inside], model["R"])
 
 
+def _shifted_model_matches(cands, inside: np.ndarray, model: dict, model_times: np.ndarray,
+                           least: int) -> Optional[np.ndarray]:
+    """The rows where the candidate's pose equals ``model`` evaluated at ``model_times`` (both taken
+    where ``inside``), when at least ``least`` rows are inside and SHIFT_SHARE of them agree; else None."""
+    if inside.sum() < least:
+        return None
+    same = _pose_rows_equal(cands, inside, conformance.evaluate_parsed(model, model_times[inside]))
+    return same if same.mean() >= SHIFT_SHARE else None
+
+
 def _convention_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List[str]:
     """An index convention shifted by whole segments (uniform knots only)."""
     if parsed["knots"] is not None or "p" not in failing:
@@ -181,10 +191,8 @@ def _convention_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> Li
     for shift in (-2, -1, 1, 2):
         shifted = times + shift * dt
         inside = (shifted >= t_min) & (shifted <= t_max)
-        if inside.sum() < max(3, len(times) // 4):
-            continue
-        same = _pose_rows_equal(cands, inside, conformance.evaluate_parsed(parsed, shifted[inside]))
-        if same.mean() >= SHIFT_SHARE:
+        same = _shifted_model_matches(cands, inside, parsed, shifted, least=max(3, len(times) // 4))
+        if same is not None:
             return [f"the candidate at t equals the reference at t {'+' if shift > 0 else '-'} {abs(shift)} dt "
                     f"({int(same.sum())} of {same.size} times where that is inside the domain): "
                     f"an index convention shifted by {abs(shift)} segment(s) (paper: segment [t_i, t_i+1) uses "
@@ -234,10 +242,8 @@ def _knot_vector_hints(failing: set, cands, parsed: dict, times: np.ndarray) -> 
             continue
         t_min, t_max = knots.valid_time_range(shifted["knots"])
         inside = (times >= t_min) & (times <= t_max)
-        if inside.sum() < max(3, len(times) // 2):
-            continue
-        same = _pose_rows_equal(cands, inside, conformance.evaluate_parsed(shifted, times[inside]))
-        if same.mean() >= SHIFT_SHARE:
+        same = _shifted_model_matches(cands, inside, shifted, times, least=max(3, len(times) // 2))
+        if same is not None:
             return [f"the candidate equals the reference with the control points shifted by {shift:+d} against the "
                     f"knots ({int(same.sum())} of {same.size} times where that is defined): segment s, on "
                     f"[k_{{s+2}}, k_{{s+3}}], uses control points s..s+3 and the knots k_s..k_{{s+5}}"]
