@@ -340,9 +340,10 @@ def test_coslam_baseline_tracks_the_real_tum_frames(shared_data):
 def test_parallel_tracking_and_mapping_tracks_like_the_sequential_loop(synthetic_sequence, method):
     """--parallel (two threads, parallel.py): every frame tracked and mapped, outputs of the same
     form, and still on the camera's path.  The bound is looser than the sequential test's 3 cm:
-    tracking runs up to one mapping period ahead, against an older map (3.8 cm measured here)."""
+    tracking runs up to one mapping period ahead, against an older map (3.8 cm measured here).
+    ``cfg.parallel`` is left False: the run's own config must say it ran in two threads (its
+    checkpoints resume in two threads), the caller's config stays as given."""
     cfg = small_config(method)
-    cfg.parallel = True
     sequence = data.load_sequence(synthetic_sequence)
     seen = []
     result = parallel.run_slam_in_two_threads(sequence, cfg, device=torch.device("cpu"),
@@ -354,6 +355,7 @@ def test_parallel_tracking_and_mapping_tracks_like_the_sequential_loop(synthetic
     assert runtime["tracking"]["calls"] == len(sequence) - 1 and runtime["global_ba"]["calls"] >= 2
     if method == "tsslam":
         assert result.state.trajectory.covers(sequence.timestamps).all()
+    assert result.state.cfg.parallel and not cfg.parallel
 
 
 def test_parallel_mode_hands_a_mapping_failure_to_the_caller(synthetic_sequence):
@@ -659,9 +661,9 @@ def test_parallel_ctrl_c_in_tracking_drops_the_queued_mapping_steps(monkeypatch)
     started, joining, mapped = threading.Event(), threading.Event(), []
     join_through_interrupts = parallel.join_through_interrupts
 
-    def join_and_note(worker, stop=None):
+    def join_and_note(worker, stop, finished):
         joining.set()  # the main thread set its stop flag before it began to wait
-        join_through_interrupts(worker, stop)
+        join_through_interrupts(worker, stop, finished)
 
     def mapping_step(frame):
         if frame.index == 1:
@@ -681,24 +683,57 @@ def test_parallel_ctrl_c_in_tracking_drops_the_queued_mapping_steps(monkeypatch)
 
 
 def test_parallel_join_keeps_waiting_through_ctrl_c_then_raises_it():
-    """A stand-in worker whose first join is cut by Ctrl-C and which ends at its second.  Oracle
+    """A stand-in worker that ends at the second wait, the first cut by Ctrl-C.  Oracle
     (docs/system.md): the wait goes on until the worker has ended, the stop flag is set (queued
     steps dropped), and the KeyboardInterrupt is raised afterwards."""
+    class Finished:
+        waits = 0
+
+        def wait(self):
+            self.waits += 1
+            if self.waits == 1:
+                raise KeyboardInterrupt
+
     class Worker:
         joins = 0
 
-        def is_alive(self):
-            return self.joins < 2
-
         def join(self):
             self.joins += 1
-            if self.joins == 1:
-                raise KeyboardInterrupt
 
-    worker, stop = Worker(), threading.Event()
+    worker, stop, finished = Worker(), threading.Event(), Finished()
     with pytest.raises(KeyboardInterrupt):
-        parallel.join_through_interrupts(worker, stop)
-    assert worker.joins == 2 and stop.is_set()
+        parallel.join_through_interrupts(worker, stop, finished)
+    assert finished.waits == 2 and worker.joins == 1 and stop.is_set()
+
+
+def test_parallel_join_waits_for_the_mapping_step_through_a_real_ctrl_c():
+    """A real SIGINT while the main thread waits: inside ``Thread.join`` of a running thread,
+    Python 3.11 takes the thread for ended, and the run exited (an abort, exit 134) while its
+    mapping step was inside PyTorch.  Oracle: when the KeyboardInterrupt reaches the caller, the
+    worker's step (1 s, the signal at 0.2 s) has finished."""
+    import signal
+
+    step_done, finished = threading.Event(), threading.Event()
+
+    def mapping_step():
+        try:
+            time.sleep(1.0)
+            step_done.set()
+        finally:
+            finished.set()
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    worker = threading.Thread(target=mapping_step, name="tsslam-mapping", daemon=True)
+    worker.start()
+    ctrl_c = threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT))
+    ctrl_c.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            parallel.join_through_interrupts(worker, threading.Event(), finished)
+    finally:
+        ctrl_c.join()
+        signal.signal(signal.SIGINT, previous)
+    assert step_done.is_set() and not worker.is_alive()
 
 
 # The loop's steps on small hand-built states, each stage replaced by a recorder (fast; no map)

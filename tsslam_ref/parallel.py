@@ -49,7 +49,7 @@ from .device import frame_to_device
 
 def tracking_lag(state: "slam.SLAMState") -> int:
     """Frames tracking may run ahead of mapping, one mapping period: ``map_every`` (Co-SLAM), one
-    spline interval (TS-SLAM: dt, or with adaptive knots the length of the interval being tracked),
+    spline interval (TS-SLAM: dt, or with adaptive knots the length of the next interval to map),
     or ``tsslam_map_every`` when TS-SLAM also maps between intervals and that is shorter."""
     cfg = state.cfg
     if cfg.method == "coslam":
@@ -96,7 +96,9 @@ def run_slam_in_two_threads(sequence, cfg: Config, device: Optional[torch.device
                             on_frame: Optional[Callable[["slam.SLAMState"], None]] = None) -> "slam.SLAMResult":
     """:func:`slam.run_slam` with tracking and mapping in two threads (same arguments and result).
 
-    Frame 0 (the first map) runs first, alone; then :func:`run_tracking_and_mapping`."""
+    Frame 0 (the first map) runs first, alone; then :func:`run_tracking_and_mapping`.  The run's
+    config (checkpoints, ``metrics.json``) says ``parallel`` whatever ``cfg`` says."""
+    cfg = dataclasses.replace(cfg, parallel=True)
     state, device, dtype = slam.prepare_run(sequence, cfg, device, state)
     start, first_new = time.perf_counter(), state.done
     if state.done == 0:
@@ -124,27 +126,29 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
     snapshot = {"field": copy.deepcopy(state.field)}
     failures = []
     stop = threading.Event()  # set when the main thread stops early: queued jobs are dropped
+    finished = threading.Event()  # set by the mapping thread as it ends (join_through_interrupts waits on it)
 
     def mapping_worker() -> None:
-        while True:
-            frame = jobs.get()
-            if frame is None or stop.is_set():
-                return
-            try:
+        try:
+            while True:
+                frame = jobs.get()
+                if frame is None or stop.is_set():
+                    return
                 map_one_frame(state, frame, progress, snapshot, on_frame)
-            except BaseException as error:  # noqa: BLE001 - handed to the main thread
-                with lock:
-                    failures.append(error)
-                    progress.notify_all()
-                return
+        except BaseException as error:  # noqa: BLE001 - handed to the main thread
+            with lock:
+                failures.append(error)
+                progress.notify_all()
+        finally:
+            finished.set()
 
     worker = threading.Thread(target=mapping_worker, name="tsslam-mapping", daemon=True)
     worker.start()
     try:
         for i in range(state.done, len(sequence)):
             with lock:
-                # The lead is re-read at every wake-up: with adaptive knots it follows the
-                # interval being tracked, which the mapping thread plans as it goes.
+                # The lead is re-read at every wake-up: with adaptive knots it follows the next
+                # interval to map, which the mapping thread plans as it goes.
                 progress.wait_for(lambda: failures or state.done >= i - tracking_lag(state))
                 if failures:
                     break
@@ -157,7 +161,7 @@ def run_tracking_and_mapping(sequence, state: "slam.SLAMState", device: torch.de
         raise
     finally:
         jobs.put(None)
-        join_through_interrupts(worker, stop)
+        join_through_interrupts(worker, stop, finished)
     if failures:
         raise failures[0]
 
@@ -181,20 +185,23 @@ def map_one_frame(state: "slam.SLAMState", frame, progress: threading.Condition,
         progress.notify_all()
 
 
-def join_through_interrupts(worker: threading.Thread, stop: Optional[threading.Event] = None) -> None:
+def join_through_interrupts(worker: threading.Thread, stop: threading.Event, finished: threading.Event) -> None:
     """Wait for ``worker`` to end even through Ctrl-C (which also sets ``stop``), then raise
     KeyboardInterrupt if one came.
 
     Python would otherwise go on to exit (or write the outputs) while the mapping thread is inside
     PyTorch, and the process aborts (exit 134) or reads a state in the middle of a BA step.  The
-    wait is one mapping job (a few seconds at most)."""
+    wait is on ``finished``, which the worker sets as it ends, not on ``Thread.join``: a Ctrl-C
+    inside ``join`` of a thread still running makes Python 3.11 take the thread for ended (its
+    ``is_alive()`` turns False).  The wait is one mapping job (a few seconds at most)."""
     interrupted = False
-    while worker.is_alive():
+    while True:
         try:
-            worker.join()
+            finished.wait()
+            worker.join()  # the thread is past its last job: this returns at once
+            break
         except KeyboardInterrupt:
-            if stop is not None:
-                stop.set()
+            stop.set()
             if not interrupted:
                 print("waiting for the mapping step under way to finish ...", file=sys.stderr)
             interrupted = True
