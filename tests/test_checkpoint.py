@@ -273,6 +273,27 @@ def test_frames_tracked_ahead_of_mapping_are_left_out_so_the_checkpoint_loads(st
     assert all(frame < done for frame in back.tracking_output)
 
 
+def test_frames_tracked_ahead_of_mapping_leave_no_log_entry_or_tracking_time(state, tmp_path):
+    """The same checkpoint kept the ahead frames' log entries and tracking calls, so a resumed run
+    (which tracks them again) logged those frames twice and counted their tracking twice in the
+    runtime table.  Oracle: the state as it was before the two frames were tracked ahead."""
+    ahead = copy.copy(state)
+    done, timings = state.done, state.timings
+    ahead.timings = type(timings)(dict(timings.seconds), dict(timings.iterations), dict(timings.calls))
+    ahead.log = [dict(entry) for entry in state.log]
+    for frame in (done, done + 1):  # what slam.track adds for each frame it tracks
+        ahead.timings.add("tracking", 0.75, 7)
+        ahead.log.append({"frame": frame, "tracking_loss": 1.0, "tracking_seconds": 0.75, "tracking_iterations": 7,
+                          "outside_box": 0.9})
+    checkpoint.save(ahead, tmp_path / "parallel.pt")
+    back = checkpoint.load(tmp_path / "parallel.pt")
+    assert [entry["frame"] for entry in back.log] == [entry["frame"] for entry in state.log]
+    assert back.timings.calls["tracking"] == timings.calls["tracking"]
+    assert back.timings.iterations["tracking"] == timings.iterations["tracking"]
+    assert back.timings.seconds["tracking"] == pytest.approx(timings.seconds["tracking"], abs=1e-12)
+    assert back.timings.seconds == pytest.approx(timings.seconds) and back.timings.calls == timings.calls
+
+
 def test_a_state_loaded_on_the_cpu_is_refused_by_a_run_on_another_device_naming_the_fix(recorded):
     """``run_slam(..., state=checkpoint.load(path))`` on a CUDA machine resolved 'auto' to CUDA and
     failed frames later with a tensor on the wrong device; 'meta' stands in for the GPU here."""

@@ -1054,10 +1054,11 @@ def test_a_view_past_the_maps_box_is_warned_about_once_and_recorded(capsys):
     from tsslam_ref.run_outputs import OUTSIDE_BOX_WARNING, advance, outside_box_summary
 
     state = SimpleNamespace(log=[], field=SimpleNamespace(bound=torch.tensor([[-0.6, 3.0], [-1.0, 1.0], [0.0, 2.5]])),
-                            cfg=config_module.load("tum-cpu"))
+                            cfg=config_module.load("tum-cpu"), done=1)
     reached = {}
     for frame, share in enumerate([0.02, 0.1, 0.48, 1.0, 0.3]):
         state.log.append({"frame": frame + 1, "tracking_loss": 1.0, "outside_box": share})
+        state.done += 1
         advance(None, state, reached)
     warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning")]
     assert len(warnings) == 1, warnings
@@ -1067,6 +1068,26 @@ def test_a_view_past_the_maps_box_is_warned_about_once_and_recorded(capsys):
     assert outside_box_summary(state.log) == {"outside_box": {"max_share": 1.0, "frame": 4, "frames_over_warning": 3,
                                                               "warning_share": OUTSIDE_BOX_WARNING}}
     assert outside_box_summary([{"frame": 1, "tracking_loss": 1.0}]) == {}  # a log from before the record
+
+
+def test_with_tracking_ahead_of_mapping_each_frame_done_is_checked_for_the_box(capsys):
+    """With --parallel the loop reports a frame done while tracking has logged frames past it; the
+    check read the newest entry, so a frame over the share was never looked at when a later one was
+    under it.  Oracle: the hand-made log, frame 2 over the share, frames up to 6 tracked."""
+    from types import SimpleNamespace
+
+    from tsslam_ref.run_outputs import advance
+
+    shares = {1: 0.0, 2: 0.6, 3: 0.0, 4: 0.0, 5: 0.0, 6: 0.0}
+    state = SimpleNamespace(log=[{"frame": frame, "tracking_loss": 1.0, "outside_box": share}
+                                 for frame, share in shares.items()],
+                            field=SimpleNamespace(bound=torch.tensor([[-1.0, 1.0]] * 3)), cfg=config_module.load("tum-cpu"))
+    reached = {}
+    for done in (2, 3, 4):  # frames 1, 2 and 3 mapped, one at a time
+        state.done = done
+        advance(None, state, reached)
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning")]
+    assert len(warnings) == 1 and warnings[0].startswith("warning: frame 2: 60 %"), warnings
 
 
 def test_a_finished_run_records_its_largest_share_outside_the_box(runs):

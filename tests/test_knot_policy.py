@@ -8,6 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from tsslam_ref import config, knot_policy, knot_schedule
+from tsslam_ref.trajectory import BSplineTrajectory
 
 ARGS = dict(dt_min=0.05, dt_max=0.4, rotation_tolerance=0.005, position_tolerance=0.005)
 
@@ -258,11 +259,32 @@ def test_plan_next_interval_reads_the_stored_poses_of_the_last_two_intervals():
     ends = [0.0, 0.3, 0.6]
     trajectory = SimpleNamespace(interval=lambda n: (ends[n], ends[n + 1]),
                                  plan_interval_end=lambda n, end, assumed_spacing: planned.append((n, end, assumed_spacing)))
+    trajectory.clone = lambda: trajectory
     state = SimpleNamespace(cfg=cfg, trajectory=trajectory, timestamps=times, frame_poses=poses)
     knot_schedule.plan_next_interval(state, 18, 1)
     assert len(planned) == 1 and planned[0][0] == 2
     assert planned[0][1] == pytest.approx(23.25 / 30, abs=1e-9)
     assert planned[0][2] == pytest.approx(23.25 / 30 - 0.6, abs=1e-9)
+
+
+def test_planning_the_next_interval_leaves_the_spline_it_read_unchanged():
+    """With --parallel the mapping thread plans on a view of the state whose spline the tracking
+    thread reads under the lock; the plan changed that spline in place, outside the lock.  Oracle:
+    the read spline's knots before and after, and the planned end by hand (the test above)."""
+    cfg = config.tiny()
+    cfg.spline.dt_min, cfg.spline.dt_max, cfg.spline.position_tolerance = 0.1, 0.4, 0.004
+    times = np.arange(30) / 30.0
+    poses = torch.eye(4, dtype=torch.float64).repeat(30, 1, 1)
+    poses[:, 0, 3] = torch.as_tensor(np.maximum(times - 0.3, 0.0) ** 2)
+    read = BSplineTrajectory(torch.eye(3, dtype=torch.float64).repeat(5, 1, 1), torch.zeros(5, 3, dtype=torch.float64),
+                             0.3, -0.6)  # interval n starts at t0 + (n + 2) dt (the paper's indices)
+    assert read.interval(1) == pytest.approx((0.3, 0.6))
+    knots_before = read.knot_vector(8).copy()
+    state = SimpleNamespace(cfg=cfg, trajectory=read, timestamps=times, frame_poses=poses)
+    knot_schedule.plan_next_interval(state, 18, 1)
+    np.testing.assert_array_equal(read.knot_vector(8), knots_before)
+    assert state.trajectory is not read
+    assert state.trajectory.interval(2)[1] == pytest.approx(23.25 / 30, abs=1e-9)
 
 
 def test_last_interval_end_is_a_quarter_frame_after_the_last_frame_and_never_later_than_planned():

@@ -21,7 +21,7 @@ Layer 4 (system): used by ``run.py``; knows the state of ``slam.py``.
 import json
 import zipfile
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -74,6 +74,25 @@ def _of_frames_done(entries: Dict[int, Any], done: int) -> Dict[int, Any]:
     return {int(frame): value for frame, value in entries.items() if int(frame) < limit}
 
 
+def _records_of_frames_done(state) -> Tuple[List[dict], Dict[str, dict]]:
+    """The log and the timings of the frames done: with ``--parallel`` the frames tracked past
+    ``done`` also left a log entry and a tracking call, which a resume would count twice (it
+    tracks them again); each entry's ``tracking_seconds`` and ``tracking_iterations`` come off."""
+    limit = max(int(state.done), 1)
+    log = [dict(entry) for entry in state.log if int(entry.get("frame", 0)) < limit]
+    ahead = [entry for entry in state.log if int(entry.get("frame", 0)) >= limit]
+    seconds, iterations, calls = (dict(state.timings.seconds), dict(state.timings.iterations),
+                                  dict(state.timings.calls))
+    for entry in ahead:
+        seconds["tracking"] = seconds.get("tracking", 0.0) - float(entry.get("tracking_seconds", 0.0))
+        iterations["tracking"] = iterations.get("tracking", 0) - int(entry.get("tracking_iterations", 0))
+        calls["tracking"] = calls.get("tracking", 0) - 1
+    if calls.get("tracking", 1) <= 0:  # every tracking call was ahead: the stage has not run yet
+        for table in (seconds, iterations, calls):
+            table.pop("tracking", None)
+    return log, {"seconds": seconds, "iterations": iterations, "calls": calls}
+
+
 def _plain_view(state) -> Dict[str, Any]:
     """:func:`to_plain`'s dict before the copy: its tensors are the running state's own."""
     trajectory = None
@@ -87,6 +106,7 @@ def _plain_view(state) -> Dict[str, Any]:
                       "knot_times": None if spline.uniform else torch.from_numpy(spline.timing()["knots"]),
                       "knot_offset": int(spline.knot_offset)}
     keyframes = state.keyframes
+    log, timings = _records_of_frames_done(state)
     per_frame = {key: _of_frames_done(getattr(state, key), state.done)
                  for key in ("tracking_output", "keyframe_of_frame", "relative_to_keyframe", "window_rays")}
     return {
@@ -108,9 +128,8 @@ def _plain_view(state) -> Dict[str, Any]:
         "intervals_done": int(state.intervals_done),
         "window_rays": {k: _rays_to_plain(v) for k, v in per_frame["window_rays"].items()},
         "generator_state": None if state.generator is None else state.generator.get_state(),
-        "timings": {"seconds": dict(state.timings.seconds), "iterations": dict(state.timings.iterations),
-                    "calls": dict(state.timings.calls)},
-        "log": [dict(entry) for entry in state.log],
+        "timings": timings,
+        "log": log,
     }
 
 

@@ -39,7 +39,9 @@ def plan_next_interval(state, frame_index: int, n: int) -> None:
     next_end = knot_policy.next_interval_end(times[first:], poses[:, :3, :3], poses[:, :3, 3],
                                              previous_start, start, end, spline_cfg.dt_min, spline_cfg.dt_max,
                                              spline_cfg.rotation_tolerance, spline_cfg.position_tolerance)
-    trajectory.plan_interval_end(n + 1, next_end, assumed_spacing=next_end - end)
+    planned = trajectory.clone()  # a new spline, not a change to the one the other thread may read (--parallel)
+    planned.plan_interval_end(n + 1, next_end, assumed_spacing=next_end - end)
+    state.trajectory = planned
 
 
 def end_last_interval(state, last: int) -> None:
@@ -55,7 +57,9 @@ def end_last_interval(state, last: int) -> None:
     if start <= times[-1] < end:
         new_end = knot_policy.last_interval_end(times, start, end)
         if new_end < end:
-            state.trajectory.plan_interval_end(n, new_end, assumed_spacing=end - start)
+            ended = state.trajectory.clone()
+            ended.plan_interval_end(n, new_end, assumed_spacing=end - start)
+            state.trajectory = ended
 
 
 def check_frame_spacing(cfg: Config, timestamps) -> None:

@@ -110,7 +110,8 @@ def advance(progress, state, reached: dict) -> None:
     measured surface lies mostly outside the map's box, set from frame 0's view."""
     if progress is not None:
         progress.update(1)
-    entry = state.log[-1] if state.log else {}
+    # the frame just done: with --parallel, tracking has logged frames ahead of it
+    entry = next((entry for entry in reversed(state.log) if entry.get("frame") == state.done - 1), {})
     if entry.get("outside_box", 0.0) > OUTSIDE_BOX_WARNING and not reached.get("outside_box_warned"):
         reached["outside_box_warned"] = True
         low, high = state.field.bound[:, 0].tolist(), state.field.bound[:, 1].tolist()

@@ -24,12 +24,11 @@
 * **finish** (:func:`finish_run`): TS-SLAM maps the last, incomplete interval; the output poses
   are the spline's at the frames' timestamps (``export.py``).
 
-The loop is sequential and, on the CPU, deterministic for a seed; ``parallel.run_slam_in_two_threads`` runs
-the same steps in two threads (the caller chooses, as ``run.py`` does).  ``run_slam`` takes a
-progress callback so the command line can show progress, write partial results and checkpoints.
+The loop is sequential and, on the CPU, deterministic for a seed; ``parallel.run_slam_in_two_threads`` runs the
+same steps in two threads (the caller chooses, as ``run.py`` does).  ``run_slam``'s progress callback lets
+the command line show progress, write partial results and checkpoints.
 
-Layer 4 (system): orchestrates; holds only the loop state.
-Taught in notebooks/09_full_system.ipynb.
+Layer 4 (system): orchestrates; holds only the loop state.  Taught in notebooks/09_full_system.ipynb.
 """
 
 import contextlib
@@ -271,8 +270,9 @@ def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneFiel
         state.tracking_output[i] = result.pose.clone()
         state.tracking_output.pop(i - 2, None)
         state.window_rays[i] = rays
-        state.log.append({"frame": i, "tracking_loss": best_loss, "outside_box": share_outside_bound(
-            state.field.bound, rays, result.pose, min(cfg.data.depth_trunc, cfg.render.far))})
+        state.log.append({"frame": i, "tracking_loss": best_loss, "tracking_seconds": record.seconds,
+                          "tracking_iterations": record.iterations, "outside_box": share_outside_bound(
+                              state.field.bound, rays, result.pose, min(cfg.data.depth_trunc, cfg.render.far))})
 
 
 def check_tracking(result: TrackingResult, reference: List[float], cfg: Config, frame: FrameTensors) -> float:

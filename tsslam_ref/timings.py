@@ -19,9 +19,11 @@ from typing import Dict, Iterator
 
 @dataclass
 class StageRecord:
-    """What one timed call counts; the body may set :attr:`iterations` once it knows them."""
+    """What one timed call counts; the body may set :attr:`iterations` once it knows them, and
+    :attr:`seconds` holds the call's time once the ``with`` block has ended."""
 
     iterations: int = 0
+    seconds: float = 0.0
 
 
 @dataclass
@@ -47,7 +49,8 @@ class Timings:
         record = StageRecord(iterations)
         start = time.perf_counter()
         yield record
-        self.add(name, time.perf_counter() - start, record.iterations)
+        record.seconds = time.perf_counter() - start
+        self.add(name, record.seconds, record.iterations)
 
     def table(self) -> Dict[str, Dict[str, float]]:
         """Per stage: ms per iteration, iterations per call, calls, total seconds.  A stage that ran
