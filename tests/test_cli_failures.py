@@ -592,7 +592,8 @@ def test_user_data_without_ground_truth_or_with_a_bad_frame_mid_run(runs):
     depth_path = bad_frame / listed[6][1]
     Image.fromarray(np.zeros_like(np.asarray(Image.open(depth_path)))).save(depth_path)  # frame 6: no depth at all
     result = cli("run", "--data", bad_frame.name, "--out", "bad_frame_out", *CHEAP, cwd=root)
-    refused(result, "--overwrite", "--resume to continue from its checkpoint (6 frames done)")
+    refused(result, "after replacing the file, run the same command with --resume to continue from its checkpoint "
+                    "(6 frames done); after removing the frame from the lists instead, with --overwrite")
 
 
 def test_a_users_own_folder_gets_its_own_layout_and_depth_scale_not_the_presets(tmp_path):

@@ -708,6 +708,10 @@ def test_cli_info(tum_folder, capsys):
     assert summary["type"] == "tum" and summary["frames"] == 5 and summary["depth_valid_fraction"] == 1.0
     assert summary["colour_without_depth"] == 1  # the fixture's frame 3: its depth is 0.026 s away
     assert summary["depth_median_m"] == pytest.approx(1.2)  # frames at 1.0, 1.1, 1.2, 1.4, 1.5 m (3 is dropped)
+    stamps = np.delete(tum_folder[1], 3)  # the fixture's colour stamps but the one without depth
+    assert summary["largest_gap_s"] == pytest.approx(np.max(np.diff(stamps)), abs=1e-9)
+    assert summary["largest_gap_after_frame"] == int(np.argmax(np.diff(stamps)))
+    assert summary["spacing_median_s"] == pytest.approx(np.median(np.diff(stamps)), abs=1e-9)
 
 
 def test_colour_without_depth_counts_only_association_drops(tum_folder):

@@ -166,6 +166,64 @@ def test_frames_further_apart_than_the_uniform_knot_spacing_are_refused():
     assert "--set spline.dt=" not in str(refused.value)  # not a value the config would refuse in turn
 
 
+def brute_force_sparse_stretch(times, span, limit):
+    """sparse_stretch's oracle: every stretch's sorted gaps, one stretch at a time, and their (lower) median."""
+    whole = [(first, int(np.searchsorted(times, times[first] + span, side="right")) - 1)
+             for first in range(len(times) - 1) if times[first] + span <= times[-1]] or [(0, len(times) - 1)]
+    for first, last in whole:
+        gaps = np.sort(np.diff(times[first:last + 1]))
+        if len(gaps) and gaps[(len(gaps) - 1) // 2] > limit:  # a stretch without a gap: one longer than span
+            return first, last
+    return None
+
+
+def test_a_recording_that_slows_down_for_a_while_is_refused_where_it_does():
+    """30 Hz frames, then 5 Hz for 12 frames (no gap over dt = 0.25 s, a 30 Hz median): the median
+    over the whole recording passed it, and TS-SLAM ended metres off with exit 0.  Oracle: the
+    brute-force median of every stretch of 3 x dt (the curve approximation's span), which must
+    agree with sparse_stretch on these and on jittered, holed and random recordings."""
+    cfg = config.tiny()
+    cfg.method, cfg.spline.dt = "tsslam", 0.25
+    assert cfg.local_ba.fit_controls == 3
+    thirty = np.arange(20) / 30.0
+    slowing = 1341841873.0 + np.concatenate([thirty, thirty[-1] + 0.2 * np.arange(1, 13)])
+    expected = brute_force_sparse_stretch(slowing, 0.75, 0.125)
+    assert expected is not None and expected[1] > 19  # the stretch reaches into the 5 Hz frames
+    first, last = expected
+    with pytest.raises(ValueError, match=rf"frames {first} to {last} \(t = .*\) are 0\.200 s apart \(median\), more than "
+                                         r"half of spline\.dt = 0\.25 s.*spline\.dt=0\.4"):
+        knot_schedule.check_frame_spacing(cfg, slowing)
+    adaptive = config.apply_overrides(cfg, ["spline.knots=adaptive", "spline.dt_min=0.1"])
+    ten_hz_after = 1341841873.0 + np.concatenate([thirty, thirty[-1] + 0.0999 * np.arange(1, 16)])
+    with pytest.raises(ValueError, match=r"0\.100 s apart \(median\), more than half of the shortest adaptive"):
+        knot_schedule.check_frame_spacing(adaptive, ten_hz_after)
+    rng = np.random.default_rng(0)
+    holed = np.delete(np.arange(60) / 30.0, np.arange(20, 26))  # six frames dropped: one 0.233 s gap
+    jittered = np.arange(60) / 30.0 + rng.uniform(-0.01, 0.01, 60)
+    knot_schedule.check_frame_spacing(cfg, 1341841873.0 + holed)
+    knot_schedule.check_frame_spacing(cfg, 1341841873.0 + jittered)
+    for times in (slowing, ten_hz_after, holed, jittered, *(np.cumsum(rng.exponential(0.08, 40)) for _ in range(50))):
+        for span, limit in ((0.75, 0.125), (0.3, 0.05), (5.0, 0.1)):
+            assert knot_schedule.sparse_stretch(times, span, limit) == brute_force_sparse_stretch(times, span, limit)
+
+
+def test_a_gap_opened_by_frames_without_ground_truth_or_a_pause_is_named_as_such():
+    """A refusal after frames without a ground-truth pose were left out blamed a gap the recording
+    does not have and suggested a longer spline.dt; a pause of 1.5 s suggested spline.dt = 1.55,
+    which runs with TS-SLAM's RPE above the baseline's.  Both now name the better way out."""
+    cfg = config.tiny()
+    cfg.method, cfg.spline.dt = "tsslam", 0.25
+    holed = 1341841873.0 + np.delete(np.arange(40) / 30.0, np.arange(10, 19))
+    with pytest.raises(ValueError, match=r"9 frame\(s\) without a ground-truth pose were left out before this check.*"
+                                         r"--set data\.require_gt=false keeps them"):
+        knot_schedule.check_frame_spacing(cfg, holed, frames_left_out=9)
+    paused = 1341841873.0 + np.concatenate([np.arange(15) / 30.0, 14 / 30.0 + 1.536 + np.arange(15) / 30.0])
+    with pytest.raises(ValueError, match=r"1\.536 s apart.*cut the sequence at the gap \(--frames on each side of it\) or "
+                                         r"use --method coslam; --set spline\.dt=1\.55 \(or more\) would run, but "
+                                         r"intervals over 0\.4 s no longer follow"):
+        knot_schedule.check_frame_spacing(cfg, paused)
+
+
 def test_unevenly_spaced_samples_recover_a_known_acceleration():
     """interval_scale_samples picks first, middle and last of an even count of frames, so the two
     steps differ (4 and 5 frame spacings for 10 frames).  For x = a t²/2 the second difference over

@@ -321,10 +321,22 @@ def sequence_info(sequence: RGBDSequence, depth_samples: int = 5) -> dict:
         "width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
         "depth_scale": sequence.depth_scale,
         "duration_s": float(sequence.timestamps[-1] - sequence.timestamps[0]),
+        **_spacing(np.asarray(sequence.timestamps, dtype=np.float64)),
         "depth_valid_fraction": float(np.mean(valid)),
         "depth_median_m": float(np.median(measured)) if measured.size else float("nan"),
         **({"camera_note": sequence.camera_note} if sequence.camera_note else {}),
     }
+
+
+def _spacing(times: np.ndarray) -> dict:
+    """Median frame spacing and the largest gap (s) with the frame before it: TS-SLAM refuses gaps
+    longer than its shortest interval and stretches sparser than half of it (``knot_schedule``)."""
+    if len(times) < 2:
+        return {}
+    gaps = np.diff(times)
+    worst = int(np.argmax(gaps))
+    return {"spacing_median_s": float(np.median(gaps)), "largest_gap_s": float(gaps[worst]),
+            "largest_gap_after_frame": worst}
 
 
 def _parse_size(text: str):

@@ -16,6 +16,7 @@ Layer 4 (system support): reads the loop's state (``slam.SLAMState``) and its co
 
 import dataclasses
 import math
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -62,9 +63,10 @@ def end_last_interval(state, last: int) -> None:
             state.trajectory = ended
 
 
-def check_frame_spacing(cfg: Config, timestamps) -> None:
+def check_frame_spacing(cfg: Config, timestamps, frames_left_out: int = 0) -> None:
     """ValueError when two consecutive frames lie further apart than the shortest spline interval,
-    or when that interval would hold fewer than two frames in the median.
+    or when, over any stretch the curve approximation fits, that interval would hold fewer than two
+    frames in the median.
 
     An interval holding no frame has nothing to place its control point: it is extrapolated from
     the control polygon, and the next fit frees it with no data, so the curve rings there (2 Hz
@@ -77,7 +79,10 @@ def check_frame_spacing(cfg: Config, timestamps) -> None:
     the curve approximation's three free control points rest on too few poses and the trajectory
     runs off by metres; with adaptive knots at one frame per interval (12 Hz frames, dt_min =
     0.1 s) the policy has too few frames to measure the motion, keeps the last length, and the
-    curve between frames ran tens of metres off.
+    curve between frames ran tens of metres off.  The median is taken over every stretch of
+    ``local_ba.fit_controls`` shortest intervals (:func:`sparse_stretch`), the span one fit rests
+    on, so a recording that drops to 5 Hz for a while is refused too.  ``frames_left_out``: frames
+    the loading left out (no ground-truth pose), which can open a gap the recording does not have.
     """
     if cfg.method != "tsslam" or not cfg.local_ba.use_spline:
         return
@@ -85,26 +90,60 @@ def check_frame_spacing(cfg: Config, timestamps) -> None:
     if len(times) < 2:
         return
     gaps = np.diff(times)
-    worst, typical = int(np.argmax(gaps)), float(np.median(gaps))
+    worst = int(np.argmax(gaps))
     uniform = cfg.spline.knots == "uniform"
     shortest = cfg.spline.dt if uniform else min(cfg.spline.dt, cfg.spline.dt_min)
     which = (f"spline.dt = {cfg.spline.dt} s" if uniform else
              f"the shortest adaptive interval, min(spline.dt, spline.dt_min) = {shortest} s")
+    left_out = (f" ({frames_left_out} frame(s) without a ground-truth pose were left out before this check, which "
+                f"can open a gap the recording does not have; --set data.require_gt=false keeps them)"
+                if frames_left_out else "")
     if gaps[worst] > shortest:
-        suggestion = math.ceil(max(gaps[worst], 0.0 if uniform else 2.0 * typical) * 20.0) / 20.0  # next 0.05 s
-        fix = f"use {_longer_intervals(cfg, suggestion)}, or --method coslam"
-        if suggestion > LONGEST_DT:  # beyond any interval the config allows
-            fix = (f"no spline interval may be that long (spline.dt at most {LONGEST_DT:g} s): check the time stamps "
-                   f"(milliseconds read as seconds?), cut the sequence at the gap, or use --method coslam")
+        suggestion = math.ceil(max(gaps[worst], 0.0 if uniform else 2.0 * float(np.median(gaps))) * 20.0) / 20.0
         raise ValueError(
             f"frames {worst} and {worst + 1} (t = {times[worst]:.6f} s, {times[worst + 1]:.6f} s) are {gaps[worst]:.3f} s "
-            f"apart, more than {which}, so a spline interval would hold no frame to fit its control point; {fix}")
-    if typical > shortest / 2.0 * (1.0 + 1e-6):  # fewer than two frames per interval (stamps' rounding aside)
+            f"apart, more than {which}, so a spline interval would hold no frame to fit its control point; "
+            f"{_gap_fix(cfg, suggestion)}{left_out}")
+    stretch = sparse_stretch(times, cfg.local_ba.fit_controls * shortest, shortest / 2.0 * (1.0 + 1e-6))
+    if stretch is not None:  # fewer than two frames per interval there (stamps' rounding aside)
+        first, last = stretch
+        typical = float(np.median(gaps[first:last]))
         suggestion = math.ceil(2.0 * typical * 20.0 - 1e-6) / 20.0
         raise ValueError(
-            f"frames are {typical:.3f} s apart (median), more than half of {which}, so an interval would hold fewer "
-            f"than two frames, too few to place its control point; use {_longer_intervals(cfg, suggestion)}, or "
-            f"--method coslam")
+            f"frames {first} to {last} (t = {times[first]:.6f} s to {times[last]:.6f} s) are {typical:.3f} s apart "
+            f"(median), more than half of {which}, so intervals there would hold fewer than two frames, too few to "
+            f"place their control points; use {_longer_intervals(cfg, suggestion)}, or --method coslam{left_out}")
+
+
+def sparse_stretch(times: np.ndarray, span: float, limit: float) -> Optional[Tuple[int, int]]:
+    """The first stretch of ``span`` seconds, frames (first, last), more than half of whose gaps are
+    over ``limit`` seconds (its median gap is, the lower median for an even count), or None.  A stretch starts at a frame and
+    ends at the last frame within ``span`` of it; only stretches the sequence holds whole count,
+    and a sequence shorter than ``span`` is one stretch.  ``times``: (N,) float64 s, increasing."""
+    over = np.concatenate([[0], np.cumsum(np.diff(times) > limit)])  # over[k]: gaps over the limit before frame k
+    firsts = np.nonzero(times[:-1] + span <= times[-1])[0]
+    lasts = np.searchsorted(times, times[firsts] + span, side="right") - 1
+    if len(firsts) == 0:
+        firsts, lasts = np.array([0]), np.array([len(times) - 1])
+    sparse = np.nonzero(2 * (over[lasts] - over[firsts]) > lasts - firsts)[0]
+    return (int(firsts[sparse[0]]), int(lasts[sparse[0]])) if len(sparse) else None
+
+
+HAND_HELD_DT = {field.name: field for field in dataclasses.fields(SplineConfig)}["dt_max"].default
+"""Intervals longer than this (s; the knot policy's default upper bound) no longer follow a
+hand-held camera: a gap longer than it is a pause or a hole, better cut than spanned."""
+
+
+def _gap_fix(cfg: Config, seconds: float) -> str:
+    """What to do about a gap that needs intervals of at least ``seconds``."""
+    if seconds > LONGEST_DT:  # beyond any interval the config allows
+        return (f"no spline interval may be that long (spline.dt at most {LONGEST_DT:g} s): check the time stamps "
+                f"(milliseconds read as seconds?), cut the sequence at the gap, or use --method coslam")
+    if seconds > HAND_HELD_DT:
+        return (f"cut the sequence at the gap (--frames on each side of it) or use --method coslam; "
+                f"{_longer_intervals(cfg, seconds)} would run, but intervals over {HAND_HELD_DT:g} s no longer follow "
+                f"a hand-held camera's motion")
+    return f"use {_longer_intervals(cfg, seconds)}, or --method coslam"
 
 
 def _longer_intervals(cfg: Config, seconds: float) -> str:

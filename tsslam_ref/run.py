@@ -179,7 +179,7 @@ def _checked_sequence(cfg, frames: Optional[str]):
         selection = (f"--frames {frames} selects" if frames else f"{sequence.path} has" if chosen == (0, None, 1)
                      else "data.frame_start:frame_stop:frame_step = {}:{}:{} selects".format(*chosen))
         raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
-    knot_schedule.check_frame_spacing(cfg, sequence.timestamps)
+    knot_schedule.check_frame_spacing(cfg, sequence.timestamps, frames_left_out=sequence.frames_without_gt)
     sequence.check_files()
     first = sequence[0]
     tracking.check_ray_budget(cfg, *first.depth.shape)  # the loop's own check, on the processed size
@@ -471,10 +471,10 @@ def execute(plan: Plan) -> int:
         return _tracking_failed(plan, progress, failure)
     except (ValueError, OSError) as error:  # a frame that cannot be read (checked cheaply before the run)
         _close(progress)
-        resume = (f" or --resume to continue from its checkpoint ({reached['checkpoint']} frames done)"
-                  if (out / "checkpoint.pt").is_file() else "")
-        print(f"error: {error}; the outputs so far are in {out}: after fixing the data, run the same command "
-              f"with --overwrite to start again{resume}", file=sys.stderr)
+        how = ("after replacing the file, run the same command with --resume to continue from its checkpoint ({} frames "
+               "done); after removing the frame from the lists instead, with --overwrite".format(reached["checkpoint"])
+               if (out / "checkpoint.pt").is_file() else "after fixing the data, run the same command with --overwrite")
+        print(f"error: {error}; the outputs so far are in {out}: {how}", file=sys.stderr)
         return EXIT_BAD_INPUT
     _close(progress)
     write_outputs(plan, result)
