@@ -166,6 +166,22 @@ def test_every_closed_end_of_a_range_is_accepted():
             assert getattr(getattr(cfg, section) if section else cfg, name) == good, key
 
 
+def test_the_smallest_map_sizes_the_config_allows_build_a_map():
+    """field.n_levels and field.oneblob_bins of 1 passed the config's check, and the run then
+    stopped inside the encodings (naming a class, after writing its folder).  Oracle: the field
+    itself, built and evaluated at each size's smallest allowed value."""
+    import torch
+
+    from tsslam_ref.field import SceneField
+
+    bound = torch.tensor([[-1.0, 1.0], [-1.0, 1.0], [-1.0, 1.0]])
+    for key, comparison, smallest in _ranged_fields():
+        if key.startswith("field.") and comparison == ">=" and isinstance(smallest, int):
+            cfg = config.apply_overrides(config.tiny(), [f"{key}={smallest}"])
+            rgb, sdf = SceneField(cfg.field, bound)(torch.zeros(4, 3))
+            assert rgb.shape == (4, 3) and sdf.shape == (4,), key
+
+
 def test_the_seed_range_is_the_32_bits_the_docs_state():
     """docs/cli.md: seeds in [0, 2**32 - 1], PyTorch's CPU generator keeps 32 bits."""
     assert config.apply_overrides(config.tum_cpu(), [f"seed={2**32 - 1}"]).seed == 4294967295

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from tsslam_ref import config, global_ba, knots, local_ba, spline
-from tsslam_ref.bundle import BAStats, KeyframeDatabase
+from tsslam_ref.bundle import BAStats, KeyframeDatabase, SplinePoses
 from tsslam_ref.geometry import make_pose, so3_exp
 from tsslam_ref.losses import RenderLossSettings
 from tsslam_ref.render import RayBatch
@@ -284,6 +284,40 @@ def test_curve_approximation_reports_the_levenberg_marquardt_iterations_it_ran(m
     assert 0 < report["iterations"] == len(jacobians) < cfg.local_ba.fit_iters
     local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba, fit=False, report=report)
     assert report["iterations"] == 0
+
+
+def test_curve_approximation_with_no_free_point_only_extrapolates_and_refuses_float32_times():
+    """``free_controls=0`` freed every point (``fixed[-0:]`` is the whole tensor), moving the old
+    ones.  Oracle: with no point free the result is the extrapolated polygon, ``fit=False``'s.
+    Float32 stamps (62 s off at TUM's 1.3e9 s) were cast and then reported as outside the domain."""
+    cfg = config.tiny()
+    poses = noisy_truth(0.001)
+    trajectory, _ = grow(poses, cfg, n_intervals=4)
+    start, end = local_ba.fit_time_range(trajectory, 4, cfg.local_ba)
+    inside = np.nonzero((TIMES >= start) & (TIMES < end))[0]
+    none_free = local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba, free_controls=0)
+    extrapolated = local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba, fit=False)
+    assert torch.equal(none_free.control_translations, extrapolated.control_translations)
+    assert torch.equal(none_free.control_rotations, extrapolated.control_rotations)
+    with pytest.raises(ValueError, match="free_controls must be >= 0, got -1"):
+        local_ba.curve_approximation(trajectory, TIMES[inside], poses[inside], cfg.local_ba, free_controls=-1)
+    with pytest.raises(TypeError, match="^times must be float64 seconds"):
+        local_ba.curve_approximation(trajectory, TIMES[inside].astype(np.float32), poses[inside], cfg.local_ba)
+
+
+def test_keyframes_and_spline_pose_slots_refuse_float32_times():
+    """``SplinePoses`` cast float32 slot times and ``KeyframeDatabase.add`` a float32 stamp to
+    float64 silently: at 1.3e9 s every slot then fell outside the spline and kept its constant pose."""
+    rays = RayBatch(torch.zeros(2, 3), torch.zeros(2, 3), torch.ones(2), torch.zeros(2, dtype=torch.long))
+    with pytest.raises(TypeError, match="^timestamp must be float64 seconds"):
+        KeyframeDatabase().add(0, np.float32(1305031102.5), rays)
+    trajectory = BSplineTrajectory(so3_exp(torch.zeros(6, 3, dtype=torch.float64)), torch.zeros(6, 3, dtype=torch.float64),
+                                   0.3, 1305031102.0)
+    fallback = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    stamps = trajectory.domain()[0] + np.array([0.1, 0.2])
+    with pytest.raises(TypeError, match="^slot_times must be float64 seconds"):
+        SplinePoses(trajectory, [3], stamps.astype(np.float32), fallback, 1e-3, 1e-3)
+    assert SplinePoses(trajectory, [3], stamps, fallback, 1e-3, 1e-3).slot_valid.all()
 
 
 def captured_optimiser(monkeypatch, module):

@@ -37,6 +37,7 @@ from .dynamics import trajectory_dynamics_loss
 from .geometry import make_pose, orthonormalize, so3_exp
 from .losses import RenderLossSettings, render_loss
 from .render import RayBatch
+from .times import check_float64_seconds, float64_seconds
 from .trajectory import BSplineTrajectory
 
 
@@ -160,7 +161,7 @@ class SplinePoses(torch.nn.Module):
         self.dt, self.t0, self.convention = trajectory.dt, trajectory.t0, trajectory.convention
         self.knot_timing = trajectory.timing()  # the trajectory's own knot times (none when uniform)
         self.start_weights = trajectory.start_weights()  # the gauge's weights at the domain start (None: uniform)
-        self.slot_times = np.asarray(slot_times, dtype=np.float64)
+        self.slot_times = float64_seconds(slot_times, "slot_times")
         self.slot_valid = trajectory.covers(self.slot_times)
         self.register_buffer("fallback", fallback_poses.detach().clone())
         self.moves = bool(free_mask.any())  # any control point to optimise
@@ -239,6 +240,7 @@ class KeyframeDatabase:
 
     def add(self, frame_index: int, timestamp: float, rays: RayBatch) -> int:
         """Store a keyframe's rays; returns its slot."""
+        check_float64_seconds("timestamp", timestamp)
         self._rays.append(rays)
         self.frame_indices.append(int(frame_index))
         self.timestamps.append(float(timestamp))
@@ -265,7 +267,7 @@ Floyd's algorithm, whose cost does not grow with the pool (see :func:`draw_rays`
 
 
 def draw_rays(pool: RayBatch, n_rays: int, generator: Optional[torch.Generator]) -> RayBatch:
-    """``n_rays`` rays of ``pool`` uniformly without replacement (all if it holds fewer).
+    """``n_rays`` rays of ``pool`` uniformly without replacement (all if it holds no more).
 
     Up to :data:`PERMUTATION_POOL_LIMIT` rays, the first ``n_rays`` of ``torch.randperm`` of the
     pool, as every run of the CPU presets draws (about 1000 keyframe rays per keyframe there, so

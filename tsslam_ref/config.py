@@ -92,7 +92,7 @@ class FieldConfig(_Settings):
     bound_margin: float = ranged(1.0, ">=", 0)
     """Margin (m) added on every side when the bound is estimated from frame 0's depth (ours: later
     frames see beyond frame 0, so the margin is generous)."""
-    n_levels: int = ranged(16, ">=", 1)
+    n_levels: int = ranged(16, ">=", 2)
     """Hash-grid levels (Co-SLAM, fixed in code)."""
     n_features_per_level: int = ranged(2, ">=", 1)
     """Features per level (Co-SLAM, fixed in code)."""
@@ -102,7 +102,7 @@ class FieldConfig(_Settings):
     """log2 of the per-level table size T (Co-SLAM ``grid.hash_size``)."""
     voxel_sdf: float = ranged(0.02, ">", 0)
     """Finest cell size in metres; finest resolution = max box side / voxel_sdf (Co-SLAM)."""
-    oneblob_bins: int = ranged(16, ">=", 1)
+    oneblob_bins: int = ranged(16, ">=", 2)
     """OneBlob bins per axis (Co-SLAM ``pos.n_bins``)."""
     geo_feat_dim: int = ranged(15, ">=", 1)
     """Geometric feature passed from the SDF head to the colour head (Co-SLAM)."""

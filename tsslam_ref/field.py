@@ -1,6 +1,6 @@
 """The scene field f_theta(x) -> (c, s): Co-SLAM's joint coordinate + parametric encoding.
 
-TS-SLAM §III-A (``sec:rep_secene``), Eq. (1)-(2) (``eq:cal_ray``): the map is Co-SLAM's field, a
+TS-SLAM §III-A (``sec:rep_secene``), Eq. (1) (Eq. (2), ``eq:cal_ray``, is ``render.py``'s): Co-SLAM's field, a
 OneBlob coordinate encoding gamma(x) and a multi-resolution hash grid V(x) feeding two tiny MLPs:
 
     x_n        = (x - bound_min) / (bound_max - bound_min)           per axis, in [0, 1]

@@ -31,6 +31,7 @@ from .bundle import BAStats, DiscretePoses, KeyframeDatabase, SplinePoses, dynam
 from .config import DynamicsConfig, MappingConfig
 from .losses import RenderLossSettings
 from .render import RayBatch
+from .times import float64_seconds
 from .trajectory import BSplineTrajectory
 
 
@@ -139,7 +140,7 @@ def tsslam_global_ba(
     Returns:
         (the optimised trajectory, detached; stats).
     """
-    slot_times = np.asarray(list(keyframes.timestamps) + [current.timestamp], dtype=np.float64)
+    slot_times = np.append(keyframes.timestamps, float64_seconds(current.timestamp, "current.timestamp"))
     fallback = torch.cat([keyframe_poses, current.pose.unsqueeze(0)], dim=0)
     poses = SplinePoses(trajectory, free_controls, slot_times, fallback, mapping.lr_rot, mapping.lr_trans)
     stats = joint_optimization(field_model, map_optimizer, ray_sources(keyframes, current, mapping), poses,

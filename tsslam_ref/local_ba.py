@@ -55,6 +55,7 @@ from .config import DynamicsConfig, LocalBAConfig
 from .geometry import orthonormalize, so3_exp, so3_log
 from .losses import RenderLossSettings
 from .render import RayBatch
+from .times import float64_seconds
 from .trajectory import BSplineTrajectory
 
 
@@ -138,7 +139,7 @@ def constant_velocity_control_points(trajectory: BSplineTrajectory, times: np.nd
         (4, 3, 3) rotations and (4, 3) translations in the poses' dtype.
     """
     first_time = trajectory.interval(0)[0]
-    elapsed = torch.as_tensor(np.asarray(times, dtype=np.float64) - first_time, device=poses.device)  # (K,)
+    elapsed = torch.as_tensor(float64_seconds(times, "times") - first_time, device=poses.device)  # (K,)
     positions = poses[:, :3, 3].double()  # (K, 3)
     offset = positions[0]  # c: the line starts at the first pose
     first_rotation = poses[0, :3, :3].double()
@@ -192,7 +193,10 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
     Returns:
         A new trajectory with 4 control points (first interval) or one more, detached.
     """
-    poses = poses.detach()
+    poses, times = poses.detach(), float64_seconds(times, "times")
+    free_controls = local_ba.fit_controls if free_controls is None else int(free_controls)
+    if free_controls < 0:
+        raise ValueError(f"free_controls must be >= 0, got {free_controls}")
     start_pose = trajectory.start_pose
     if report is not None:
         report["iterations"] = 0
@@ -207,11 +211,11 @@ def curve_approximation(trajectory: BSplineTrajectory, times: np.ndarray, poses:
         translations = torch.cat([trajectory.control_translations, new_translation.unsqueeze(0)], dim=0)
         if fit and len(times) > 0:
             fixed = torch.ones(rotations.shape[0], dtype=torch.bool)
-            fixed[-(local_ba.fit_controls if free_controls is None else free_controls):] = False
+            fixed[max(rotations.shape[0] - free_controls, 0):] = False  # 0 frees none (fixed[-0:] is all)
             fixed[:N_ANCHOR_CONTROLS] = True
             device = rotations.device  # fitted on the CPU (module docstring); nothing moves on a CPU run
             rotations, translations = spline_fit.fit_control_points(
-                np.asarray(times, dtype=np.float64), poses.cpu(), trajectory.dt, trajectory.t0, rotations.shape[0],
+                times, poses.cpu(), trajectory.dt, trajectory.t0, rotations.shape[0],
                 init_rotations=rotations.cpu(), init_translations=translations.cpu(), fixed=fixed,
                 iters=local_ba.fit_iters, convention=trajectory.convention,
                 knots=None if trajectory.uniform else trajectory.knot_vector(rotations.shape[0]), report=report)

@@ -86,7 +86,8 @@ def fit_control_points(
     Method: Levenberg-Marquardt (float64, Jacobian by ``torch.func.jacrev``) on a tangent increment
     per free control point, R_j ← Exp(δ_j) R_j (left) and t_j ← t_j + τ_j; the translation part is
     linear, so one step solves it.  A point that no time touches keeps its initial value (the
-    damping keeps it).  Stops after ``iters`` steps or when the step norm is below ``tolerance``.
+    damping keeps it).  Stops after ``iters`` steps, when the step norm is below ``tolerance``
+    or when no damped step lowers the cost.
 
     Initialisation (when no init is given): :func:`initial_control_points_from_poses`, i.e. each
     control point from the pose at the time it dominates (paper: t_{k+1}), not at its own knot
@@ -234,7 +235,8 @@ def fit_trajectory(
 
     Layout as in the system: the domain starts at the first time, t0 = t_first − 2Δt (paper
     convention; basalt t0 = t_first), and N = 3 + ⌈(t_last − t_first)/Δt⌉ control points (at least 4)
-    so that it reaches the last time.  Puts any discrete trajectory - the Co-SLAM baseline's, ground
+    so that it reaches the last time (within ``evaluate``'s closed domain: a last time exactly
+    k Δt after the first sits on its end, outside the half-open ``covers`` of the loop).  Puts any discrete trajectory - the Co-SLAM baseline's, ground
     truth - on the curve TS-SLAM uses (benchmarks/bench_system.py's offline control row).  The
     Levenberg-Marquardt system is dense, (6K x 6N) for K poses: meant for hundreds of frames.
 
