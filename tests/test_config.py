@@ -235,7 +235,7 @@ def test_the_rules_between_two_values_accept_their_equal_case_and_refuse_a_flat_
 DOCUMENTED_PRESET_VALUES = {
     # Co-SLAM's YAML (configs/<Dataset>/<dataset>.yaml and its per-scene files, commit 3bb904e), the
     # paper's knot spacing (Sec. IV-A) and config.py's field docs ("Co-SLAM: ..., TUM ...")
-    "tum": {"data.crop_edge": 8, "data.depth_scale": 5000.0, "data.depth_trunc": 5.0, "render.far": 5.0,
+    "tum": {"data.crop_edge": 10, "data.resize_width": 496, "data.depth_scale": 5000.0, "data.depth_trunc": 5.0, "render.far": 5.0,
             "render.n_samples": 64, "render.n_range_d": 21, "render.range_d": 0.25, "render.truncation": 0.05,
             "loss.rgb_weight": 1.0, "loss.sdf_weight": 5000.0, "loss.smooth_weight": 1e-8, "loss.smooth_pts": 64,
             "loss.smooth_vox": 0.04, "loss.smooth_margin": 0.0, "loss.rgb_missing": 1.0, "tracking.lr_rot": 1e-2,
@@ -245,7 +245,8 @@ DOCUMENTED_PRESET_VALUES = {
                 "render.n_range_d": 21, "render.range_d": 0.25, "render.truncation": 0.1, "loss.smooth_weight": 1e-3,
                 "loss.smooth_pts": 64, "loss.rgb_missing": 0.0, "mapping.first_iters": 500, "mapping.optim_cur": False,
                 "mapping.min_pixels_cur": 20, "field.voxel_sdf": 0.04, "field.log2_hashmap_size": 16,
-                "mesh.voxel_final": 0.03, "spline.dt": 0.3},
+                "mesh.voxel_final": 0.03, "spline.dt": 0.3,
+                "tracking.lr_rot": 2e-3, "mapping.lr_rot": 2e-3},  # docs/deviations.md: Co-SLAM's quaternion
     "synthetic": {"field.voxel_sdf": 0.01, "render.far": 4.0, "mapping.lr_embed": 0.001, "loss.smooth_weight": 1e-5,
                   "mapping.first_iters": 200, "mesh.voxel_final": 0.02, "spline.dt": 0.3},
     "replica": {"data.depth_scale": 6553.5, "field.voxel_sdf": 0.02, "render.far": 5.0, "loss.smooth_weight": 1e-6,

@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation, Slerp
 
-from tsslam_ref import data
+from tsslam_ref import config, data
 from tsslam_ref.config import DataConfig
 from tsslam_ref.datasets.images import output_size, resize_rgb
 from tsslam_ref.datasets.tum_format import associate_nearest, ground_truth_at
@@ -194,6 +194,17 @@ def test_tum_folder_name_selects_camera(tmp_path):
         folder = make_tum(tmp_path / name, stamps, stamps, stamps, _random_poses(2), size=(640, 480), calibration=False)
         k = data.load_sequence(folder).intrinsics
         assert (k.fx, k.fy, k.cx, k.cy) == expected
+
+
+def test_the_tum_preset_reads_coslams_496_by_368_image(tmp_path):
+    """Co-SLAM resizes TUM's 640x480 to 512x384 and crops 8 px per side: 496x368, fx 535.4 x 0.8
+    (its spec; it then floors, which we do not).  The preset cropped 8 native px and kept 624x464."""
+    stamps = 10.0 + np.arange(2) / 30
+    folder = make_tum(tmp_path / "fr3", stamps, stamps, stamps, _random_poses(2), size=(640, 480), calibration=False)
+    settings = config.tum().data
+    k = data.load_sequence(folder, crop_edge=settings.crop_edge, resize_width=settings.resize_width).intrinsics
+    assert (k.width, k.height) == (496, 368)
+    np.testing.assert_allclose([k.fx, k.fy], [535.4 * 0.8, 539.2 * 0.8])
 
 
 def test_crop_and_resize_update_intrinsics(tmp_path):

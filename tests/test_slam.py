@@ -219,9 +219,10 @@ def test_tsslam_motion_prediction_measures_motion_between_tracking_outputs_not_s
     stored = torch.stack(tracked[:3])
     stored[1, :3, 3] += torch.tensor([0.015, -0.01, 0.0], dtype=torch.float64)  # the spline's pose of frame 1
     outputs = {1: tracked[1].clone(), 2: tracked[2].clone()}
+    times = np.arange(4) / 30.0
     for method in ("coslam", "tsslam"):
         cfg = small_config(method)
-        state = SimpleNamespace(cfg=cfg, frame_poses=stored, tracking_output=outputs)
+        state = SimpleNamespace(cfg=cfg, frame_poses=stored, tracking_output=outputs, timestamps=times)
         prediction = slam.motion_prediction(state, 3)
         error_m = float(torch.linalg.vector_norm(prediction[:3, 3] - tracked[3][:3, 3]))
         if method == "tsslam":
@@ -231,10 +232,26 @@ def test_tsslam_motion_prediction_measures_motion_between_tracking_outputs_not_s
             assert torch.allclose(prediction, slam.constant_velocity_init(stored[2], stored[1]), atol=0)
     cfg = small_config("tsslam")
     cfg.tracking.const_speed = False
-    state = SimpleNamespace(cfg=cfg, frame_poses=stored, tracking_output=outputs)
+    state = SimpleNamespace(cfg=cfg, frame_poses=stored, tracking_output=outputs, timestamps=times)
     assert torch.equal(slam.motion_prediction(state, 3), stored[2])
-    state = SimpleNamespace(cfg=small_config("tsslam"), frame_poses=stored, tracking_output={2: tracked[2]})
+    state = SimpleNamespace(cfg=small_config("tsslam"), frame_poses=stored, tracking_output={2: tracked[2]},
+                            timestamps=times)
     assert torch.allclose(slam.motion_prediction(state, 3), slam.constant_velocity_init(stored[2], stored[1]), atol=0)
+
+
+def test_across_dropped_frames_tsslam_predicts_the_motion_of_every_spacing_and_the_baseline_of_one():
+    """Frames 2 and 3 three spacings apart (two frames dropped), a camera sliding 2 cm per spacing.
+    Oracle: its pose at frame 3 is 6 cm past frame 2's; Co-SLAM's rule (the baseline's) predicts
+    2 cm, one frame's motion, as Co-SLAM does."""
+    times = np.array([0.0, 1.0, 2.0, 5.0]) / 30.0
+    slide = [make_pose(torch.eye(3, dtype=torch.float64), torch.tensor([0.02 * k, 0.0, 0.0], dtype=torch.float64))
+             for k in (0, 1, 2, 5)]
+    for method, expected_x in (("tsslam", 0.10), ("coslam", 0.06)):
+        state = SimpleNamespace(cfg=small_config(method), frame_poses=torch.stack(slide[:3]),
+                                tracking_output={1: slide[1], 2: slide[2]}, timestamps=times)
+        prediction = slam.motion_prediction(state, 3)
+        assert torch.allclose(prediction[:3, 3], torch.tensor([expected_x, 0.0, 0.0], dtype=torch.float64),
+                              atol=1e-12), method
 
 
 def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequence, tmp_path, capsys):

@@ -12,7 +12,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from tsslam_ref import config, spline
+from tsslam_ref import config, spline, tracking
 from tsslam_ref.analytic import AnalyticField
 from tsslam_ref.bundle import (DiscretePoses, KeyframeDatabase, PoseIncrement, SplinePoses, dynamics_term, frozen,
                                iteration_loss, joint_optimization)
@@ -63,6 +63,62 @@ def test_constant_velocity_init_is_exact_for_constant_world_motion():
     predicted = constant_velocity_init(poses[2], poses[1])
     assert torch.allclose(predicted, poses[3], atol=1e-12)
     assert torch.equal(constant_velocity_init(poses[0], None), poses[0])
+
+
+def test_across_a_gap_the_prediction_repeats_the_motion_once_per_missing_spacing():
+    """Frames at 0, 1/30 and 6/30 s (four dropped): Co-SLAM's prediction repeats one frame's motion
+    and starts tracking four frames' motion away.  Oracle (scipy): a camera turning at a constant
+    rate about its own centre, and one moving at a constant body-frame velocity, six spacings on
+    from frame 0; a jitter of 1.16 (real TUM stamps) and equal spacing keep Co-SLAM's formula."""
+    assert tracking.motion_scale(np.array([0.0, 1 / 30, 6 / 30]), 2) == pytest.approx(5.0)
+    assert tracking.motion_scale(np.array([0.0, 0.2, 0.2 + 0.2 / 6]), 2) == pytest.approx(1 / 6)
+    assert tracking.motion_scale(np.array([0.0, 0.032, 0.032 + 0.032 * 1.16]), 2) == 1.0
+    assert tracking.motion_scale(np.array([0.0, 0.032]), 1) == 1.0
+    start = make_pose(so3_exp(torch.tensor([0.3, 0.2, -1.0], dtype=torch.float64)), torch.tensor([1.0, 2.0, 0.5],
+                                                                                                  dtype=torch.float64))
+    rate = np.array([0.01, 0.02, -0.03])  # rad per spacing, body frame
+    turning = [start @ make_pose(torch.from_numpy(Rotation.from_rotvec(k * rate).as_matrix()), torch.zeros(3,
+                                 dtype=torch.float64)) for k in (0, 1, 6)]
+    predicted = constant_velocity_init(turning[1], turning[0], scale=5.0)
+    assert torch.allclose(predicted, turning[2], atol=1e-12)
+    velocity = torch.tensor([0.01, -0.004, 0.02], dtype=torch.float64)  # m per spacing, body frame
+    moving = [start @ make_pose(torch.eye(3, dtype=torch.float64), k * velocity) for k in (0, 1, 6)]
+    assert torch.allclose(constant_velocity_init(moving[1], moving[0], scale=5.0), moving[2], atol=1e-12)
+    step = make_pose(so3_exp(torch.tensor([0.05, -0.02, 0.1], dtype=torch.float64)), 0.1 * velocity)
+    general = [start, step @ start]
+    assert torch.equal(constant_velocity_init(general[1], general[0], scale=1.0),
+                       constant_velocity_init(general[1], general[0]))
+
+
+def _quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """(w, x, y, z), normalised first (as pytorch3d's, which Co-SLAM uses on ScanNet)."""
+    w, x, y, z = q / q.norm()
+    return torch.stack([torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
+                        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
+                        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])])
+
+
+def test_the_scannet_rotation_rate_turns_as_far_per_step_as_coslams_quaternion():
+    """Co-SLAM optimises a quaternion on ScanNet at lr 1e-3; Adam moves each of its components by
+    about lr, which turns the camera about twice as far as a tangent increment at the same lr.
+    Oracle: one Adam step of each parametrisation on the same loss from ten random rotations; the
+    preset's rates (tracking and BA) must turn within 25 % of the quaternion's step."""
+    scannet = config.load("scannet")
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        start = torch.from_numpy(Rotation.random(random_state=rng).as_matrix())
+        target = torch.from_numpy(Rotation.random(random_state=rng).as_matrix())
+        quaternion = torch.tensor(np.roll(Rotation.from_matrix(start.numpy()).as_quat(), 1), requires_grad=True)
+        delta = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+        turns = []
+        for parameter, lr, rotation in ((quaternion, 1e-3, lambda: _quaternion_to_matrix(quaternion)),
+                                        (delta, scannet.tracking.lr_rot, lambda: so3_exp(delta) @ start)):
+            optimizer = torch.optim.Adam([parameter], lr=lr)
+            ((rotation() - target) ** 2).sum().backward()
+            optimizer.step()
+            turns.append(Rotation.from_matrix((rotation() @ start.T).detach().numpy()).magnitude())
+        assert 0.8 < turns[1] / turns[0] < 1.25, turns
+    assert scannet.mapping.lr_rot == scannet.tracking.lr_rot
 
 
 def test_pose_increment_starts_at_base_and_has_finite_gradients_at_zero():

@@ -164,7 +164,9 @@ class LossConfig(_Settings):
     smooth_margin: float = ranged(0.05, ">=", 0)
     """Margin (m) from the box when placing the lattice (Co-SLAM)."""
     rgb_missing: float = ranged(0.05, ">=", 0)
-    """Colour-loss factor for rays without valid depth (Co-SLAM; effective weight is its square)."""
+    """Colour-loss factor for rays without valid depth, applied inside the square (weight 0.05² here);
+    Co-SLAM's boolean weight tensor turns any nonzero value into 1: ``1.0`` reproduces it
+    (docs/deviations.md)."""
 
 
 @dataclass
@@ -176,7 +178,8 @@ class TrackingConfig(_Settings):
     n_rays: int = ranged(1024, ">=", 1)
     """Pixels sampled per frame, reused for all iterations (Co-SLAM ``tracking.sample``)."""
     lr_rot: float = ranged(1e-3, ">", 0)
-    """Learning rate of the rotation increment (Co-SLAM: 1e-3, TUM 1e-2)."""
+    """Learning rate of the rotation increment (Co-SLAM: 1e-3, TUM 1e-2; ScanNet preset 2e-3 for
+    Co-SLAM's quaternion, see ``presets.SCANNET``)."""
     lr_trans: float = ranged(1e-3, ">", 0)
     """Learning rate of the translation (Co-SLAM: 1e-3, TUM 1e-2)."""
     ignore_edge: int = ranged(20, ">=", 0)
@@ -221,7 +224,7 @@ class MappingConfig(_Settings):
     lr_decoder: float = ranged(0.01, ">", 0)
     """MLP learning rate (Co-SLAM)."""
     lr_rot: float = ranged(1e-3, ">", 0)
-    """BA rotation learning rate (Co-SLAM)."""
+    """BA rotation learning rate (Co-SLAM; ScanNet preset 2e-3, see ``presets.SCANNET``)."""
     lr_trans: float = ranged(1e-3, ">", 0)
     """BA translation learning rate (Co-SLAM)."""
     optim_cur: bool = True
@@ -423,7 +426,9 @@ def tum() -> Config:
 
 def tum_cpu() -> Config:
     """TUM settings for 2 CPU cores: the two-core budget shared with :func:`synthetic_cpu` on
-    :func:`tum` (ours).  Same losses, weights, truncation and schedule structure as :func:`tum`."""
+    :func:`tum` (ours).  Same losses, weights and truncation as :func:`tum`; tracking keeps its
+    best iteration over 20 (Co-SLAM's "Co-SLAM†" rule, ``configs/Tum_dagger``), the first frame
+    maps 200 iterations and the smoothness lattice is 32³ (docs/deviations.md, "CPU presets")."""
     return _preset("tum-cpu")
 
 

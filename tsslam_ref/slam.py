@@ -51,7 +51,7 @@ from .losses import RenderLossSettings
 from .mapping import estimate_bound, fit_map, make_map_optimizer, share_outside_bound
 from .render import RayBatch
 from .timings import Timings
-from .tracking import TrackingResult, check_ray_budget, constant_velocity_init, track_frame
+from .tracking import TrackingResult, check_ray_budget, constant_velocity_init, motion_scale, track_frame
 from .trajectory import BSplineTrajectory
 
 
@@ -232,11 +232,10 @@ def add_keyframe(state: SLAMState, frame: FrameTensors) -> None:
 
 
 def motion_prediction(state: SLAMState, i: int) -> torch.Tensor:
-    """(4, 4) initial pose of frame i: constant velocity, T_i = (T_{i-1} T_{i-2}^-1) T_{i-1}.
-
-    Co-SLAM measures the motion between the stored poses of frames i-2 and i-1.  TS-SLAM (ours)
-    measures it between the two frames' tracking outputs and applies it to frame i-1's stored
-    pose (docs/system.md, "The motion prior after an interval")."""
+    """(4, 4) initial pose of frame i: constant velocity, T_i = (T_{i-1} T_{i-2}^-1) T_{i-1}.  Co-SLAM
+    measures the motion between the stored poses of frames i-2 and i-1.  TS-SLAM (ours) measures it
+    between the two frames' tracking outputs, applies it to frame i-1's stored pose (docs/system.md,
+    "The motion prior after an interval") and, across a gap, once per spacing (``tracking.motion_scale``)."""
     previous = state.frame_poses[i - 1].clone()
     if i < 2 or not state.cfg.tracking.const_speed:
         return constant_velocity_init(previous, None)
@@ -245,7 +244,8 @@ def motion_prediction(state: SLAMState, i: int) -> torch.Tensor:
     if state.cfg.method == "tsslam" and (i - 1) in outputs and (i - 2) in outputs:
         motion = outputs[i - 1] @ invert_pose(outputs[i - 2])  # world frame, T_{i-1} T_{i-2}^-1
         before = invert_pose(motion) @ previous  # so that the prediction is motion @ T_{i-1}
-    return constant_velocity_init(previous, before)
+    scale = motion_scale(state.timestamps, i) if state.cfg.method == "tsslam" else 1.0  # the baseline: Co-SLAM's
+    return constant_velocity_init(previous, before, scale)
 
 
 def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneField] = None, lock=None) -> None:
