@@ -85,9 +85,8 @@ def fit_control_points(
 
     Method: Levenberg-Marquardt (float64, Jacobian by ``torch.func.jacrev``) on a tangent increment
     per free control point, R_j ← Exp(δ_j) R_j (left) and t_j ← t_j + τ_j; the translation part is
-    linear, so one step solves it.  A point that no time touches keeps its initial value (the
-    damping keeps it).  Stops after ``iters`` steps, when the step norm is below ``tolerance``
-    or when no damped step lowers the cost.
+    linear, so one step solves it.  A point no time touches keeps its initial value (damping).
+    Stops after ``iters`` steps, at a step norm below ``tolerance`` or when no damped step helps.
 
     Initialisation (when no init is given): :func:`initial_control_points_from_poses`, i.e. each
     control point from the pose at the time it dominates (paper: t_{k+1}), not at its own knot
