@@ -48,3 +48,81 @@ def test_replica_scenes_land_inside_a_destination_of_any_name(tmp_path):
     _run("download_replica.sh", dest, env)
     assert (dest / "room0" / "traj.txt").read_text() == "0" and (dest / "office0").is_dir()
     assert sorted(p.name for p in dest.parent.iterdir()) == ["replica_nice"]
+
+
+def _serve_by_name(tmp_path, archives):
+    """A ``curl`` on PATH that serves ``archives`` (URL file name -> archive path) and logs each URL;
+    a name it does not hold fails as curl -f does (exit 22)."""
+    bin_dir = tmp_path / "bin_by_name"
+    bin_dir.mkdir()
+    log = tmp_path / "curl.log"
+    table = "\n".join(f'  {name}) cp "{path}" "$out" ;;' for name, path in archives.items())
+    (bin_dir / "curl").write_text(
+        '#!/bin/sh\nwhile [ "$#" -gt 1 ]; do [ "$1" = "-o" ] && out="$2"; url="$2"; shift; done\nurl="$1"\n'
+        f'echo "$url" >> "{log}"\ncase "$(basename "$url")" in\n{table}\n  *) exit 22 ;;\nesac\n')
+    (bin_dir / "curl").chmod(0o755)
+    return {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}, log
+
+
+def _zip(path, members):
+    with zipfile.ZipFile(path, "w") as handle:
+        for name, text in members.items():
+            handle.writestr(name, text)
+    return path
+
+
+def test_a_cut_download_fails_and_the_next_run_fetches_it_again(tmp_path):
+    """The scripts said "wrote" and exited 0 after a failed unzip, then skipped the half-unpacked
+    folder on every later run.  Oracle: the exit status, the folder's contents, curl's log."""
+    good = _zip(tmp_path / "good.zip", {"Replica/room0/results/frame000000.jpg": "x", "Replica/room0/traj.txt": "0"})
+    cut = tmp_path / "cut.zip"
+    cut.write_bytes(good.read_bytes()[:60])
+    dest = tmp_path / "datasets" / "Replica"
+    env, log = _serve_by_name(tmp_path, {"Replica.zip": cut})
+    result = subprocess.run(["bash", str(SCRIPTS / "download_replica.sh"), str(dest)], env=env, capture_output=True,
+                            text=True)
+    assert result.returncode != 0 and "wrote" not in result.stdout and "damaged" in result.stderr, result
+    assert not (dest / "room0").exists()
+    (tmp_path / "again").mkdir()
+    env, _ = _serve_by_name(tmp_path / "again", {"Replica.zip": good})
+    assert "wrote" in _run("download_replica.sh", dest, env).stdout
+    assert (dest / "room0" / "traj.txt").read_text() == "0"
+    assert sorted(p.name for p in dest.parent.iterdir()) == ["Replica"]  # no zip or scratch folder left
+
+
+def test_tum_sequences_unpack_whole_and_a_failed_host_is_an_error(tmp_path):
+    import tarfile
+
+    names = ["rgbd_dataset_freiburg1_desk", "rgbd_dataset_freiburg2_xyz", "rgbd_dataset_freiburg3_long_office_household"]
+    archives = {}
+    for name in names:
+        (tmp_path / "src" / name).mkdir(parents=True)
+        (tmp_path / "src" / name / "rgb.txt").write_text(name)
+        archives[f"{name}.tgz"] = tmp_path / f"{name}.tgz"
+        with tarfile.open(archives[f"{name}.tgz"], "w:gz") as handle:
+            handle.add(tmp_path / "src" / name, arcname=name)
+    dest = tmp_path / "TUM"
+    env, log = _serve_by_name(tmp_path, {key: path for key, path in archives.items() if "freiburg3" not in key})
+    result = subprocess.run(["bash", str(SCRIPTS / "download_tum.sh"), str(dest)], env=env, capture_output=True,
+                            text=True)
+    assert result.returncode == 1 and "could not download freiburg3" in result.stderr, result
+    assert (dest / names[0] / "rgb.txt").read_text() == names[0] and not (dest / names[2]).exists()
+    assert len(log.read_text().splitlines()) == 4  # one URL for each of the first two, both hosts for the third
+    (tmp_path / "second").mkdir()
+    env, log = _serve_by_name(tmp_path / "second", archives)
+    assert _run("download_tum.sh", dest, env).stdout.count("have") == 2
+    assert (dest / names[2] / "rgb.txt").read_text() == names[2]
+    assert log.read_text().split() == [f"https://cvg.cit.tum.de/rgbd/dataset/freiburg3/{names[2]}.tgz"]
+
+
+def test_help_prints_the_usage_and_an_option_is_not_taken_for_the_destination(tmp_path):
+    """``--help`` was taken as the destination folder and started the download into ./--help."""
+    env, log = _serve_by_name(tmp_path, {})
+    for script in ("download_tum.sh", "download_neural_rgbd.sh", "download_replica.sh"):
+        shown = subprocess.run(["bash", str(SCRIPTS / script), "--help"], env=env, capture_output=True, text=True,
+                               cwd=tmp_path)
+        assert shown.returncode == 0 and f"Usage: bash data_scripts/{script}" in shown.stdout, shown
+        refused = subprocess.run(["bash", str(SCRIPTS / script), "-x"], env=env, capture_output=True, text=True,
+                                 cwd=tmp_path)
+        assert refused.returncode == 2 and "unknown option -x" in refused.stderr
+    assert not log.exists() and not (tmp_path / "--help").exists()
