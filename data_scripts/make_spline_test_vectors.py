@@ -13,6 +13,7 @@ Deterministic: numpy ``default_rng(SEED)``.  Usage:
 """
 
 import argparse
+import json
 import os
 import sys
 
@@ -149,9 +150,24 @@ def main(argv=None) -> int:
     vectors[name] = data
     for name, data in vectors.items():
         path = os.path.join(args.out, name + ".json")
-        spline_kit.write_json_atomic(path, data, force=args.force)
+        try:
+            spline_kit.write_json_atomic(path, data, force=args.force or _written_here(path, name))
+        except FileExistsError as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 2
         print(f"{path}: {len(data['times'])} times, {os.path.getsize(path) / 1024:.0f} KiB")
     return 0
+
+
+def _written_here(path: str, name: str) -> bool:
+    """Whether ``path`` holds vector ``name`` as this script writes it (its description starts with
+    the name): a re-run replaces its own files, not a file of someone else's of the same name."""
+    try:
+        with open(path) as stream:
+            data = json.load(stream)
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and str(data.get("description", "")).startswith(f"{name}:")
 
 
 if __name__ == "__main__":

@@ -80,10 +80,15 @@ def cut(rows, begin: float, end: float):
     last = int(np.searchsorted(stamps, origin + end, side="left"))
     if first < 0 or last >= len(stamps):
         raise ValueError(f"the file covers 0..{stamps[-1] - origin:.3f} s, not {begin}..{end} s")
+    if not stamps[last] - stamps[first] >= end - begin:  # e.g. nanoseconds: origin + 24 rounds back to origin
+        raise ValueError(f"the lines kept for {begin}..{end} s span {stamps[last] - stamps[first]:.6g}: are the stamps "
+                         f"seconds? (the first is {origin:.6g}; TUM format needs seconds, TUM-VI's mocap0/data.csv "
+                         f"has nanoseconds)")
     return origin, [line for _, line in rows[first:last + 1]], stamps[first] - origin, stamps[last] - origin
 
 
-def make(name: str, source: Path, out: Path) -> Path:
+def stretch_text(name: str, source: Path) -> str:
+    """The file of stretch ``name`` cut from ``source``: header and original lines."""
     spec = STRETCHES[name]
     origin, lines, covered_from, covered_to = cut(data_lines(source), spec["begin"], spec["end"])
     assert float(repr(origin)) == origin
@@ -98,9 +103,7 @@ def make(name: str, source: Path, out: Path) -> Path:
         f"# origin: {origin!r}",
         "# timestamp tx ty tz qx qy qz qw",
     ]
-    path = out / f"{name}.txt"
-    path.write_text("\n".join(header + lines) + "\n")
-    return path
+    return "\n".join(header + lines) + "\n"
 
 
 def main(argv=None) -> int:
@@ -119,13 +122,17 @@ def main(argv=None) -> int:
     if existing and not args.force:
         print(f"error: {args.out} already has {', '.join(existing)}; pass --force to replace", file=sys.stderr)
         return 2
-    args.out.mkdir(parents=True, exist_ok=True)
-    for name, spec in STRETCHES.items():
+    texts = {}
+    for name, spec in STRETCHES.items():  # every stretch cut before any file is written: all or none
         try:
-            path = make(name, args.source / spec["source"], args.out)
+            texts[name] = stretch_text(name, args.source / spec["source"])
         except ValueError as error:
             print(f"error: {args.source / spec['source']}: {error}", file=sys.stderr)
             return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name, text in texts.items():
+        path = args.out / f"{name}.txt"
+        path.write_text(text)
         print(f"wrote {path} ({path.stat().st_size} bytes)")
     return 0
 

@@ -8,8 +8,11 @@ Archive layouts: NeuralRGBD's ``neural_rgbd_data.zip`` holds the scene folders a
 
 import os
 import subprocess
+import sys
 import zipfile
 from pathlib import Path
+
+import numpy as np
 
 SCRIPTS = Path(__file__).resolve().parent.parent / "data_scripts"
 
@@ -126,3 +129,34 @@ def test_help_prints_the_usage_and_an_option_is_not_taken_for_the_destination(tm
                                  cwd=tmp_path)
         assert refused.returncode == 2 and "unknown option -x" in refused.stderr
     assert not log.exists() and not (tmp_path / "--help").exists()
+
+
+def test_trajectory_stretches_refuse_nanosecond_stamps_and_write_all_or_none(tmp_path):
+    """TUM-VI ships its motion capture in nanoseconds: at 1.5e18, origin + 24 rounds back to the
+    origin, and the script wrote a one-pose "stretch" with exit 0.  Oracle: the stamps as written."""
+    source, out = tmp_path / "gt", tmp_path / "out"
+    source.mkdir()
+    pose = "0 0 0 0 0 0 1"
+    for name, scale in (("tum_rgbd_fr2_desk", 1.0), ("tum_vi_room1", 1e9), ("tum_vi_room2", 1.0)):
+        stamps = 1.5e9 + np.arange(0.0, 30.0, 0.01)
+        (source / f"{name}_groundtruth.txt").write_text("".join(f"{t * scale:.0f} {pose}\n" if scale > 1 else
+                                                                f"{t:.4f} {pose}\n" for t in stamps))
+    result = subprocess.run([sys.executable, str(SCRIPTS / "make_trajectory_stretches.py"), "--source", str(source),
+                             "--out", str(out)], capture_output=True, text=True)
+    assert result.returncode == 2 and "tum_vi_room1_groundtruth.txt" in result.stderr, result
+    assert "are the stamps seconds?" in result.stderr and "Traceback" not in result.stderr
+    assert not out.exists()  # the fr2/desk stretch, cut first, is not written either
+
+
+def test_the_vector_script_replaces_its_own_files_and_refuses_anothers_in_one_line(tmp_path):
+    """A second run refused the files the first had written ("was not written by this kit"), with a
+    traceback.  Oracle: the files' contents after each run."""
+    script = [sys.executable, str(SCRIPTS / "make_spline_test_vectors.py"), "--out", str(tmp_path)]
+    assert subprocess.run(script, capture_output=True, text=True).returncode == 0
+    again = subprocess.run(script, capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    mine = tmp_path / "paper_dt0.03_tum_stamps.json"
+    mine.write_text('{"mine": 1}\n')
+    refused = subprocess.run(script, capture_output=True, text=True)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "--force" in refused.stderr, refused
+    assert mine.read_text() == '{"mine": 1}\n'
