@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 README = """# TUM RGB-D fr3/teddy, first {n} frames at {w}x{h} (bundled default sequence)
 
 Made by `data_scripts/make_bundled_tum_slice.py` from `rgbd_dataset_freiburg3_teddy` of the TUM RGB-D
-benchmark: colour resized with bilinear filtering, depth with nearest neighbour, by a factor 1/4.
+benchmark: colour resized with bilinear filtering, depth with nearest neighbour, by a factor {factor}.
 Intrinsics in `intrinsics.json` are the published fr3 values (fx 535.4, fy 539.2, cx 320.1, cy 247.6
 at 640x480) updated exactly for the resize (pixel centres at integer coordinates:
 fx' = s fx, cx' = s (cx + 0.5) - 0.5).  Depth PNGs: metres x 5000, 0 = no depth.  `groundtruth.txt`
@@ -52,9 +52,23 @@ def make_slice(source: Path, out: Path, n_frames: int, width: int, force: bool) 
     if out.exists() and any(out.iterdir()) and not force:
         raise FileExistsError(f"{out} exists and is not empty; pass --force to replace it")
     sequence = load_sequence(source, dataset="tum", resize_width=width, require_gt=False, frame_stop=n_frames)
-    k = sequence.intrinsics
+    native_width = load_sequence(source, dataset="tum", require_gt=False, frame_stop=1).intrinsics.width
     out.parent.mkdir(parents=True, exist_ok=True)
     temporary = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    try:
+        _write_slice(source, sequence, n_frames, f"1/{native_width / width:g}", temporary)
+    except BaseException:
+        shutil.rmtree(temporary, ignore_errors=True)  # nothing half-written is left beside --out
+        raise
+    if out.exists():
+        shutil.rmtree(out)
+    temporary.rename(out)
+    return out
+
+
+def _write_slice(source: Path, sequence, n_frames: int, factor: str, temporary: Path) -> None:
+    """The slice's files into the folder ``temporary``."""
+    k = sequence.intrinsics
     (temporary / "rgb").mkdir()
     (temporary / "depth").mkdir()
     rgb_lines = ["# color images", f"# {n_frames} frames of rgbd_dataset_freiburg3_teddy at {k.width}x{k.height}", "# timestamp filename"]
@@ -81,25 +95,37 @@ def make_slice(source: Path, out: Path, n_frames: int, width: int, force: bool) 
     calibration = dict(k.to_dict(), depth_scale=5000.0,
                        note="fr3 published intrinsics resized exactly; pixel centres at integer coordinates")
     (temporary / "intrinsics.json").write_text(json.dumps(calibration, indent=2) + "\n")
-    (temporary / "README.md").write_text(README.format(n=n_frames, w=k.width, h=k.height))
-    if out.exists():
-        shutil.rmtree(out)
-    temporary.rename(out)
-    return out
+    (temporary / "README.md").write_text(README.format(n=n_frames, w=k.width, h=k.height, factor=factor))
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--source", type=Path, required=True, help="TUM folder of rgbd_dataset_freiburg3_teddy (its first 120 frames suffice)")
-    parser.add_argument("--out", type=Path, default=ROOT / "tsslam_ref" / "assets" / "tum_fr3_teddy_160x120")
-    parser.add_argument("--frames", type=int, default=104, help="associated frames kept (teddy: first 4 lack GT)")
-    parser.add_argument("--width", type=int, default=160)
-    parser.add_argument("--force", action="store_true")
+    parser.add_argument("--out", type=Path, default=ROOT / "tsslam_ref" / "assets" / "tum_fr3_teddy_160x120",
+                        help="output folder (default: the bundled sequence's)")
+    parser.add_argument("--frames", type=_positive, default=104, help="associated frames kept (teddy: first 4 lack GT)")
+    parser.add_argument("--width", type=_positive, default=160, help="output width in pixels (default 160)")
+    parser.add_argument("--force", action="store_true", help="replace a non-empty --out")
     args = parser.parse_args(argv)
-    if not (args.source / "rgb.txt").is_file():
-        print(f"error: {args.source} is not a TUM sequence folder (no rgb.txt)", file=sys.stderr)
+    for name in ("rgb.txt", "groundtruth.txt"):
+        if not (args.source / name).is_file():
+            print(f"error: {args.source} is not a TUM sequence folder with ground truth (no {name})", file=sys.stderr)
+            return 2
+    try:
+        out = make_slice(args.source, args.out, args.frames, args.width, args.force)
+    except (OSError, ValueError) as error:  # FileExistsError included
+        print(f"error: {error}", file=sys.stderr)
         return 2
-    out = make_slice(args.source, args.out, args.frames, args.width, args.force)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     print(f"wrote {out} ({size / 1e6:.2f} MB)")
     return 0

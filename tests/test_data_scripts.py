@@ -160,3 +160,26 @@ def test_the_vector_script_replaces_its_own_files_and_refuses_anothers_in_one_li
     refused = subprocess.run(script, capture_output=True, text=True)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "--force" in refused.stderr, refused
     assert mine.read_text() == '{"mine": 1}\n'
+
+
+def test_the_slice_script_leaves_nothing_behind_when_it_fails_and_states_its_factor(tmp_path):
+    """A failure after the images were written left a hidden scratch folder beside --out (inside the
+    package's assets by default), and the README said "by a factor 1/4" at any width.  Oracle: the
+    folder listing, and the widths given (the bundled 160 px frames made 80 px: 1/2)."""
+    import shutil
+
+    bundled = SCRIPTS.parent / "tsslam_ref" / "assets" / "tum_fr3_teddy_160x120"
+    source = tmp_path / "teddy"
+    shutil.copytree(bundled, source)
+    script = [sys.executable, str(SCRIPTS / "make_bundled_tum_slice.py"), "--source", str(source), "--frames", "8",
+              "--width", "80"]
+    made = subprocess.run(script + ["--out", str(tmp_path / "out" / "good")], capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr
+    assert "by a factor 1/2." in (tmp_path / "out" / "good" / "README.md").read_text()
+    lines = (source / "groundtruth.txt").read_text().splitlines()
+    first_data = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    lines[first_data + 3] = lines[first_data + 3].rsplit(" ", 1)[0] + " not-a-number"  # inside the frames' window
+    (source / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    failed = subprocess.run(script + ["--out", str(tmp_path / "out" / "bad")], capture_output=True, text=True)
+    assert failed.returncode == 2 and failed.stderr.startswith("error: ") and "Traceback" not in failed.stderr, failed
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["good"]
