@@ -117,9 +117,10 @@ def check_frame_spacing(cfg: Config, timestamps, frames_left_out: int = 0) -> No
 
 def sparse_stretch(times: np.ndarray, span: float, limit: float) -> Optional[Tuple[int, int]]:
     """The first stretch of ``span`` seconds, frames (first, last), more than half of whose gaps are
-    over ``limit`` seconds (its median gap is, the lower median for an even count), or None.  A stretch starts at a frame and
-    ends at the last frame within ``span`` of it; only stretches the sequence holds whole count,
-    and a sequence shorter than ``span`` is one stretch.  ``times``: (N,) float64 s, increasing."""
+    over ``limit`` seconds (so is its median gap, the lower median for an even count), or None.  A
+    stretch starts at a frame and ends at the last frame within ``span`` of it; only stretches the
+    sequence holds whole count, and a sequence shorter than ``span`` is one stretch.  ``times``:
+    (N,) float64 s, increasing."""
     over = np.concatenate([[0], np.cumsum(np.diff(times) > limit)])  # over[k]: gaps over the limit before frame k
     firsts = np.nonzero(times[:-1] + span <= times[-1])[0]
     lasts = np.searchsorted(times, times[firsts] + span, side="right") - 1

@@ -235,9 +235,10 @@ def fit_trajectory(
     Layout as in the system: the domain starts at the first time, t0 = t_first − 2Δt (paper
     convention; basalt t0 = t_first), and N = 3 + ⌈(t_last − t_first)/Δt⌉ control points (at least 4)
     so that it reaches the last time (within ``evaluate``'s closed domain: a last time exactly
-    k Δt after the first sits on its end, outside the half-open ``covers`` of the loop).  Puts any discrete trajectory - the Co-SLAM baseline's, ground
-    truth - on the curve TS-SLAM uses (benchmarks/bench_system.py's offline control row).  The
-    Levenberg-Marquardt system is dense, (6K x 6N) for K poses: meant for hundreds of frames.
+    k Δt after the first sits on its end, outside the loop's half-open ``covers``).  Puts any
+    discrete trajectory - the Co-SLAM baseline's, ground truth - on the curve TS-SLAM uses
+    (benchmarks/bench_system.py's offline control row).  The Levenberg-Marquardt system is dense,
+    (6K x 6N) for K poses: meant for hundreds of frames.
 
     Args:
         times: (K,) float64 seconds, increasing; poses: (K, 4, 4) camera-to-world.
