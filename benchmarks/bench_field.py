@@ -1,12 +1,13 @@
 """Field iteration cost: forward + backward + Adam step of Co-SLAM's map (results in docs/map.md).
 
 For each preset (tum-cpu, synthetic-cpu, and the full tum / synthetic sample counts) and each ray
-count (256, 1024, 4096) it times one map iteration on random points inside a 6.5 m box (the TUM
-fr1_desk box size) with samples per ray = n_samples + n_range_d of the preset, on CPU and on CUDA
+count (256, 1024, 4096) it times one map iteration on random points in [-3, 3]^3 m inside the map's
+6.5 m box (the TUM fr1_desk box) with samples per ray = n_samples + n_range_d of the preset, on CPU and on CUDA
 when available.  It prints the median and minimum milliseconds of the default path (the compiled
 CPU kernel where it builds, ``hash_kernel.py``; the PyTorch fast path on CUDA), the peak memory,
-and, measured in the same run, the PyTorch fast path (``field.compiled_kernel=false``) and the
-plain reference path (``field.fast_gather=false``) with their ratios to the default.
+and, measured in the same run, the PyTorch fast path (``field.compiled_kernel=false`` and
+``field.compiled_oneblob=false``: the path a GPU takes) and the plain reference path
+(``field.fast_gather=false``, no compiled kernel either) with their ratios to the default.
 
 Target (ours): 1024 rays x 43 samples, table 2^16, 2 threads, float32, under 100 ms.
 
@@ -71,7 +72,7 @@ def main(argv=None):
     torch.set_num_threads(args.threads)
     allocator = tune_cpu_allocator()
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
-    print(f"torch {torch.__version__}, {args.threads} threads, float32, box 6.5 m, medians of {args.repeats}, "
+    print(f"torch {torch.__version__}, {args.threads} threads, float32, points in [-3, 3]^3 m (6.5 m box), medians of {args.repeats}, "
           f"glibc allocator tuned: {allocator}")
     if hash_kernel.available():
         print(f"compiled CPU kernel: yes (OneBlob's AVX2 copy: {'yes' if hash_kernel.oneblob_uses_avx2() else 'no'})")
@@ -80,6 +81,7 @@ def main(argv=None):
     print(f"{'device':6} {'preset':14} {'log2T':>5} {'samples':>7} {'rays':>5} {'default ms':>10} {'(min)':>7} "
           f"{'torch ms':>9} {'torch/def':>9} {'ref ms':>9} {'ref/def':>8} {'peak MiB':>9}")
     paths = {"default": (True, True), "torch": (True, False), "reference": (False, False)}  # fast_gather, compiled
+    # "compiled" switches both compiled kernels, the hash grid's and OneBlob's (field.compiled_oneblob)
     for device in devices:
         for preset in args.presets:
             cfg = config.load(preset)
@@ -94,6 +96,7 @@ def main(argv=None):
                     if path == "torch" and (device.type != "cpu" or not hash_kernel.available()):
                         continue  # the default already is the PyTorch fast path
                     cfg.field.fast_gather, cfg.field.compiled_kernel = fast_gather, compiled
+                    cfg.field.compiled_oneblob = compiled
                     field = SceneField(cfg.field, BOX, generator=torch.Generator().manual_seed(0)).to(device)
                     optimizer = make_map_optimizer(field, cfg.mapping)
                     row[path] = time_iterations(field, optimizer, points, args.repeats, device)

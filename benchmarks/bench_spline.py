@@ -76,6 +76,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     dt = 0.03
     rng = np.random.default_rng(1)
+    if args.n < args.n_ctrl - 2:  # PyPose's interval (N - 3) / n must stay below 1
+        parser.error(f"--n {args.n} must be at least --n-ctrl - 2 = {args.n_ctrl - 2} (PyPose samples each of the "
+                     f"{args.n_ctrl - 3} segments at least once)")
     t_min, t_max = spline.valid_time_range(args.n_ctrl, dt, 0.0)
     times = np.sort(rng.uniform(t_min, t_max, size=args.n))
     n_sub = max(1000, int(args.n * args.autograd_fraction))

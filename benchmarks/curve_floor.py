@@ -61,7 +61,7 @@ def main(argv=None):
                         help="NAME:START, a shipped trajectory (or a TUM-format file) and seconds from its start")
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--fps", type=number_in("--fps", 0, 1000, low_open=True), default=30.0)
-    parser.add_argument("--dts", type=float, nargs="+", default=[0.30, 0.25, 0.15, 0.10])
+    parser.add_argument("--dts", type=number_in("--dts", 0, 10, low_open=True), nargs="+", default=[0.30, 0.25, 0.15, 0.10])
     parser.add_argument("--noise", type=number_in("--noise", 0, 1), default=0.001, help="position noise (m) on the fitted poses")
     parser.add_argument("--seed", type=number_in("--seed", 0, 2**32 - 1, integer=True), default=1)
     args = parser.parse_args(argv)

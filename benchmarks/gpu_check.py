@@ -195,10 +195,21 @@ def print_timings(report: Dict[str, object], device: torch.device) -> None:
             print(f"| {method} | {'cpu' if where == 'cpu' else device.type} | {first[f'{where}_frames_per_second']:.2f} | {cells} |")
 
 
+def _unwritable(path: Path) -> str:
+    """Why ``path`` cannot be written (a folder, under a file, in a folder not writable), or ""."""
+    if path.is_dir():
+        return "is a folder"
+    ancestor = next(parent for parent in path.resolve().parents if parent.exists())
+    if not ancestor.is_dir():
+        return f"{ancestor} is a file, not a folder"
+    return "" if os.access(ancestor, os.W_OK) else f"the folder {ancestor} is not writable"
+
+
 def main(argv=None) -> int:
     parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", default="0:20", help="START:STOP[:STEP] of the bundled slice (default 0:20)")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--seeds", type=number_in("--seeds", 0, 2**32 - 1, integer=True, interval="[0, 2**32 - 1]"),
+                        nargs="+", default=[0, 1, 2])
     parser.add_argument("--device", default="cuda", help="the device checked against the CPU (default cuda)")
     parser.add_argument("--tolerance-cm", type=number_in("--tolerance-cm", 0, 1000, low_open=True), default=0.5,
                         help="allowed mean-ATE difference beyond the CPU's seed range (default 0.5)")
@@ -209,20 +220,27 @@ def main(argv=None) -> int:
     if os.path.exists(args.json) and not args.overwrite:
         print(f"error: --json {args.json} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2
+    if _unwritable(Path(args.json)):  # found out only after every run otherwise
+        print(f"error: --json {args.json}: {_unwritable(Path(args.json))}", file=sys.stderr)
+        return 2
+    base = config.load("tum-cpu")
     try:
         device = resolve_device(args.device)
-        frames = parse_frames(args.frames)
     except (ValueError, RuntimeError) as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"error: --device {args.device}: {error}", file=sys.stderr)
+        return 2
+    try:
+        base.data.frame_start, base.data.frame_stop, base.data.frame_step = parse_frames(args.frames)
+        sequence = data.load_from_config(base.data)
+    except ValueError as error:
+        print(f"error: --frames {args.frames}: {error}", file=sys.stderr)
+        return 2
+    if len(sequence) < 3:
+        print(f"error: --frames {args.frames} selects {len(sequence)} frame(s); the check needs at least 3 (ATE "
+              f"aligns 3 poses)", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
     tune_cpu_allocator()
-    base = config.load("tum-cpu")
-    base.data.frame_start, base.data.frame_stop, base.data.frame_step = frames
-    sequence = data.load_from_config(base.data)
-    if len(sequence) < 2:
-        print(f"error: --frames {args.frames} selects {len(sequence)} frame; a run needs at least 2", file=sys.stderr)
-        return 2
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     print(f"{sequence.name}: {len(sequence)} frames, tum-cpu, seeds {args.seeds}; CPU ({args.threads} threads) "
           f"against {device} ({name})")

@@ -129,13 +129,19 @@ def tracking_ray_scaling(cfg, field, frames, poses, settings, generator, ray_cou
     return "\n".join(rows)
 
 
+TUM_PRESETS = [name for name in sorted(config.PRESETS) if config.load(name).data.dataset in ("tum", "auto")]
+"""The presets that can read the bundled TUM slice this script profiles on (``replica`` and
+``scannet`` name other layouts)."""
+
+
 def main(argv=None):
     parser = OneLineParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="tum-cpu", choices=sorted(config.PRESETS))
+    parser.add_argument("--preset", default="tum-cpu", choices=TUM_PRESETS,
+                        help="a preset for the bundled TUM slice (default tum-cpu)")
     parser.add_argument("--repeats", type=number_in("--repeats", 1, 10000, integer=True), default=20)
-    parser.add_argument("--top", type=int, default=15)
+    parser.add_argument("--top", type=number_in("--top", 1, 10000, integer=True), default=15)
     parser.add_argument("--threads", type=number_in("--threads", 1, 1024, integer=True), default=2)
-    parser.add_argument("--fit-iters", type=int, default=50)
+    parser.add_argument("--fit-iters", type=number_in("--fit-iters", 1, 100000, integer=True), default=50)
     parser.add_argument("--tracking-rays", type=int, nargs="+", default=None,
                         help="time the tracking iteration at these ray counts (and fit a line) instead of profiling")
     args = parser.parse_args(argv)

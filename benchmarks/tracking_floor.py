@@ -15,9 +15,13 @@ frame with the package's ``tracking.track_frame``, twice:
 For each start it prints the ATE and RPE (metres -> cm, degrees), the Sim(3) scale of the tracked
 poses against the ground truth (above 1: the tracked path is shorter) and the mean error along the
 direction travelled since frame 0 (negative: behind the camera), and the milliseconds per frame.
-``--try KEY=VALUE[,KEY=VALUE...]`` adds a row pair for a changed setting (for example
-``tracking.iters=40`` or ``tracking.lr_rot=1e-3,tracking.lr_trans=1e-3``), tracked on the same
-frozen map with the same rays and the same seed.  Deterministic for a given seed.
+``--try KEY=VALUE[,KEY=VALUE...]`` adds a row pair for a changed setting of ``tracking``,
+``render`` or ``loss`` (for example ``tracking.iters=40`` or
+``tracking.lr_rot=1e-3,tracking.lr_trans=1e-3``), tracked on the same frozen map with the same rays
+(drawn once, by their own generator: a setting that draws more or fewer random numbers cannot
+change them) and the same seed for the depth samples.  The frames are loaded with the preset's
+image size and crop (``data.resize_width``, ``data.crop_edge``), as the SLAM loop loads them.
+Deterministic for a given seed.
 
 Usage: python benchmarks/tracking_floor.py [--frames 40] [--map-every 5] [--preset tum-cpu]
                                            [--try KEY=VALUE[,...]] ... [--seed 0] [--threads 2]
@@ -32,6 +36,7 @@ import torch
 from tsslam_ref import config, data, slam
 from tsslam_ref.cli_args import OneLineParser, number_in
 from tsslam_ref.device import frame_to_device, tune_cpu_allocator
+from tsslam_ref.losses import RenderLossSettings
 from tsslam_ref.mapping import fit_map
 from tsslam_ref.tracking import constant_velocity_init, track_frame
 from tsslam_ref.trajectory_metrics import evaluate_trajectory
@@ -49,19 +54,29 @@ def fit_ground_truth_map(sequence, cfg: config.Config, frames: List, ground_trut
     return state
 
 
+TRY_SECTIONS = ("tracking", "render", "loss")
+"""What ``--try`` may change: the map is fitted once, with the preset's settings, and the frames
+are loaded once."""
+
+
 def track_all(state, cfg: config.Config, frames: List, ground_truth: torch.Tensor) -> Dict[str, object]:
     """Track frames 1.. from their true poses and from constant velocity; (N, 4, 4) poses of each
-    (frame 0 at its true pose) and the median seconds per constant-velocity frame."""
-    generator = torch.Generator().manual_seed(cfg.seed)
+    (frame 0 at its true pose) and the median seconds per constant-velocity frame.  The rays come
+    from a generator of their own (seed ``cfg.seed``), the depth samples of each start from
+    another (seeds ``cfg.seed`` + 1 and + 2)."""
+    ray_generator = torch.Generator().manual_seed(cfg.seed)
+    rays = [None] + [frame.sampled_rays(cfg.tracking.n_rays, ray_generator, ignore_edge=cfg.tracking.ignore_edge)
+                     for frame in frames[1:]]
+    settings = RenderLossSettings.from_config(cfg)
+    truth_samples, predicted_samples = (torch.Generator().manual_seed(cfg.seed + k) for k in (1, 2))
     from_truth, from_prediction, seconds = [ground_truth[0]], [ground_truth[0]], []
     for i in range(1, len(frames)):
-        rays = frames[i].sampled_rays(cfg.tracking.n_rays, generator, ignore_edge=cfg.tracking.ignore_edge)
-        from_truth.append(track_frame(state.field, rays, ground_truth[i], cfg.tracking, state.loss_settings,
-                                      generator=generator).pose)
+        from_truth.append(track_frame(state.field, rays[i], ground_truth[i], cfg.tracking, settings,
+                                      generator=truth_samples).pose)
         before = from_prediction[-2] if i >= 2 else None
         start = time.perf_counter()
-        from_prediction.append(track_frame(state.field, rays, constant_velocity_init(from_prediction[-1], before),
-                                           cfg.tracking, state.loss_settings, generator=generator).pose)
+        from_prediction.append(track_frame(state.field, rays[i], constant_velocity_init(from_prediction[-1], before),
+                                           cfg.tracking, settings, generator=predicted_samples).pose)
         seconds.append(time.perf_counter() - start)
     return {"ground truth": torch.stack(from_truth), "constant velocity": torch.stack(from_prediction),
             "seconds": float(np.median(seconds))}
@@ -103,7 +118,13 @@ def main() -> None:
     try:  # a preset, setting or folder that is not there: one line, as the other benchmarks say it
         base = config.apply_overrides(config.load(args.preset), [f"seed={args.seed}"])
         variants = [("preset", base)] + [(text, config.apply_overrides(base, text.split(","))) for text in args.variants]
-        sequence = data.load_sequence(args.data or data.default_sequence_path(), frame_stop=args.frames)
+        for text in args.variants:
+            for key in (item.split("=", 1)[0].strip() for item in text.split(",")):
+                if key.split(".", 1)[0] not in TRY_SECTIONS:
+                    raise ValueError(f"--try {text}: {key} is not a setting of {', '.join(TRY_SECTIONS)} (the map is "
+                                     f"fitted and the frames are loaded once, with the preset's settings)")
+        sequence = data.load_sequence(args.data or data.default_sequence_path(), frame_stop=args.frames,
+                                      resize_width=base.data.resize_width, crop_edge=base.data.crop_edge)
     except (ValueError, OSError) as error:
         parser.error(str(error))
     if sequence.gt_poses is None:

@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -229,11 +230,21 @@ def test_bench_mesh_chunked_and_whole_grid_give_the_same_mesh():
     ("bench_field.py", ["--repeats", "0"], "--repeats 0"),
     ("bench_field.py", ["--presets", "nosuch"], "nosuch"),
     ("profile_step.py", ["--threads", "0"], "--threads 0"),
+    ("profile_step.py", ["--preset", "replica"], "invalid choice: 'replica'"),  # offered, then a traceback
+    ("profile_step.py", ["--top", "-2"], "--top -2"),
+    ("profile_step.py", ["--fit-iters", "-5"], "--fit-iters -5"),
+    ("bench_spline.py", ["--n", "1", "--n-ctrl", "100"], "--n 1 must be at least --n-ctrl - 2 = 98"),
+    ("curve_floor.py", ["--dts", "nan"], "--dts nan"),
+    ("curve_floor.py", ["--dts", "inf"], "--dts inf"),
     ("curve_floor.py", ["--noise", "-1"], "--noise -1"),
     ("curve_floor.py", ["--seed", "-1"], "--seed -1"),  # was numpy's traceback
     ("tracking_floor.py", ["--preset", "bogus"], "config 'bogus'"),  # were tracebacks
     ("tracking_floor.py", ["--try", "tracking.iters=0"], "tracking.iters = 0"),
-    ("gpu_check.py", ["--device", "cpu", "--frames", "0:1", "--json", "check.json"], "selects 1 frame"),
+    ("tracking_floor.py", ["--try", "mapping.iters=5"], "mapping.iters is not a setting of tracking, render, loss"),
+    ("gpu_check.py", ["--device", "cpu", "--frames", "0:2", "--json", "check.json"], "selects 2 frame(s)"),
+    ("gpu_check.py", ["--device", "cpu", "--frames", "0:1000"], "stop=1000 is beyond the 100 usable frames"),
+    ("gpu_check.py", ["--device", "cpu", "--seeds", "-1"], "--seeds -1"),  # were tracebacks after the first runs
+    ("gpu_check.py", ["--device", "cpu", "--json", "taken.txt/check.json"], "is a file, not a folder"),
     ("bench_system.py", ["--frames", "6:2"], "--frames '6:2'"),
     ("bench_system.py", ["--skip", "baseline", "tsslam"], "leaves nothing to run"),
     ("bench_system.py", ["--seeds", "0", "-1"], "--seeds -1"),  # were tracebacks after the first runs
@@ -243,6 +254,7 @@ def test_bench_mesh_chunked_and_whole_grid_give_the_same_mesh():
 ])
 def test_benchmarks_refuse_bad_arguments_in_one_line(tmp_path, script, arguments, needle):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    (tmp_path / "taken.txt").write_text("a user's file")  # the --json under a file
     result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *arguments], cwd=tmp_path, env=env,
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
@@ -255,7 +267,6 @@ def test_tracking_floor_scores_a_shortened_path_by_its_scale_and_lag():
     (a tracker that stops short) scores a Sim(3) scale of 1.25 and a negative along-path error of
     the mean shortfall, (1 - 1/1.25) x the mean distance travelled."""
     import numpy as np
-    from types import SimpleNamespace
 
     spec = importlib.util.spec_from_file_location("tracking_floor", ROOT / "benchmarks" / "tracking_floor.py")
     tracking_floor = importlib.util.module_from_spec(spec)
@@ -275,6 +286,38 @@ def test_tracking_floor_scores_a_shortened_path_by_its_scale_and_lag():
     assert abs(shortened["scale"] - 1.25) < 1e-6 and shortened["ate_cm"] > 0.5
     assert abs(shortened["along_cm"] - 100 * -(1 - 1 / 1.25) * travelled.mean()) < 1e-9
     assert tracking_floor.table_cells(shortened).count("|") == 4  # five cells of the printed row
+
+
+def test_tracking_floor_tracks_every_setting_on_the_same_rays_with_its_own_loss_settings(monkeypatch):
+    """--try rows drew their rays from the generator that also drew the depth samples (a setting with
+    fewer samples got other rays from frame 2 on), and every row used the preset's render and loss
+    settings whatever --try said.  Oracle: what ``track_frame`` is handed, recorded."""
+    import torch
+
+    from tsslam_ref import config, data
+    from tsslam_ref.device import frame_to_device
+
+    spec = importlib.util.spec_from_file_location("tracking_floor", ROOT / "benchmarks" / "tracking_floor.py")
+    tracking_floor = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tracking_floor)
+    sequence = data.load_sequence(data.default_sequence_path(), frame_stop=4)
+    frames = [frame_to_device(sequence[i], torch.device("cpu"), torch.float32) for i in range(4)]
+    truth = torch.eye(4).repeat(4, 1, 1)
+    handed = []
+
+    def recording_track_frame(field, rays, init, tracking, settings, generator=None):
+        handed.append((rays.directions_cam.clone(), settings.render.n_samples, settings.loss.sdf_weight))
+        torch.rand(settings.render.n_samples * 100, generator=generator)  # draws as many numbers as it samples
+        return SimpleNamespace(pose=init)
+
+    monkeypatch.setattr(tracking_floor, "track_frame", recording_track_frame)
+    base = config.tum_cpu()
+    for cfg in (base, config.apply_overrides(base, ["render.n_samples=4", "loss.sdf_weight=7"])):
+        tracking_floor.track_all(SimpleNamespace(field=None), cfg, frames, truth)
+    preset, changed = handed[:6], handed[6:]
+    assert all(torch.equal(a[0], b[0]) for a, b in zip(preset, changed))  # frames 1-3, both starts
+    assert {row[1:] for row in preset} == {(base.render.n_samples, base.loss.sdf_weight)}
+    assert {row[1:] for row in changed} == {(4, 7.0)}
 
 
 def test_a_set_is_announced_as_changing_every_row_the_baselines_too(monkeypatch, capsys):
