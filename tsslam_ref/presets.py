@@ -74,7 +74,8 @@ TUM: Values = {
     "mapping": {"first_iters": 1000, "iters": 20},
     "spline": {"dt": 0.25},
 }
-"""Co-SLAM's TUM RGB-D settings (its ``configs/Tum`` YAML); TS-SLAM uses dt = 0.25 s on TUM."""
+"""Co-SLAM's TUM RGB-D settings (its ``configs/Tum`` YAML); TS-SLAM uses dt = 0.25 s on TUM.  Its
+fr2_xyz scene file sets ``far`` 6 m (5 m here and in the others): ``--set render.far=6`` there."""
 
 TWO_CORE_BUDGET: Values = {
     "data": {"resize_width": 160},
