@@ -148,14 +148,16 @@ def main(argv=None) -> int:
     vectors[name] = make_vector(convention, dt, t0, rotvecs, translations, times, description, jacobians=True)
     name, data = knot_vector()
     vectors[name] = data
+    paths = {name: os.path.join(args.out, name + ".json") for name in vectors}
+    foreign = [path for name, path in paths.items()
+               if os.path.exists(path) and not args.force and not _written_here(path, name)]
+    if foreign:  # checked before any file is written: all or none
+        print(f"error: {foreign[0]} exists and was not written by this script ({len(foreign)} such file(s) in "
+              f"{args.out}); pass --force to overwrite", file=sys.stderr)
+        return 2
     for name, data in vectors.items():
-        path = os.path.join(args.out, name + ".json")
-        try:
-            spline_kit.write_json_atomic(path, data, force=args.force or _written_here(path, name))
-        except FileExistsError as error:
-            print(f"error: {error}", file=sys.stderr)
-            return 2
-        print(f"{path}: {len(data['times'])} times, {os.path.getsize(path) / 1024:.0f} KiB")
+        spline_kit.write_json_atomic(paths[name], data, force=True)
+        print(f"{paths[name]}: {len(data['times'])} times, {os.path.getsize(paths[name]) / 1024:.0f} KiB")
     return 0
 
 

@@ -1008,3 +1008,26 @@ def test_a_datasets_root_given_for_one_scene_names_the_scenes_inside(tmp_path):
         data.load_sequence(tmp_path / "root")
     with pytest.raises(ValueError, match="not a recognised RGB-D dataset folder. Layouts tried"):
         data.load_sequence(tmp_path / "root" / "notes")
+
+
+def test_the_frames_left_out_for_want_of_ground_truth_keep_their_stamps():
+    """The bundled slice's first four colour frames come before the first motion-capture pose (its
+    README): the loader leaves them out and keeps their stamps, which the frame-spacing check reads
+    to say whether they opened a gap.  Oracle: the first four stamps of the slice's rgb.txt."""
+    listed = [float(line.split()[0]) for line in (data.default_sequence_path() / "rgb.txt").read_text().splitlines()
+              if line and not line.startswith("#")]
+    sequence = data.load_sequence(data.default_sequence_path())
+    assert sequence.frames_without_gt == 4
+    np.testing.assert_array_equal(sequence.times_without_gt, listed[:4])
+    assert sequence.timestamps[0] == listed[4]
+    assert len(data.load_sequence(data.default_sequence_path(), require_gt=False).times_without_gt) == 0
+
+
+def test_info_measures_gaps_over_the_frames_a_run_keeps():
+    """data info measured the largest gap over every frame, ground truth or not; a run keeps only
+    frames with ground truth and numbers them from there (4 fewer on the bundled slice).  Oracle:
+    the run's own sequence (require_gt, the default)."""
+    kept = data.load_sequence(data.default_sequence_path()).timestamps
+    info = data.sequence_info(data.load_sequence(data.default_sequence_path(), require_gt=False))
+    assert info["largest_gap_after_frame"] == int(np.argmax(np.diff(kept)))
+    assert info["largest_gap_s"] == np.max(np.diff(kept)) and info["frames"] == len(kept) + 4

@@ -150,16 +150,19 @@ def test_trajectory_stretches_refuse_nanosecond_stamps_and_write_all_or_none(tmp
 
 def test_the_vector_script_replaces_its_own_files_and_refuses_anothers_in_one_line(tmp_path):
     """A second run refused the files the first had written ("was not written by this kit"), with a
-    traceback.  Oracle: the files' contents after each run."""
+    traceback; a refusal came after the files before it were rewritten.  Oracle: the files'
+    contents and modification times after each run."""
     script = [sys.executable, str(SCRIPTS / "make_spline_test_vectors.py"), "--out", str(tmp_path)]
     assert subprocess.run(script, capture_output=True, text=True).returncode == 0
     again = subprocess.run(script, capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
-    mine = tmp_path / "paper_dt0.03_tum_stamps.json"
+    mine = Path(again.stdout.strip().splitlines()[-1].split(":")[0])  # the file it writes last
     mine.write_text('{"mine": 1}\n')
+    before = {path.name: path.stat().st_mtime_ns for path in tmp_path.iterdir()}
     refused = subprocess.run(script, capture_output=True, text=True)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "--force" in refused.stderr, refused
     assert mine.read_text() == '{"mine": 1}\n'
+    assert {path.name: path.stat().st_mtime_ns for path in tmp_path.iterdir()} == before  # none rewritten
 
 
 def test_the_slice_script_leaves_nothing_behind_when_it_fails_and_states_its_factor(tmp_path):

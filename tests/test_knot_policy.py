@@ -1,5 +1,6 @@
 """Knot policy: interval lengths from tracked motion, checked against hand-derived expectations."""
 
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -213,10 +214,25 @@ def test_a_gap_opened_by_frames_without_ground_truth_or_a_pause_is_named_as_such
     which runs with TS-SLAM's RPE above the baseline's.  Both now name the better way out."""
     cfg = config.tiny()
     cfg.method, cfg.spline.dt = "tsslam", 0.25
-    holed = 1341841873.0 + np.delete(np.arange(40) / 30.0, np.arange(10, 19))
-    with pytest.raises(ValueError, match=r"9 frame\(s\) without a ground-truth pose were left out before this check.*"
+    recorded = 1341841873.0 + np.arange(40) / 30.0
+    holed, left_out = np.delete(recorded, np.arange(10, 19)), recorded[10:19]
+    with pytest.raises(ValueError, match=r"9 frame\(s\) without a ground-truth pose were left out there.*"
                                          r"--set data\.require_gt=false keeps them"):
-        knot_schedule.check_frame_spacing(cfg, holed, frames_left_out=9)
+        knot_schedule.check_frame_spacing(cfg, holed, left_out)
+    before_frame_0 = recorded[0] - np.arange(1, 5) / 30.0  # as the bundled slice's four: they open no gap
+    with pytest.raises(ValueError) as refused:
+        knot_schedule.check_frame_spacing(cfg, holed, before_frame_0)
+    assert "ground-truth" not in str(refused.value)
+    with pytest.raises(ValueError, match=r"0\.433 s apart.*a smaller --frames step than 13 brings them closer, or use "
+                                         r"--set spline\.dt=0\.45"):
+        knot_schedule.check_frame_spacing(cfg, recorded[::13], frame_step=13)
+    adaptive = config.apply_overrides(cfg, ["spline.knots=adaptive"])
+    with pytest.raises(ValueError, match=r"--set spline\.dt_max=0\.9 \(or more\)") as refused:
+        knot_schedule.check_frame_spacing(adaptive, recorded[::13])
+    suggested = re.findall(r"--set (spline\.\w+=[\d.]+)", str(refused.value))  # dt_min above dt_max was refused
+    following = config.apply_overrides(adaptive, suggested)
+    knot_schedule.check_knot_settings(following)
+    knot_schedule.check_frame_spacing(following, recorded[::13])
     paused = 1341841873.0 + np.concatenate([np.arange(15) / 30.0, 14 / 30.0 + 1.536 + np.arange(15) / 30.0])
     with pytest.raises(ValueError, match=r"1\.536 s apart.*cut the sequence at the gap \(--frames on each side of it\) or "
                                          r"use --method coslam; --set spline\.dt=1\.55 \(or more\) would run, but "

@@ -1054,3 +1054,26 @@ def test_a_map_bound_of_zero_extent_is_refused_by_the_loop_too():
     cfg.field.bound = [[0.0, 0.0], [0.0, 1.0], [0.0, 1.0]]
     with pytest.raises(ValueError, match=r"min < max, got \[\[0.0, 0.0\]"):
         slam.initial_state([SimpleNamespace(pose_c2w=None)], cfg, torch.device("cpu"))
+
+
+def test_tracking_counts_its_time_in_the_same_locked_step_as_its_log_entry(synthetic_sequence, monkeypatch):
+    """With --parallel a checkpoint is written under the lock; tracking added its time before taking
+    the lock and its log entry after, so a checkpoint between the two counted a frame's tracking
+    without its entry, and a resume counted it twice.  Oracle: the lock's state when the time is added."""
+    cfg = small_config("tsslam")
+    sequence = data.load_sequence(synthetic_sequence, frame_stop=3)
+    state, on, dtype = slam.prepare_run(sequence, cfg, torch.device("cpu"), None)
+    slam.start_map(state, device.frame_to_device(sequence[0], on, dtype))
+    state.done = 1
+    lock, seen = threading.Lock(), []
+    add = state.timings.add
+
+    def watching_add(stage, seconds, iterations):
+        if stage == "tracking":
+            seen.append((lock.locked(), len(state.log)))
+        add(stage, seconds, iterations)
+
+    monkeypatch.setattr(state.timings, "add", watching_add)
+    slam.track(state, device.frame_to_device(sequence[1], on, dtype), lock=lock)
+    assert seen == [(True, 0)] and [entry["frame"] for entry in state.log] == [1]
+    assert state.log[0]["tracking_iterations"] == state.timings.iterations["tracking"] == cfg.tracking.iters

@@ -169,9 +169,9 @@ def _parse_layout(folder: Path, kind: str, fps: float, max_time_diff: float):
     return parse_folder(folder, fps, max_time_diff)
 
 
-def _keep_frames_with_gt(index, folder: Path, max_time_diff: float) -> int:
+def _keep_frames_with_gt(index, folder: Path, max_time_diff: float) -> np.ndarray:
     """Drop, in place, the frames of ``index`` whose ground-truth pose is unknown (not finite) and
-    return how many; ValueError when none is left."""
+    return their timestamps (s); ValueError when none is left."""
     known = np.flatnonzero(np.isfinite(index.gt_poses).all(axis=(1, 2)))
     if len(known) == 0:
         span = "" if index.gt_span is None else f", the ground truth {index.gt_span[0]:.6f}-{index.gt_span[1]:.6f} s"
@@ -179,10 +179,10 @@ def _keep_frames_with_gt(index, folder: Path, max_time_diff: float) -> int:
                          f"{index.timestamps[0]:.6f}-{index.timestamps[-1]:.6f} s{span}): check that both use the "
                          f"same clock and unit, or run without ground truth (no ATE / RPE) with "
                          f"--set data.require_gt=false (require_gt=False in load_sequence)")
+    dropped = np.delete(index.timestamps, known)
     index.rgb_paths = [index.rgb_paths[i] for i in known]
     index.depth_paths = [index.depth_paths[i] for i in known]
-    index.timestamps = index.timestamps[known]
-    dropped, index.gt_poses = len(index.gt_poses) - len(known), index.gt_poses[known]
+    index.timestamps, index.gt_poses = index.timestamps[known], index.gt_poses[known]
     return dropped
 
 
@@ -229,8 +229,8 @@ def load_sequence(
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
     index = _parse_layout(folder, kind, fps, max_time_diff)
-    without_gt = _keep_frames_with_gt(index, folder, max_time_diff) if require_gt and index.gt_poses is not None else 0
-    chosen = _select(index, frame_start, frame_stop, frame_step, folder, without_gt)
+    dropped = _keep_frames_with_gt(index, folder, max_time_diff) if require_gt and index.gt_poses is not None else ()
+    chosen = _select(index, frame_start, frame_stop, frame_step, folder, len(dropped))
     return RGBDSequence(
         name=folder.resolve().name,
         kind=kind,
@@ -243,8 +243,8 @@ def load_sequence(
         depth_scale=_depth_scale(depth_scale, index.depth_scale, kind, folder),
         crop_edge=crop_edge,
         resize_width=resize_width,
-        depth_trunc=depth_trunc,
-        frames_without_gt=without_gt, colour_without_depth=index.colour_without_depth, camera_note=index.camera_note,
+        depth_trunc=depth_trunc, frames_without_gt=len(dropped), times_without_gt=dropped,
+        colour_without_depth=index.colour_without_depth, camera_note=index.camera_note,
     )
 
 
@@ -321,16 +321,26 @@ def sequence_info(sequence: RGBDSequence, depth_samples: int = 5) -> dict:
         "width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
         "depth_scale": sequence.depth_scale,
         "duration_s": float(sequence.timestamps[-1] - sequence.timestamps[0]),
-        **_spacing(np.asarray(sequence.timestamps, dtype=np.float64)),
+        **_spacing(_times_a_run_uses(sequence)),
         "depth_valid_fraction": float(np.mean(valid)),
         "depth_median_m": float(np.median(measured)) if measured.size else float("nan"),
         **({"camera_note": sequence.camera_note} if sequence.camera_note else {}),
     }
 
 
+def _times_a_run_uses(sequence: RGBDSequence) -> np.ndarray:
+    """(M,) stamps (s) of the frames a run keeps: those with a ground-truth pose when the sequence
+    has ground truth (``data.require_gt``, the default), else all."""
+    if sequence.gt_poses is None:
+        return sequence.timestamps
+    known = np.isfinite(sequence.gt_poses).all(axis=(1, 2))
+    return sequence.timestamps[known] if known.any() else sequence.timestamps
+
+
 def _spacing(times: np.ndarray) -> dict:
-    """Median frame spacing and the largest gap (s) with the frame before it: TS-SLAM refuses gaps
-    longer than its shortest interval and stretches sparser than half of it (``knot_schedule``)."""
+    """Median frame spacing and the largest gap (s) with the frame before it, numbered as a run
+    numbers its frames: TS-SLAM refuses gaps longer than its shortest interval and stretches
+    sparser than half of it (``knot_schedule``)."""
     if len(times) < 2:
         return {}
     gaps = np.diff(times)

@@ -63,7 +63,7 @@ def end_last_interval(state, last: int) -> None:
             state.trajectory = ended
 
 
-def check_frame_spacing(cfg: Config, timestamps, frames_left_out: int = 0) -> None:
+def check_frame_spacing(cfg: Config, timestamps, left_out_times=(), frame_step: int = 1) -> None:
     """ValueError when two consecutive frames lie further apart than the shortest spline interval,
     or when, over any stretch the curve approximation fits, that interval would hold fewer than two
     frames in the median.
@@ -81,8 +81,9 @@ def check_frame_spacing(cfg: Config, timestamps, frames_left_out: int = 0) -> No
     0.1 s) the policy has too few frames to measure the motion, keeps the last length, and the
     curve between frames ran tens of metres off.  The median is taken over every stretch of
     ``local_ba.fit_controls`` shortest intervals (:func:`sparse_stretch`), the span one fit rests
-    on, so a recording that drops to 5 Hz for a while is refused too.  ``frames_left_out``: frames
-    the loading left out (no ground-truth pose), which can open a gap the recording does not have.
+    on, so a recording that drops to 5 Hz for a while is refused too.  ``left_out_times``: (M,) stamps
+    (s) of frames the loading left out (no ground-truth pose): the refusal names them when they lie
+    in the gap or stretch it refuses; ``frame_step``: the selection's step (``--frames START:STOP:STEP``).
     """
     if cfg.method != "tsslam" or not cfg.local_ba.use_spline:
         return
@@ -95,15 +96,12 @@ def check_frame_spacing(cfg: Config, timestamps, frames_left_out: int = 0) -> No
     shortest = cfg.spline.dt if uniform else min(cfg.spline.dt, cfg.spline.dt_min)
     which = (f"spline.dt = {cfg.spline.dt} s" if uniform else
              f"the shortest adaptive interval, min(spline.dt, spline.dt_min) = {shortest} s")
-    left_out = (f" ({frames_left_out} frame(s) without a ground-truth pose were left out before this check, which "
-                f"can open a gap the recording does not have; --set data.require_gt=false keeps them)"
-                if frames_left_out else "")
     if gaps[worst] > shortest:
         suggestion = math.ceil(max(gaps[worst], 0.0 if uniform else 2.0 * float(np.median(gaps))) * 20.0) / 20.0
         raise ValueError(
             f"frames {worst} and {worst + 1} (t = {times[worst]:.6f} s, {times[worst + 1]:.6f} s) are {gaps[worst]:.3f} s "
             f"apart, more than {which}, so a spline interval would hold no frame to fit its control point; "
-            f"{_gap_fix(cfg, suggestion)}{left_out}")
+            f"{_gap_fix(cfg, suggestion, frame_step)}{_left_out(left_out_times, times[worst], times[worst + 1])}")
     stretch = sparse_stretch(times, cfg.local_ba.fit_controls * shortest, shortest / 2.0 * (1.0 + 1e-6))
     if stretch is not None:  # fewer than two frames per interval there (stamps' rounding aside)
         first, last = stretch
@@ -112,7 +110,8 @@ def check_frame_spacing(cfg: Config, timestamps, frames_left_out: int = 0) -> No
         raise ValueError(
             f"frames {first} to {last} (t = {times[first]:.6f} s to {times[last]:.6f} s) are {typical:.3f} s apart "
             f"(median), more than half of {which}, so intervals there would hold fewer than two frames, too few to "
-            f"place their control points; use {_longer_intervals(cfg, suggestion)}, or --method coslam{left_out}")
+            f"place their control points; {_step_fix(frame_step)}use {_longer_intervals(cfg, suggestion)}, or --method "
+            f"coslam{_left_out(left_out_times, times[first], times[last])}")
 
 
 def sparse_stretch(times: np.ndarray, span: float, limit: float) -> Optional[Tuple[int, int]]:
@@ -135,8 +134,22 @@ HAND_HELD_DT = {field.name: field for field in dataclasses.fields(SplineConfig)}
 hand-held camera: a gap longer than it is a pause or a hole, better cut than spanned."""
 
 
-def _gap_fix(cfg: Config, seconds: float) -> str:
+def _left_out(left_out_times, start: float, end: float) -> str:
+    """The note on frames without ground truth left out between ``start`` and ``end`` (s), or ""."""
+    inside = int(np.count_nonzero((np.asarray(left_out_times) > start) & (np.asarray(left_out_times) < end)))
+    return (f" ({inside} frame(s) without a ground-truth pose were left out there, which opens a gap the recording "
+            f"does not have; --set data.require_gt=false keeps them)") if inside else ""
+
+
+def _step_fix(frame_step: int) -> str:
+    """The first way out when the selection's step spaced the frames: a smaller step, or ""."""
+    return f"a smaller --frames step than {frame_step} brings them closer, or " if frame_step > 1 else ""
+
+
+def _gap_fix(cfg: Config, seconds: float, frame_step: int = 1) -> str:
     """What to do about a gap that needs intervals of at least ``seconds``."""
+    if frame_step > 1:
+        return _step_fix(frame_step) + f"use {_longer_intervals(cfg, seconds)}, or --method coslam"
     if seconds > LONGEST_DT:  # beyond any interval the config allows
         return (f"no spline interval may be that long (spline.dt at most {LONGEST_DT:g} s): check the time stamps "
                 f"(milliseconds read as seconds?), cut the sequence at the gap, or use --method coslam")
@@ -151,7 +164,8 @@ def _longer_intervals(cfg: Config, seconds: float) -> str:
     """The --set options that make the shortest spline interval at least ``seconds`` long."""
     if cfg.spline.knots == "uniform":
         return f"--set spline.dt={seconds:g} (or more)"
-    return f"--set spline.dt_min={seconds:g} --set spline.dt={max(seconds, cfg.spline.dt):g} (or more)"
+    longest = f" --set spline.dt_max={seconds:g}" if seconds > cfg.spline.dt_max else ""  # dt_min <= dt_max
+    return f"--set spline.dt_min={seconds:g} --set spline.dt={max(seconds, cfg.spline.dt):g}{longest} (or more)"
 
 
 def check_knot_settings(cfg: Config) -> None:

@@ -179,7 +179,7 @@ def _checked_sequence(cfg, frames: Optional[str]):
         selection = (f"--frames {frames} selects" if frames else f"{sequence.path} has" if chosen == (0, None, 1)
                      else "data.frame_start:frame_stop:frame_step = {}:{}:{} selects".format(*chosen))
         raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
-    knot_schedule.check_frame_spacing(cfg, sequence.timestamps, frames_left_out=sequence.frames_without_gt)
+    knot_schedule.check_frame_spacing(cfg, sequence.timestamps, sequence.times_without_gt, cfg.data.frame_step)
     sequence.check_files()
     first = sequence[0]
     tracking.check_ray_budget(cfg, *first.depth.shape)  # the loop's own check, on the processed size

@@ -260,18 +260,18 @@ def track(state: SLAMState, frame: FrameTensors, field_model: Optional[SceneFiel
         init = motion_prediction(state, i)
         reference = [entry["tracking_loss"] for entry in state.log[:5]]
     rays = frame.sampled_rays(cfg.tracking.n_rays, state.generator, ignore_edge=cfg.tracking.ignore_edge)
-    with state.timings.stage("tracking") as record:
-        result = track_frame(field_model if field_model is not None else state.field, rays, init, cfg.tracking,
-                             state.loss_settings, generator=state.generator)
-        record.iterations = len(result.losses)
-    best_loss = check_tracking(result, reference, cfg, frame)
-    with lock:
+    started = time.perf_counter()
+    result = track_frame(field_model if field_model is not None else state.field, rays, init, cfg.tracking,
+                         state.loss_settings, generator=state.generator)
+    seconds, best_loss = time.perf_counter() - started, check_tracking(result, reference, cfg, frame)
+    with lock:  # the timing and the log entry together: a checkpoint (--parallel) sees both or neither
+        state.timings.add("tracking", seconds, len(result.losses))
         state.frame_poses[i] = result.pose
         state.tracking_output[i] = result.pose.clone()
         state.tracking_output.pop(i - 2, None)
         state.window_rays[i] = rays
-        state.log.append({"frame": i, "tracking_loss": best_loss, "tracking_seconds": record.seconds,
-                          "tracking_iterations": record.iterations, "outside_box": share_outside_bound(
+        state.log.append({"frame": i, "tracking_loss": best_loss, "tracking_seconds": seconds,
+                          "tracking_iterations": len(result.losses), "outside_box": share_outside_bound(
                               state.field.bound, rays, result.pose, min(cfg.data.depth_trunc, cfg.render.far))})
 
 

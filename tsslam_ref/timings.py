@@ -19,11 +19,9 @@ from typing import Dict, Iterator
 
 @dataclass
 class StageRecord:
-    """What one timed call counts; the body may set :attr:`iterations` once it knows them, and
-    :attr:`seconds` holds the call's time once the ``with`` block has ended."""
+    """What one timed call counts; the body may set :attr:`iterations` once it knows them."""
 
     iterations: int = 0
-    seconds: float = 0.0
 
 
 @dataclass
@@ -49,8 +47,7 @@ class Timings:
         record = StageRecord(iterations)
         start = time.perf_counter()
         yield record
-        record.seconds = time.perf_counter() - start
-        self.add(name, record.seconds, record.iterations)
+        self.add(name, time.perf_counter() - start, record.iterations)
 
     def table(self) -> Dict[str, Dict[str, float]]:
         """Per stage: ms per iteration, iterations per call, calls, total seconds.  A stage that ran

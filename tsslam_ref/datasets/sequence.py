@@ -55,7 +55,7 @@ class RGBDSequence:
         native_intrinsics: camera of the stored depth images before crop/resize.
         rgb_paths, depth_paths: the files, one per frame.
         frames_without_gt: frames of the folder left out before the selection because their
-        ground-truth pose is unknown (``require_gt``).
+        ground-truth pose is unknown (``require_gt``); ``times_without_gt``: their (M,) stamps (s).
         colour_without_depth: TUM colour images left out because no depth image was taken within
         the association tolerance (0.02 s); 0 for the other layouts.
         camera_note: why the camera may not be the data's (a TUM folder whose name names no camera
@@ -79,6 +79,7 @@ class RGBDSequence:
         frames_without_gt: int = 0,
         colour_without_depth: int = 0,
         camera_note: str = "",
+        times_without_gt=(),
     ):
         if not (len(rgb_paths) == len(depth_paths) == len(timestamps)):
             raise ValueError(
@@ -103,6 +104,7 @@ class RGBDSequence:
         self.resize_width = resize_width
         self.depth_trunc = depth_trunc
         self.frames_without_gt = int(frames_without_gt)
+        self.times_without_gt = np.asarray(times_without_gt, dtype=np.float64)
         self.colour_without_depth = int(colour_without_depth)
         self.camera_note = camera_note
         width, height = output_size(native_intrinsics.width, native_intrinsics.height, self.crop_edge, resize_width)
