@@ -85,6 +85,8 @@ def test_an_image_of_another_size_than_the_intrinsics_is_refused():
         frame_rays(np.zeros((60, 80, 3), np.float32), half, full, rows, cols)
     with pytest.raises(ValueError, match=r"render_image's depth is 80x60 .* for 160x120"):
         render_image(lambda x: None, torch.eye(4), full, config.tiny().render, depth=torch.from_numpy(half))
+    with pytest.raises(ValueError, match=r"render_image's height/width is 80x60 .* for 160x120"):
+        render_image(lambda x: None, torch.eye(4), full, config.tiny().render, height=60, width=80)
     resized = full.resized(80, 60)
     assert len(frame_rays(np.zeros((60, 80, 3), np.float32), half, resized, rows, cols)) == 1  # the right size
 

@@ -318,8 +318,8 @@ def render_rays(
 
 
 def _render_size(intrinsics, depth, height: Optional[int], width: Optional[int]) -> Tuple[int, int]:
-    """(H, W) of :func:`render_image`: the depth's (checked against ``intrinsics``), else the
-    arguments', else the intrinsics'."""
+    """(H, W) of :func:`render_image`: the depth's, else the arguments', else the intrinsics' (the
+    first two checked against ``intrinsics`` when they carry a size)."""
     if depth is not None:
         check_image_size(depth.shape[0], depth.shape[1], intrinsics, "render_image's depth")
         return depth.shape[0], depth.shape[1]
@@ -327,6 +327,7 @@ def _render_size(intrinsics, depth, height: Optional[int], width: Optional[int])
     width = width if width is not None else getattr(intrinsics, "width", None)
     if height is None or width is None:
         raise ValueError("render_image needs the image size: intrinsics.width/height, height/width or depth")
+    check_image_size(height, width, intrinsics, "render_image's height/width")
     return height, width
 
 
