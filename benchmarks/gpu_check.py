@@ -220,8 +220,9 @@ def main(argv=None) -> int:
     if os.path.exists(args.json) and not args.overwrite:
         print(f"error: --json {args.json} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2
-    if _unwritable(Path(args.json)):  # found out only after every run otherwise
-        print(f"error: --json {args.json}: {_unwritable(Path(args.json))}", file=sys.stderr)
+    unwritable = _unwritable(Path(args.json))  # found out only after every run otherwise
+    if unwritable:
+        print(f"error: --json {args.json}: {unwritable}", file=sys.stderr)
         return 2
     base = config.load("tum-cpu")
     try:
