@@ -53,7 +53,7 @@ from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
 from .run_outputs import advance, check_output_folder, data_notes, export_file_name, write_outputs
-from .run_outputs import write_partial_trajectory
+from .run_outputs import FolderInUse, close_progress, output_folder_lock, write_partial_trajectory
 from .export import MAX_EXPORT_RATE, export_times
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
@@ -393,15 +393,9 @@ def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
     return on_frame
 
 
-def _close(progress) -> None:
-    """Close the progress bar (None: there is none)."""
-    if progress is not None:
-        progress.close()
-
-
 def _interrupted(plan: Plan, progress, reached: Dict[str, int]) -> int:
     """Say where an interrupted run stopped and how to continue it; returns EXIT_INTERRUPTED."""
-    _close(progress)
+    close_progress(progress)
     checkpoint_path = plan.out / "checkpoint.pt"
     if checkpoint_path.is_file():  # this run's, or the one it resumed from (with --checkpoint-every 0)
         where = (f"the checkpoint in {checkpoint_path} holds {reached['checkpoint']} frames; "
@@ -414,7 +408,7 @@ def _interrupted(plan: Plan, progress, reached: Dict[str, int]) -> int:
 
 def _tracking_failed(plan: Plan, progress, failure: Exception) -> int:
     """Report a tracking failure on stderr and in metrics.json; returns EXIT_TRACKING_FAILURE."""
-    _close(progress)
+    close_progress(progress)
     print(f"error: the run failed: {failure}", file=sys.stderr)
     atomic_write_text(plan.out / "metrics.json", json.dumps({"failed": True, "reason": str(failure)}, indent=2))
     return EXIT_TRACKING_FAILURE
@@ -470,13 +464,13 @@ def execute(plan: Plan) -> int:
     except slam.TrackingFailure as failure:
         return _tracking_failed(plan, progress, failure)
     except (ValueError, OSError) as error:  # a frame that cannot be read (checked cheaply before the run)
-        _close(progress)
+        close_progress(progress)
         how = ("after replacing the file, run the same command with --resume to continue from its checkpoint ({} frames "
                "done); after removing the frame from the lists instead, with --overwrite".format(reached["checkpoint"])
                if (out / "checkpoint.pt").is_file() else "after fixing the data, run the same command with --overwrite")
         print(f"error: {error}; the outputs so far are in {out}: {how}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    _close(progress)
+    close_progress(progress)
     write_outputs(plan, result)
     return EXIT_OK
 
@@ -497,7 +491,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         print("interrupted while checking the input; nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
     try:
-        return execute(plan)
+        with output_folder_lock(plan.out):
+            return execute(plan)
+    except FolderInUse as error:  # another run writes there (nothing was touched)
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         resumable = (plan.out / "checkpoint.pt").is_file() and not (plan.out / "metrics.json").is_file()
         how = ("again: the finished run's files are unchanged" if plan.finished else

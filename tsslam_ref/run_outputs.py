@@ -13,9 +13,12 @@ run and calls these.
 import json
 import os
 import re
+import socket
 import sys
+import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import List
+from typing import Iterator, List
 
 import numpy as np
 
@@ -59,12 +62,13 @@ def check_output_folder(out: Path, overwrite: bool, resume: bool, data_folder: s
         return
     if not os.access(out, os.W_OK | os.X_OK):
         raise ValueError(f"output folder {out}: no permission to write in it")
+    _refuse_if_held(out)
     names = [entry.name for entry in out.iterdir()]
     if names and not (overwrite or resume):
         ours = sorted(name for name in names if is_output_name(name))
-        leftovers = [name for name in names if is_temporary_of(name, is_output_name)]  # a run removes them too
-        if ours or leftovers:
-            removed = ours + ([f"{len(leftovers)} temporary file(s) of a killed run"] if leftovers else [])
+        leftovers = [name for name in names if is_temporary_of(name, is_output_name) or name == LOCK_NAME]
+        if ours or leftovers:  # a run removes the leftovers too
+            removed = ours + ([f"{len(leftovers)} file(s) a killed run left"] if leftovers else [])
             kept = len(names) - len(ours) - len(leftovers)
             replaced = f"it would replace {', '.join(removed)} and keep the other {kept} entries"
         else:
@@ -88,6 +92,69 @@ def remove_previous_outputs(out: Path) -> List[Path]:
     return removed
 
 
+class FolderInUse(ValueError):
+    """Another run, which may still be going, holds the output folder (:func:`output_folder_lock`)."""
+
+
+LOCK_NAME = "run.lock"
+"""The file a going run keeps in its folder (its process id, host and start time); removed when the run
+ends, left by a killed one (a later run on the folder replaces it)."""
+
+
+@contextmanager
+def output_folder_lock(out: Path) -> Iterator[Path]:
+    """Create ``out`` and hold it for this process while the block runs: a second run on the same
+    folder (``--resume`` or ``--overwrite`` beside a going run) is refused with a ValueError naming the
+    other process; a lock whose process has ended on this host is taken over."""
+    out.mkdir(parents=True, exist_ok=True)
+    lock = out / LOCK_NAME
+    owner = f"{os.getpid()} {socket.gethostname()} {time.strftime('%Y-%m-%d %H:%M:%S')}\n"
+    for _ in range(2):
+        try:
+            descriptor = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            break
+        except FileExistsError:
+            _refuse_if_held(out)
+            lock.unlink(missing_ok=True)  # its process has ended: a killed run's lock
+    else:
+        raise FolderInUse(f"cannot take the lock {lock}: another run took it at the same moment")
+    with os.fdopen(descriptor, "w") as handle:
+        handle.write(owner)
+    try:
+        yield lock
+    finally:
+        lock.unlink(missing_ok=True)
+
+
+def _refuse_if_held(out: Path) -> None:
+    """ValueError when a run that may still be going holds ``out`` (:func:`output_folder_lock`)."""
+    lock = out / LOCK_NAME
+    holder = _live_holder(lock)
+    if holder:
+        raise FolderInUse(f"another run ({holder}) is writing {out}; wait for it to end or choose another --out "
+                         f"(if no such run is going, remove {lock})")
+
+
+def _live_holder(lock: Path) -> str:
+    """'process P on HOST since TIME' when the lock's process may still run, '' when it has ended (same
+    host, no such process) or the file is gone; a lock of another host counts as live."""
+    try:
+        pid, host, since = lock.read_text().split(maxsplit=2)
+        pid = int(pid)
+    except FileNotFoundError:
+        return ""
+    except ValueError:  # being written this instant, or not ours: do not take it
+        return f"lock file {lock} of unknown content"
+    if host == socket.gethostname():
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return ""
+        except PermissionError:  # a process of another user
+            pass
+    return f"process {pid} on {host} since {since.strip()}"
+
+
 def data_notes(sequence) -> List[str]:
     """What the run says about its data before it starts: frames left out, a camera chosen by default."""
     notes = []
@@ -103,6 +170,12 @@ def data_notes(sequence) -> List[str]:
 OUTSIDE_BOX_WARNING = 0.25
 """A tracked frame whose measured surface lies outside the map's box by more than this share gets
 the run's one warning (``mapping.share_outside_bound``)."""
+
+
+def close_progress(progress) -> None:
+    """Close the progress bar (None: there is none)."""
+    if progress is not None:
+        progress.close()
 
 
 def advance(progress, state, reached: dict) -> None:
