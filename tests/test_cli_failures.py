@@ -166,7 +166,7 @@ def test_config_files_and_output_paths_are_named(tmp_path, capsys):
                        "it would replace config.json and keep the other 1 entries")
     (tmp_path / "taken" / ".checkpoint.pt.abcd1234.tmp").write_text("left by a killed run")  # --overwrite removes it
     refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "not empty", "it would replace config.json, "
-                       "1 temporary file(s) of a killed run and keep the other 1 entries")
+                       "1 file(s) a killed run left and keep the other 1 entries")
     (tmp_path / "taken" / ".checkpoint.pt.abcd1234.tmp").unlink()
     (tmp_path / "taken" / "config.json").unlink()
     assert snapshot(tmp_path) == before
