@@ -488,6 +488,42 @@ def test_kernel_build_failure_falls_back_to_the_pytorch_path_with_one_warning(mo
     assert torch.allclose(fallback, grid(points), atol=1e-6)
 
 
+TORCH_BUILD_FAILURE = (  # the shape of torch's message: the whole command line first, the cause at the end
+    "Error building extension 'tsslam_hash_grid_0123': [1/3] c++ -MMD -MF hash_grid.o.d -DTORCH_EXTENSION_NAME="
+    + "-I/some/include/path " * 40 + "-c /site/tsslam_ref/csrc/hash_grid.cpp -o hash_grid.o\n"
+    "FAILED: hash_grid.o\n/bin/sh: 1: c++: not found\nninja: build stopped: subcommand failed.\n")
+
+
+def test_a_failed_build_is_reported_by_its_cause_not_by_the_command_line(monkeypatch):
+    from torch.utils import cpp_extension
+
+    def failing_build(*args, **kwargs):
+        raise RuntimeError(TORCH_BUILD_FAILURE)
+
+    monkeypatch.setattr(cpp_extension, "load", failing_build)
+    monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
+    monkeypatch.delenv("TSSLAM_NO_COMPILED_KERNEL", raising=False)
+    monkeypatch.delenv("CXX", raising=False)
+    with pytest.warns(RuntimeWarning, match="c\\+\\+: not found") as caught:
+        assert not hash_kernel.available()
+    assert len(str(caught[0].message)) < 800 and "-I/some/include/path" not in str(caught[0].message)
+    assert hash_kernel.load_error() == "RuntimeError: " + TORCH_BUILD_FAILURE  # the whole text stays recorded
+    assert hash_kernel.failure_summary("line one\nline two") == "line one | line two"  # nothing telling: the end
+
+
+def test_a_missing_compiler_is_named_before_torch_tries_to_build(monkeypatch):
+    from torch.utils import cpp_extension
+
+    calls = []
+    monkeypatch.setattr(cpp_extension, "load", lambda *args, **kwargs: calls.append(1))
+    monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
+    monkeypatch.delenv("TSSLAM_NO_COMPILED_KERNEL", raising=False)
+    monkeypatch.setenv("CXX", "/nonexistent/c++")
+    with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler: '/nonexistent/c\\+\\+' \\(\\$CXX\\)"):
+        assert not hash_kernel.available()
+    assert calls == []  # torch's own banner about the compiler's version never comes
+
+
 def test_environment_switch_turns_the_kernel_off(monkeypatch):
     monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
     monkeypatch.setenv("TSSLAM_NO_COMPILED_KERNEL", "1")

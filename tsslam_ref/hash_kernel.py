@@ -24,6 +24,7 @@ Layer 1 (map): imports torch only.
 
 import hashlib
 import os
+import re
 import shutil
 import sysconfig
 import threading
@@ -109,12 +110,29 @@ def ninja_search_path(path: str, scripts: Optional[str] = None) -> str:
     return path
 
 
+def failure_summary(message: str, limit: int = 400) -> str:
+    """The lines of a build failure that say why (a compiler's ``error:``, ``not found``, ...), else its
+    end: torch's message starts with the whole compiler command line, which says nothing (and lines
+    that long are commands, not causes)."""
+    lines = [line.strip() for line in message.splitlines() if line.strip()]
+    telling = [line for line in lines if _TELLING.search(line) and len(line) < 300]
+    summary = " | ".join(telling or lines[-3:])
+    return summary if len(summary) <= limit else "..." + summary[-limit:]
+
+
+_TELLING = re.compile(r"error:|not found|no such file|permission denied|fatal|required|cannot|killed", re.IGNORECASE)
+
+
 def _build() -> bool:
     try:
         from torch.utils import cpp_extension
 
         os.environ["PATH"] = ninja_search_path(os.environ.get("PATH", ""))
 
+        compiler = os.environ.get("CXX", "c++")
+        if shutil.which(compiler) is None:  # before torch, whose banner would blame the compiler's version
+            raise RuntimeError(f"no C++ compiler: {compiler!r} ({'$CXX' if 'CXX' in os.environ else 'the default'}) "
+                               f"is not found on PATH; install one (e.g. g++) or set CXX")
         name = build_name()
         try:  # a stale lock makes cpp_extension.load wait forever without a word: say so first
             message = stale_lock_message(cpp_extension._get_build_directory(name, verbose=False))
@@ -135,8 +153,9 @@ def _build() -> bool:
     except Exception as error:  # no compiler, no ninja, a failed build: fall back, say why once
         _STATE["error"] = f"{type(error).__name__}: {error}"
         warnings.warn(
-            "tsslam_ref: the compiled hash-grid kernel could not be built, using the PyTorch path "
-            f"(slower, same results to rounding). Reason: {_STATE['error'][:500]}",
+            "tsslam_ref: the compiled hash-grid kernel could not be built, using the PyTorch path (slower, more "
+            "memory; each operation agrees to rounding, so a run's poses differ slightly). Reason: "
+            f"{failure_summary(_STATE['error'])} (the whole message: metrics.json, environment.map_kernels)",
             RuntimeWarning,
             stacklevel=3,
         )
