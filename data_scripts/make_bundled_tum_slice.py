@@ -25,6 +25,7 @@ import numpy as np
 
 from tsslam_ref.data import load_sequence
 from tsslam_ref.datasets.tum_format import read_tum_trajectory
+from tsslam_ref.files import normal_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 README = """# TUM RGB-D fr3/teddy, first {n} frames at {w}x{h} (bundled default sequence)
@@ -54,7 +55,7 @@ def make_slice(source: Path, out: Path, n_frames: int, width: int, force: bool) 
     sequence = load_sequence(source, dataset="tum", resize_width=width, require_gt=False, frame_stop=n_frames)
     native_width = load_sequence(source, dataset="tum", require_gt=False, frame_stop=1).intrinsics.width
     out.parent.mkdir(parents=True, exist_ok=True)
-    temporary = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    temporary = normal_folder(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     try:
         _write_slice(source, sequence, n_frames, f"1/{native_width / width:g}", temporary)
     except BaseException:

@@ -183,6 +183,8 @@ def test_synthesize_round_trip(tmp_path):
     np.testing.assert_allclose(frame.depth, depth, atol=0.5 / 5000 + 1e-6)
     np.testing.assert_allclose(frame.rgb, rgb, atol=0.5 / 255 + 1e-6)
     assert (out / "gt_mesh.ply").stat().st_size > 1000
+    (tmp_path / "made_by_mkdir").mkdir()  # the folder is as readable as one mkdir makes (not mkdtemp's 0o700)
+    assert out.stat().st_mode & 0o777 == (tmp_path / "made_by_mkdir").stat().st_mode & 0o777
     with pytest.raises(FileExistsError, match="not empty"):
         synthetic.synthesize(out, n_frames=2, width=32, height=24)
     synthetic.synthesize(out, n_frames=2, width=32, height=24, overwrite=True, mesh_voxel=0.2)

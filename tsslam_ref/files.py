@@ -32,9 +32,20 @@ output they were to become (a user's ``tmp12345678.tmp`` is not ours)."""
 
 def normal_mode() -> int:
     """The permission bits ``open(path, "w")`` gives a new file: 0o666 without the process umask."""
+    return 0o666 & ~_umask()
+
+
+def normal_folder(path: PathLike) -> Path:
+    """Give ``path`` (a folder made by ``tempfile.mkdtemp``, always 0o700) the mode ``mkdir`` gives:
+    0o777 without the umask, so a dataset moved into place is as readable as any other folder."""
+    os.chmod(path, 0o777 & ~_umask())
+    return Path(path)
+
+
+def _umask() -> int:
     mask = os.umask(0o022)  # reading the umask means setting it; put it straight back
     os.umask(mask)
-    return 0o666 & ~mask
+    return mask
 
 
 @contextlib.contextmanager

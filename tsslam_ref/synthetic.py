@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from tsslam_ref.datasets.intrinsics import Intrinsics, pixel_rays
+from tsslam_ref.files import normal_folder
 from tsslam_ref.datasets.tum_format import interpolate_poses, read_tum_trajectory, write_tum_trajectory
 
 SEQUENCE_ENTRIES = frozenset({"rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.json",
@@ -433,7 +434,7 @@ def synthesize(out_dir, trajectory=None, n_frames: int = 60, width: int = 160, h
             f"(need >= {MIN_CLEARANCE} m; the room is {ROOM_MIN}..{ROOM_MAX}); use fewer frames or another start_time"
         )
     out.parent.mkdir(parents=True, exist_ok=True)
-    temporary = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    temporary = normal_folder(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     try:
         _write_sequence(temporary, scene, intrinsics, times, poses, clean_depth, seed, mesh_voxel)
         settings = {"bound": scene.bound.tolist(), "intrinsics": intrinsics.to_dict(), "fps": fps, "seed": seed,
