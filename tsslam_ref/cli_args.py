@@ -6,6 +6,7 @@ expected, with exit status 2 (docs/cli.md).  Layer 0 (base): standard library on
 
 import argparse
 import math
+import os
 
 EXIT_BAD_INPUT = 2
 
@@ -15,6 +16,12 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def user_path(text: str) -> str:
+    """An argparse ``type`` for a path: a leading ``~`` is the home folder, as the shell would have it
+    (a shell leaves ``--out=~/x`` and a quoted ``"~/x"`` alone, and ``./~/x`` is a trap to delete)."""
+    return os.path.expanduser(text)
 
 
 def number_in(name: str, low: float, high: float, integer: bool = False, low_open: bool = False,

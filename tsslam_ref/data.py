@@ -30,7 +30,7 @@ from typing import Optional
 
 import numpy as np
 
-from tsslam_ref.cli_args import OneLineParser, number_in
+from tsslam_ref.cli_args import OneLineParser, number_in, user_path
 from tsslam_ref.datasets.intrinsics import Intrinsics, back_project, pixel_rays
 from tsslam_ref.datasets.layouts import (
     DEPTH_SCALES,
@@ -394,11 +394,11 @@ def build_parser() -> argparse.ArgumentParser:
                            epilog="Exit status: 0 done, 2 bad input (one line naming the file and what was expected).")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     info = commands.add_parser("info", help="summarise a dataset folder")
-    info.add_argument("path")
+    info.add_argument("path", type=user_path)
     info.add_argument("--json", action="store_true", help="print JSON")
     synth = commands.add_parser("synthesize", help="render a synthetic TUM-layout sequence")
-    synth.add_argument("--out", required=True)
-    synth.add_argument("--trajectory", default=None,
+    synth.add_argument("--out", type=user_path, required=True)
+    synth.add_argument("--trajectory", type=user_path, default=None,
                        help="TUM-format trajectory file, or a shipped stretch of real motion: "
                             f"{', '.join(SHIPPED_TRAJECTORIES)} (default: built-in path)")
     synth.add_argument("--frames", type=number_in("--frames", 1, 100_000, integer=True), default=60,

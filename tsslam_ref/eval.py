@@ -90,14 +90,14 @@ def _print_result(result: Dict[str, object], keys: Sequence[str], as_json: bool)
 
 def _build_parser():
     """The command line: ``trajectory GT EST`` and ``mesh REC GT`` with their options."""
-    from tsslam_ref.cli_args import OneLineParser, number_in
+    from tsslam_ref.cli_args import OneLineParser, number_in, user_path
 
     parser = OneLineParser(prog="python -m tsslam_ref.eval", description=__doc__.split("\n")[0],
                            epilog="Exit status: 0 done, 2 bad input (one line naming the file and what was expected).")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     trajectory = commands.add_parser("trajectory", help="ATE/RPE of EST against GT (TUM format files)")
-    trajectory.add_argument("gt", help="ground truth, 'timestamp tx ty tz qx qy qz qw' per line")
-    trajectory.add_argument("est", help="estimate, same format, camera-to-world; one line per time stamp")
+    trajectory.add_argument("gt", type=user_path, help="ground truth, 'timestamp tx ty tz qx qy qz qw' per line")
+    trajectory.add_argument("est", type=user_path, help="estimate, same format, camera-to-world; one line per time stamp")
     trajectory.add_argument("--max-diff", type=number_in("--max-diff", 0, 10, low_open=True), default=DEFAULT_MAX_DIFF_S,
                             help=f"association tolerance (s), in (0, 10]; default {DEFAULT_MAX_DIFF_S}")
     trajectory.add_argument("--scale", action="store_true", help="Sim(3) alignment (estimate scale)")
@@ -108,15 +108,15 @@ def _build_parser():
                                  "itself (needs a GT stamp within --max-diff), instead of the nearest GT sample")
     trajectory.add_argument("--json", action="store_true", help="print one JSON object")
     mesh = commands.add_parser("mesh", help="accuracy/completion of REC against GT meshes")
-    mesh.add_argument("rec", help="reconstructed mesh (.ply, .obj), in metres")
-    mesh.add_argument("gt", help="ground-truth mesh of the same scene, in metres")
+    mesh.add_argument("rec", type=user_path, help="reconstructed mesh (.ply, .obj), in metres")
+    mesh.add_argument("gt", type=user_path, help="ground-truth mesh of the same scene, in metres")
     mesh.add_argument("--threshold", type=number_in("--threshold", 0, 100, low_open=True), default=0.05,
                       help="completion-ratio threshold (m), in (0, 100]; default 0.05")
     mesh.add_argument("--points", type=number_in("--points", 1, 10**8, integer=True), default=None,
                       help="surface samples per mesh, 1 to 1e8; default 200000 (50000 with --cull-like)")
     mesh.add_argument("--seed", type=number_in("--seed", 0, 2**63 - 1, integer=True), default=None,
                       help="sampling seed; default 0 (the run's seed with --cull-like)")
-    mesh.add_argument("--cull-like", metavar="RUN", default=None,
+    mesh.add_argument("--cull-like", type=user_path, metavar="RUN", default=None,
                       help="cull both meshes as the run in folder RUN did (its config.json: data, frames, seed) and "
                            "score them by its protocol: metrics.json's reconstruction numbers")
     mesh.add_argument("--json", action="store_true", help="print one JSON object")

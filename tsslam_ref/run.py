@@ -48,7 +48,7 @@ from . import config as config_module
 from . import data as data_module
 from . import device as device_module
 from . import knot_schedule, tracking
-from .cli_args import OneLineParser, number_in, silence_stdout, stop_on_sigterm_as_on_ctrl_c
+from .cli_args import OneLineParser, number_in, silence_stdout, stop_on_sigterm_as_on_ctrl_c, user_path
 from .files import atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
@@ -100,12 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run TS-SLAM (or the Co-SLAM baseline) on an RGB-D sequence.",
         epilog="Exit status: 0 done, 2 bad input (nothing written), 3 tracking failure, 130 interrupted.",
     )
-    parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM fr3/teddy slice)")
+    parser.add_argument("--data", type=user_path, default="", help="dataset folder (default: the bundled TUM fr3/teddy slice)")
     parser.add_argument("--dataset", default=None, choices=["auto", "tum", "scannet", "neural_rgbd", "replica", "folder", "synthetic"],
                         help="dataset layout (default: detected from the folder); 'synthetic' = a folder written by `python -m tsslam_ref.data synthesize`")
-    parser.add_argument("--config", default=None, help="preset name (%s) or a config.json; default tum-cpu" % ", ".join(config_module.PRESETS))
+    parser.add_argument("--config", type=user_path, default=None, help="preset name (%s) or a config.json; default tum-cpu" % ", ".join(config_module.PRESETS))
     parser.add_argument("--method", default=None, choices=["tsslam", "coslam"], help="trajectory representation (default tsslam)")
-    parser.add_argument("--out", default=None, help="output folder (default runs/<sequence>-<method>)")
+    parser.add_argument("--out", type=user_path, default=None, help="output folder (default runs/<sequence>-<method>)")
     parser.add_argument("--seed", type=_seed, default=None, help="random seed, an integer in [0, 2**32 - 1] (default from the config: 0)")
     parser.add_argument("--device", default=None, choices=["cpu", "cuda", "auto"], help="compute device (default auto)")
     parser.add_argument("--frames", default=None, help="START:STOP[:STEP] frame selection, 0 <= START < STOP <= frames")

@@ -34,7 +34,7 @@ import numpy as np
 
 from tsslam_ref import conformance, conformance_hints
 from tsslam_ref.files import atomic_write_text
-from tsslam_ref.cli_args import OneLineParser
+from tsslam_ref.cli_args import OneLineParser, user_path
 
 VECTOR_DIR = Path(__file__).resolve().parent / "assets" / "spline_vectors"
 REFERENCE_DOC = Path(__file__).resolve().parent / "assets" / "spline_kit.md"
@@ -100,13 +100,13 @@ def _build_parser() -> argparse.ArgumentParser:
                         epilog=_epilog())
     commands.add_parser("docs", help="print the kit's reference (conventions, formulas, golden values)")
     inputs = commands.add_parser("inputs", help="write the input part of every shipped vector to FOLDER/<name>.json")
-    inputs.add_argument("folder")
+    inputs.add_argument("folder", type=user_path)
     inputs.add_argument("--force", action="store_true", help="overwrite files this kit did not write")
     run = commands.add_parser("evaluate", help="evaluate R, p, v, a, omega, omegadot at the input times",
                               epilog=_epilog())
-    run.add_argument("input", help="input JSON (convention, dt, t0, rotvecs, translations, times[, representation]; "
+    run.add_argument("input", type=user_path, help="input JSON (convention, dt, t0, rotvecs, translations, times[, representation]; "
                                    "or knots instead of convention, dt, t0)")
-    run.add_argument("-o", "--output", required=True, help="output JSON path (inputs echoed + outputs)")
+    run.add_argument("-o", "--output", type=user_path, required=True, help="output JSON path (inputs echoed + outputs)")
     run.add_argument("--force", action="store_true", help="overwrite an existing file this kit did not write")
     run.add_argument("--jacobians", action="store_true",
                      help="also write J_first and the Jacobians J_R, J_p, J_v, J_a, J_omega_body, J_omegadot_body "
@@ -116,10 +116,10 @@ def _build_parser() -> argparse.ArgumentParser:
                             ("check-all", "check FOLDER/<name>.json against every shipped vector <name>")):
         check = commands.add_parser(name, help=help_text, epilog=_epilog())
         if name == "check":
-            check.add_argument("reference", help="reference JSON, or the name of a shipped vector")
-            check.add_argument("candidate")
+            check.add_argument("reference", type=user_path, help="reference JSON, or the name of a shipped vector")
+            check.add_argument("candidate", type=user_path)
         else:
-            check.add_argument("folder")
+            check.add_argument("folder", type=user_path)
             check.add_argument("--allow-missing", action="store_true",
                                help="a deliberate partial check: exit 0 when every vector present passes (the "
                                     "missing ones are still listed); by default a missing vector fails")
