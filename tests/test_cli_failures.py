@@ -1034,6 +1034,18 @@ def test_eval_mesh_cull_like_a_run_gives_the_runs_reconstruction_numbers(runs):
     assert plain["accuracy_m"] > 2 * metrics["accuracy_m"]  # unculled: the whole box's surface against the seen part
     refused(cli("eval", "mesh", "meshed/mesh.ply", "room/gt_mesh.ply", "--cull-like", "room", cwd=root),
             "--cull-like room: no config.json there")
+    # the data moved since the run (its config.json records the old place): named, and --data reads it
+    shutil.copytree(root / "meshed", root / "moved")
+    saved = json.loads((root / "moved" / "config.json").read_text())
+    saved["data"]["path"] = str(root / "room_before_moving")
+    (root / "moved" / "config.json").write_text(json.dumps(saved))
+    refused(cli("eval", "mesh", "moved/mesh.ply", "room/gt_mesh.ply", "--cull-like", "moved", cwd=root),
+            f"the data folder its config.json records ({root / 'room_before_moving'}) cannot be read", "--data")
+    again = cli("eval", "mesh", "moved/mesh.ply", "room/gt_mesh.ply", "--cull-like", "moved", "--data", "room",
+                "--json", cwd=root)
+    assert again.returncode == 0 and json.loads(again.stdout) == scored, again.stderr
+    refused(cli("eval", "mesh", "moved/mesh.ply", "room/gt_mesh.ply", "--data", "room", cwd=root),
+            "--data names the data of the run given by --cull-like")
 
 
 def test_resume_naming_the_device_the_run_used_is_not_refused(runs, tmp_path, monkeypatch, capsys):

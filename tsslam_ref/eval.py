@@ -71,7 +71,13 @@ def _as_the_run_culled(rec: trimesh.Trimesh, gt: trimesh.Trimesh, args) -> Dict[
     if not os.path.isfile(saved):
         raise ValueError(f"--cull-like {args.cull_like}: no config.json there; expected the output folder of a run")
     cfg = config_module.load(saved)
-    sequence = load_from_config(cfg.data)
+    recorded, cfg.data.path = cfg.data.path, args.data or cfg.data.path
+    try:
+        sequence = load_from_config(cfg.data)
+    except (ValueError, OSError) as error:  # the data moved, or changed since the run
+        where = "--data" if args.data else f"the data folder its config.json records ({recorded or 'the bundled slice'})"
+        raise ValueError(f"--cull-like {args.cull_like}: {where} cannot be read as the run's data ({error}); pass "
+                         f"--data with where that data is now") from None
     if sequence.gt_poses is None:
         raise ValueError(f"--cull-like {args.cull_like}: its data {sequence.path} has no ground-truth poses to "
                          f"cull with")
@@ -119,6 +125,9 @@ def _build_parser():
     mesh.add_argument("--cull-like", type=user_path, metavar="RUN", default=None,
                       help="cull both meshes as the run in folder RUN did (its config.json: data, frames, seed) and "
                            "score them by its protocol: metrics.json's reconstruction numbers")
+    mesh.add_argument("--data", type=user_path, default=None, metavar="PATH",
+                      help="with --cull-like: the run's dataset folder where it is now (default: the folder its "
+                           "config.json records)")
     mesh.add_argument("--json", action="store_true", help="print one JSON object")
     return parser
 
@@ -146,6 +155,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             keys = ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_matched", "n_est", "n_gt", "delta_frames",
                     "scale"]
         else:
+            if args.data is not None and args.cull_like is None:
+                raise ValueError("--data names the data of the run given by --cull-like; give --cull-like RUN too")
             rec, gt = read_mesh(args.rec), read_mesh(args.gt)
             _warn_if_other_units(rec, gt, args.rec, args.gt)
             keys = ["accuracy_m", "completion_m", "completion_ratio", "threshold_m", "n_points"]
