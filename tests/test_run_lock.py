@@ -76,6 +76,18 @@ def test_a_killed_runs_lock_is_named_then_taken_over(tmp_path):
     assert not lock.exists()
 
 
+def test_a_lock_naming_this_process_id_that_this_process_does_not_hold_is_taken_over(tmp_path):
+    """In a container every start gets the same low process ids: a killed run's lock can name ours."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / run_outputs.LOCK_NAME).write_text(f"{os.getpid()} {socket.gethostname()} 2026-01-01 00:00:00\n")
+    with run_outputs.output_folder_lock(out):
+        with pytest.raises(run_outputs.FolderInUse, match=f"another run .process {os.getpid()} "):
+            with run_outputs.output_folder_lock(out):  # the one this process does hold is refused
+                pass
+    assert not (out / run_outputs.LOCK_NAME).exists()
+
+
 def test_a_lock_of_another_host_or_of_unknown_content_is_not_taken(tmp_path):
     out = tmp_path / "run"
     out.mkdir()

@@ -120,10 +120,17 @@ def output_folder_lock(out: Path) -> Iterator[Path]:
         raise FolderInUse(f"cannot take the lock {lock}: another run took it at the same moment")
     with os.fdopen(descriptor, "w") as handle:
         handle.write(owner)
+    _HELD.add(lock.resolve())
     try:
         yield lock
     finally:
+        _HELD.discard(lock.resolve())
         lock.unlink(missing_ok=True)
+
+
+_HELD = set()
+"""The locks this process holds: a lock naming this process's id but not among them was left by an
+earlier process that had the same id (a container starts its processes at the same low ids)."""
 
 
 def _refuse_if_held(out: Path) -> None:
@@ -145,6 +152,8 @@ def _live_holder(lock: Path) -> str:
         return ""
     except ValueError:  # being written this instant, or not ours: do not take it
         return f"lock file {lock} of unknown content"
+    if host == socket.gethostname() and pid == os.getpid() and lock.resolve() not in _HELD:
+        return ""
     if host == socket.gethostname():
         try:
             os.kill(pid, 0)
