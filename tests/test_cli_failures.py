@@ -116,6 +116,14 @@ def test_late_errors_are_now_refused_before_the_output_folder_is_made(tmp_path):
     (["--set", "seed=-1"], ["seed = -1"]),
     (["--frames", "0:1"], ["--frames 0:1 selects 1 frame", "at least 2"]),
     (["--set", "data.frame_stop=1"], ["data.frame_start:frame_stop:frame_step = 0:1:1 selects 1 frame"]),  # not "has"
+    (["--frames", "0:10", "--set", "data.frame_step=20"],  # the --set wins: not "--frames 0:10 selects 1 frame"
+     ["data.frame_start:frame_stop:frame_step = 0:10:20 selects 1 frame"]),
+    (["--set", "tracking.iter=3"], ["unknown key 'tracking.iter' (did you mean 'tracking.iters'?)"]),
+    (["--set", "trackin.iters=3"], ["unknown section 'trackin' (did you mean 'tracking'?)"]),
+    (["--set", "name=my run 3"], ["name = 'my run 3' must be one of default, tum, "]),  # its config.json would not load
+    (["--set", "data.dataset=tumm"], ["data.dataset = 'tumm' must be one of auto, tum, scannet"]),
+    (["--set", "mesh.voxel_eval=0.5"], ["unknown key 'mesh.voxel_eval'"]),  # nothing read it
+    (["--set", "tracking.iters=2.5"], ["tracking.iters = 2.5 must be an integer"]),
     (["--frames=-3:8"], ["--frames -3:8"]),
     (["--frames", "5:2"], ["--frames '5:2' selects no frames"]),
     (["--frames", "0:5000"], ["stop=5000 is beyond the 100 usable frames", "none (START:)"]),  # ran 100, said 5000
@@ -946,6 +954,12 @@ def test_keys_of_the_other_method_are_matched_by_name_and_section():
     assert [text.split(" ")[0] for text in unread("coslam", ["mapping.tsslam_map_every=0", "mapping.map_every=3",
                                                             "splines.dt=1", "local_ba.enabled=false"])] == [
         "mapping.tsslam_map_every=0", "local_ba.enabled=false"]
+    uniform, adaptive = config_module.load("tum-cpu"), config_module.apply_overrides(
+        config_module.load("tum-cpu"), ["spline.knots=adaptive"])
+    policy = ["spline.dt_min=0.2", "spline.dt_max=0.5", "spline.rotation_tolerance=1", "spline.position_tolerance=1"]
+    assert unread("tsslam", policy + ["spline.dt=0.2"], uniform) == [
+        f"{text} (read only with spline.knots=adaptive)" for text in policy]
+    assert unread("tsslam", policy, adaptive) == [] and unread("tsslam", policy) == []
 
 
 def test_a_parallel_run_stopped_with_ctrl_c_resumes(runs):

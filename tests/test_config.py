@@ -291,3 +291,56 @@ def test_a_key_given_twice_in_a_config_file_is_refused_naming_it(tmp_path):
         config.load(str(path))
     path.write_text('{"name": "tum-cpu", "tracking": {"iters": 5}, "mapping": {"iters": 7}}')  # one per object: fine
     assert config.load(str(path)).tracking.iters == 5 and config.load(str(path)).mapping.iters == 7
+
+
+def test_override_values_in_python_number_syntax_and_whole_numbers_for_integers():
+    """'.5', '5.', '+0.5' and '+3' were refused as "must be a finite number" / "an integer", and
+    '1e3' for an integer setting as "1000.0 must be an integer"."""
+    cfg = config.apply_overrides(config.tum_cpu(), ["tracking.lr_rot=.5", "tracking.lr_trans=5.", "mapping.lr_embed=+0.5",
+                                                    "mapping.iters=+3", "tracking.n_rays=1e2", "seed=2E1"])
+    assert (cfg.tracking.lr_rot, cfg.tracking.lr_trans, cfg.mapping.lr_embed) == (0.5, 5.0, 0.5)
+    assert (cfg.mapping.iters, cfg.tracking.n_rays, cfg.seed) == (3, 100, 20)
+    assert all(type(value) is int for value in (cfg.mapping.iters, cfg.tracking.n_rays, cfg.seed))
+    assert config.apply_overrides(config.tum_cpu(), ["data.path=2024"]).data.path == "2024"  # strings stay text
+    for bad in ("tracking.lr_rot=nan", "tracking.lr_rot=inf", "tracking.iters=1e400", "tracking.iters=3.5"):
+        with pytest.raises(ValueError, match=re.escape(bad.split("=")[0])):
+            config.apply_overrides(config.tum_cpu(), [bad])
+
+
+def test_a_yaml_file_is_named_as_yaml_and_an_old_config_with_voxel_eval_still_loads(tmp_path):
+    coslam_yaml = tmp_path / "tum.yaml"
+    coslam_yaml.write_text("inherit_from: configs/Tum/tum.yaml\nmapping:\n  bound: [[-3.5, 3], [-3, 3], [-3, 3]]\n")
+    with pytest.raises(ValueError, match="YAML .Co-SLAM's config format. is not read"):
+        config.load(str(coslam_yaml))
+    (tmp_path / "empty.json").write_text("")
+    with pytest.raises(ValueError, match="not valid JSON") as refused:
+        config.load(str(tmp_path / "empty.json"))
+    assert "YAML" not in str(refused.value)
+    old = config.to_dict(config.tum_cpu())
+    old["mesh"]["voxel_eval"] = 0.05  # what earlier versions saved
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    assert config.to_dict(config.load(str(tmp_path / "old.json"))) == config.to_dict(config.tum_cpu())
+    with pytest.raises(ValueError, match="unknown key 'tracking.iter' .did you mean 'tracking.iters'"):
+        config.from_dict({"tracking": {"iter": 3}})
+
+
+def test_a_full_size_presets_crop_on_small_frames_is_noted():
+    """`--config tum` on 160-px frames cropped 12 % of their width (10 px per side, made for 640) and
+    could not resize to 496 px, without a word."""
+    from types import SimpleNamespace
+
+    from tsslam_ref.datasets.intrinsics import Intrinsics
+    from tsslam_ref.run_outputs import data_notes
+
+    def notes(width, height, crop, resize):
+        camera = Intrinsics(fx=width, fy=width, cx=width / 2, cy=height / 2, width=width, height=height)
+        return data_notes(SimpleNamespace(frames_without_gt=0, colour_without_depth=0, camera_note=None,
+                                          native_intrinsics=camera, crop_edge=crop, resize_width=resize))
+
+    tum = config.load("tum")
+    small = notes(160, 120, tum.data.crop_edge, tum.data.resize_width)
+    assert len(small) == 1 and small[0].startswith("these frames are 160x120 px: data.crop_edge = 10 px per side")
+    assert "removes 12 % of their width, and data.resize_width = 496 does not enlarge them" in small[0]
+    assert notes(640, 480, tum.data.crop_edge, tum.data.resize_width) == []  # what the preset is made for
+    assert notes(160, 120, 0, 160) == []  # tum-cpu, tiny
+    assert "does not enlarge" not in notes(160, 120, 10, None)[0]  # scannet's crop, no resize

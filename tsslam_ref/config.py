@@ -56,8 +56,8 @@ def ranged(default: Any, comparison: str, bound: Any) -> Any:
 class DataConfig(_Settings):
     """Which frames to read and how to pre-process them."""
 
-    dataset: str = "auto"
-    """Layout of ``path``: auto | tum | scannet | neural_rgbd | replica | folder (ours)."""
+    dataset: str = ranged("auto", "in", ("auto", "tum", "scannet", "neural_rgbd", "replica", "folder"))
+    """Layout of ``path`` (ours; a folder ``data synthesize`` wrote is ``tum``)."""
     path: str = ""
     """Dataset folder; empty means the bundled default sequence (ours)."""
     resize_width: Optional[int] = ranged(None, ">=", 8)
@@ -329,8 +329,6 @@ class LocalBAConfig(_Settings):
 class MeshConfig(_Settings):
     """Marching-cubes meshes (Co-SLAM section 6.1)."""
 
-    voxel_eval: float = ranged(0.05, ">", 0)
-    """Voxel size (m) of intermediate meshes (Co-SLAM)."""
     voxel_final: float = ranged(0.03, ">", 0)
     """Voxel size (m) of the final mesh (Co-SLAM: 0.02 Replica/Synthetic, 0.03 ScanNet/TUM)."""
     sdf_cutoff: float = ranged(3.0, ">", 0)
@@ -342,7 +340,7 @@ class MeshConfig(_Settings):
 class Config(_Settings):
     """Everything a run needs.  Saved as ``config.json`` beside every run's outputs."""
 
-    name: str = "default"
+    name: str = ranged("default", "in", ("default",) + tuple(PRESET_LAYERS))
     """Preset name this config started from."""
     method: str = ranged("tsslam", "in", ('tsslam', 'coslam'))
     """tsslam (B-spline trajectory) or coslam (one pose per frame, the baseline)."""
@@ -376,15 +374,24 @@ IGNORED_BY_METHOD: Dict[str, Tuple[Tuple[str, ...], str]] = {
 }
 
 
-def overrides_without_effect(method: str, overrides: Sequence[str]) -> List[str]:
-    """Of the overrides ``KEY=VALUE``, those whose key ``method`` never reads, each with the reason."""
+ADAPTIVE_ONLY = ("spline.dt_min", "spline.dt_max", "spline.rotation_tolerance", "spline.position_tolerance")
+"""The knot policy's settings: read only with ``spline.knots=adaptive``."""
+
+
+def overrides_without_effect(method: str, overrides: Sequence[str], cfg: Optional["Config"] = None) -> List[str]:
+    """Of the overrides ``KEY=VALUE``, those whose key ``method`` never reads, each with the reason
+    (with ``cfg``, also the knot policy's settings when its knots are uniform)."""
     keys, reason = IGNORED_BY_METHOD.get(method, ((), ""))
+    uniform = cfg is not None and method == "tsslam" and cfg.spline.knots == "uniform"
+
+    def key_of(text: str) -> str:
+        return text.split("=", 1)[0].strip()
 
     def ignored(text: str) -> bool:
-        key = text.split("=", 1)[0].strip()
-        return any(key.startswith(name) if name.endswith(".") else key == name for name in keys)
+        return any(key_of(text).startswith(name) if name.endswith(".") else key_of(text) == name for name in keys)
 
-    return [f"{text} ({reason})" for text in overrides if ignored(text)]
+    return [f"{text} ({reason})" if ignored(text) else f"{text} (read only with spline.knots=adaptive)"
+            for text in overrides if ignored(text) or (uniform and key_of(text) in ADAPTIVE_ONLY)]
 
 
 # --------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ place.
 
 import copy
 import dataclasses
+import difflib
 import json
 import math
 import re
@@ -42,18 +43,32 @@ def set_values(cfg: Any, values: Dict[str, Any], source: str = "<dict>") -> Any:
     """
     for key, value in values.items():
         if not _has_field(cfg, key):
-            raise ValueError(f"{source}: unknown config section or key '{key}'")
+            raise ValueError(f"{source}: unknown config section or key '{key}'{_suggestion(cfg, key)}")
         current = getattr(cfg, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
                 raise ValueError(f"{source}: section '{key}' must be an object, got {type(value).__name__}")
             for sub_key, sub_value in value.items():
+                if f"{key}.{sub_key}" in RETIRED_KEYS:  # written by earlier versions, never read
+                    continue
                 if not _has_field(current, sub_key):
-                    raise ValueError(f"{source}: unknown key '{key}.{sub_key}'")
+                    raise ValueError(f"{source}: unknown key '{key}.{sub_key}'{_suggestion(current, sub_key, key)}")
                 setattr(current, sub_key, sub_value)
         else:
             setattr(cfg, key, value)
     return cfg
+
+
+RETIRED_KEYS = ("mesh.voxel_eval",)
+"""Keys that earlier versions wrote into config.json but nothing read (Co-SLAM's voxel of the meshes
+it writes during a run; this package writes none): skipped when a file is read, refused in ``--set``."""
+
+
+def _suggestion(target: Any, name: str, section: str = "") -> str:
+    """' (did you mean 'section.key'?)' for a misspelt key of the config dataclass ``target``, else ''."""
+    known = [item.name for item in dataclasses.fields(target)] if dataclasses.is_dataclass(target) else []
+    close = difflib.get_close_matches(name, known, n=1)
+    return f" (did you mean '{section + '.' if section else ''}{close[0]}'?)" if close else ""
 
 
 def _type_problem(value: Any, annotation: Any) -> Optional[str]:
@@ -141,7 +156,8 @@ def _check_bound(bound: Any, source: str) -> None:
 
 
 def _parse_value(text: str) -> Any:
-    """An override's value: JSON where it parses, Python's True / False / None, else the text."""
+    """An override's value: JSON where it parses, Python's True / False / None and number syntax
+    (``.5``, ``5.``, ``+3``), else the text."""
     try:
         return json.loads(text)
     except json.JSONDecodeError:
@@ -149,7 +165,18 @@ def _parse_value(text: str) -> Any:
             return text == "True"
         if text == "None":
             return None
+        for number in (int, float):
+            try:
+                return number(text)
+            except ValueError:
+                pass
         return text
+
+
+def _integral(value: Any, annotation: Any) -> Any:
+    """``value`` as an int when the field holds an int and the value is a whole float (``1e3``)."""
+    whole = isinstance(value, float) and value.is_integer() and abs(value) < 2**53
+    return int(value) if whole and annotation in (int, Optional[int]) else value
 
 
 def apply_overrides(cfg: Any, overrides: Sequence[str]) -> Any:
@@ -168,12 +195,14 @@ def apply_overrides(cfg: Any, overrides: Sequence[str]) -> Any:
         target = cfg
         for part in parts[:-1]:
             if not _has_field(target, part):
-                raise ValueError(f"override '{item}': unknown section '{part}'")
+                raise ValueError(f"override '{item}': unknown section '{part}'{_suggestion(target, part)}")
             target = getattr(target, part)
         if not _has_field(target, parts[-1]) or dataclasses.is_dataclass(getattr(target, parts[-1])):
-            raise ValueError(f"override '{item}': unknown key '{path}'")
-        value = _parse_value(text.strip())
-        if {f.name: f.type for f in dataclasses.fields(target)}[parts[-1]] is str and not isinstance(value, str):
+            hint = _suggestion(target, parts[-1], ".".join(parts[:-1]))
+            raise ValueError(f"override '{item}': unknown key '{path}'{hint}")
+        annotation = {f.name: f.type for f in dataclasses.fields(target)}[parts[-1]]
+        value = _integral(_parse_value(text.strip()), annotation)
+        if annotation is str and not isinstance(value, str):
             value = text.strip()  # a string field keeps the text as typed (data.path=2024)
         setattr(target, parts[-1], value)
     return validate(cfg, "overrides " + " ".join(overrides) if overrides else "config")
@@ -204,7 +233,10 @@ def read_json_values(path: str) -> Dict[str, Any]:
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text file; expected a JSON config object") from None
     except json.JSONDecodeError as error:
-        raise ValueError(f"{path}: not valid JSON ({error}); expected a JSON config object") from None
+        yaml = str(path).endswith((".yaml", ".yml")) or re.match(r"\s*[A-Za-z_][\w-]*\s*:", error.doc) is not None
+        hint = ("; YAML (Co-SLAM's config format) is not read: start from a preset (--config tum, scannet, "
+                "replica, synthetic) and change values with --set" if yaml else "")
+        raise ValueError(f"{path}: not valid JSON ({error}); expected a JSON config object{hint}") from None
     if not isinstance(values, dict):
         raise ValueError(f"{path}: the JSON is a {type(values).__name__}; expected an object "
                          f"{{section: {{key: value}}}} like a run's config.json")

@@ -176,7 +176,8 @@ def _checked_sequence(cfg, frames: Optional[str]):
     sequence = data_module.load_from_config(cfg.data)
     if len(sequence) < 2:
         chosen = (cfg.data.frame_start, cfg.data.frame_stop, cfg.data.frame_step)
-        selection = (f"--frames {frames} selects" if frames else f"{sequence.path} has" if chosen == (0, None, 1)
+        selection = (f"--frames {frames} selects" if frames and parse_frames(frames) == chosen
+                     else f"{sequence.path} has" if chosen == (0, None, 1)
                      else "data.frame_start:frame_stop:frame_step = {}:{}:{} selects".format(*chosen))
         raise BadInput(f"{selection} {len(sequence)} frame; a run needs at least 2")
     knot_schedule.check_frame_spacing(cfg, sequence.timestamps, sequence.times_without_gt, cfg.data.frame_step)
@@ -454,7 +455,7 @@ def execute(plan: Plan) -> int:
           f"output {out}")
     for note in data_notes(sequence):  # frames left out, a camera chosen by default
         print(f"note: {note}")
-    for ignored in config_module.overrides_without_effect(cfg.method, plan.args.overrides):
+    for ignored in config_module.overrides_without_effect(cfg.method, plan.args.overrides, cfg):
         print(f"note: --set {ignored} has no effect with --method {cfg.method}")
     try:
         run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam

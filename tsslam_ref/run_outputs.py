@@ -164,6 +164,11 @@ def _live_holder(lock: Path) -> str:
     return f"process {pid} on {host} since {since.strip()}"
 
 
+SMALL_CROP_SHARE = 0.025
+"""A crop of more than this share of the width per side (16 px of 640; Co-SLAM's presets crop 8-10)
+is a full-size preset's crop on smaller frames: the run notes it."""
+
+
 def data_notes(sequence) -> List[str]:
     """What the run says about its data before it starts: frames left out, a camera chosen by default."""
     notes = []
@@ -173,6 +178,13 @@ def data_notes(sequence) -> List[str]:
     if sequence.colour_without_depth:
         notes.append(f"{sequence.colour_without_depth} colour image(s) in {sequence.path / 'rgb.txt'} have no depth "
                      f"image within 0.02 s and are not used")
+    width, height, crop = sequence.native_intrinsics.width, sequence.native_intrinsics.height, sequence.crop_edge
+    if crop > SMALL_CROP_SHARE * width:  # a full-size preset's crop (10 px of 640) on small frames
+        unenlarged = sequence.resize_width is not None and sequence.resize_width > width - 2 * crop
+        notes.append(f"these frames are {width}x{height} px: data.crop_edge = {crop} px per side (made for 640-px "
+                     f"frames) removes {100 * 2 * crop / width:.0f} % of their width"
+                     + (f", and data.resize_width = {sequence.resize_width} does not enlarge them" if unenlarged else "")
+                     + "; for frames this small use --config tum-cpu or synthetic-cpu, or --set data.crop_edge=0")
     return notes + ([sequence.camera_note] if sequence.camera_note else [])
 
 
