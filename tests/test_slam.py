@@ -773,7 +773,7 @@ def hand_built_state(method: str, n_frames: int = 12, **changes):
 
 def frame_at(state, i: int):
     return SimpleNamespace(index=i, timestamp=float(state.timestamps[i]), sampled_rays=lambda *a, **k: f"rays {i}",
-                           all_rays=lambda: f"all rays {i}")
+                           all_rays=lambda: f"all rays {i}", depth=torch.ones(4, 4))
 
 
 def record_keyframes(state, frame):
@@ -974,10 +974,14 @@ def test_check_tracking_keeps_the_best_iterations_loss_and_compares_with_the_med
     """check_tracking: losses [5, 1, 3] with the best at iteration 1 give 1 (not the last, 3); a
     reference [1, 1, 1, 1, 96] has median 1 (mean 20), so a loss of 60 > 50 x 1 is a divergence;
     a finite pose with a NaN loss is a failure too."""
-    cfg, frame = small_config("tsslam"), SimpleNamespace(index=9, timestamp=0.3)
+    cfg, frame = small_config("tsslam"), SimpleNamespace(index=9, timestamp=0.3, depth=torch.full((12, 16), 1.0))
     pose = torch.eye(4)
     assert slam.check_tracking(TrackingResult(pose, [5.0, 1.0, 3.0], 1), [], cfg, frame) == 1.0
-    with pytest.raises(slam.TrackingFailure, match="diverged at frame 9"):
+    with pytest.raises(slam.TrackingFailure, match="diverged at frame 9.* tracked frames$"):
+        slam.check_tracking(TrackingResult(pose, [60.0], 0), [1.0, 1.0, 1.0, 1.0, 96.0], cfg, frame)
+    frame.depth[:, :12] = cfg.render.far + 4  # a depth image off by 4 m: the message says so, not only "diverged"
+    with pytest.raises(slam.TrackingFailure, match="first tracked frames; 75 % of this frame's measured depth lies "
+                                                   "beyond"):
         slam.check_tracking(TrackingResult(pose, [60.0], 0), [1.0, 1.0, 1.0, 1.0, 96.0], cfg, frame)
     with pytest.raises(slam.TrackingFailure, match="non-finite pose or loss at frame 9"):
         slam.check_tracking(TrackingResult(pose, [float("nan")], 0), [], cfg, frame)

@@ -183,7 +183,8 @@ def data_notes(sequence) -> List[str]:
         unenlarged = sequence.resize_width is not None and sequence.resize_width > width - 2 * crop
         notes.append(f"these frames are {width}x{height} px: data.crop_edge = {crop} px per side (made for 640-px "
                      f"frames) removes {100 * 2 * crop / width:.0f} % of their width"
-                     + (f", and data.resize_width = {sequence.resize_width} does not enlarge them" if unenlarged else "")
+                     + (f", and data.resize_width = {sequence.resize_width} does not enlarge them" if unenlarged
+                        else "")
                      + "; for frames this small use --config tum-cpu or synthetic-cpu, or --set data.crop_edge=0")
     return notes + ([sequence.camera_note] if sequence.camera_note else [])
 
@@ -389,6 +390,7 @@ def write_outputs(plan, result) -> None:
     if cfg.method == "tsslam" and cfg.local_ba.use_spline:
         metrics["spline"] = spline_summary(result.state.trajectory, cfg.spline.knots)
     metrics.update(outside_box_summary(result.state.log))
+    metrics.update(motion_summary(result.timestamps, result.poses))
     metrics["runtime"] = result.state.timings.table()
     metrics["environment"] = run_environment(plan.device, result.state.field)
     if plan.environment is not None and plan.environment != metrics["environment"]:  # resumed elsewhere
@@ -408,6 +410,35 @@ def write_outputs(plan, result) -> None:
     if "peak_rss_mib" in metrics:
         parts.append(f"peak RSS {metrics['peak_rss_mib']:.0f} MiB")
     print("; ".join(parts + [f"outputs in {out}"]))
+
+
+LOST_SPEED = 5.0
+"""m/s: an estimated camera centre faster than this between two frames gets a warning.  Twice the
+fastest hand-held motion of the real trajectories we know (TUM-VI room1: 2.5 m/s between 30 Hz
+samples; TUM RGB-D desk and teddy: 0.5-0.6); a camera that tracking lost jumps faster (a 300 deg/s pan
+about a fixed centre, lost: 7.5-8.3 m/s), while the tracking loss may not rise at all."""
+
+
+def motion_summary(timestamps: np.ndarray, poses: np.ndarray) -> dict:
+    """``{"motion": ...}``: the estimate's peak speed (m/s) and angular speed (deg/s) between
+    consecutive frames, and their frames; a warning on stderr when the speed passes :data:`LOST_SPEED`.
+
+    Args: timestamps (N,) float64 s, increasing; poses (N, 4, 4) camera-to-world."""
+    if len(timestamps) < 2:
+        return {}
+    spacing = np.diff(timestamps)
+    speed = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) / spacing
+    relative = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])  # R_i^T R_{i+1}
+    angle = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0))
+    angular_speed = np.degrees(angle) / spacing
+    fastest, turning = int(np.argmax(speed)), int(np.argmax(angular_speed))
+    if speed[fastest] > LOST_SPEED:
+        print(f"warning: the estimated camera moves {speed[fastest]:.1f} m/s from frame {fastest} to {fastest + 1} "
+              f"(more than {LOST_SPEED:g} m/s, twice the fastest hand-held motion we know): tracking was most likely "
+              f"lost there, although its loss did not rise; check trajectory.png", file=sys.stderr)
+    return {"motion": {"peak_speed_m_s": float(speed[fastest]), "peak_speed_after_frame": fastest,
+                       "peak_angular_speed_deg_s": float(angular_speed[turning]),
+                       "peak_angular_speed_after_frame": turning}}
 
 
 def spline_summary(trajectory, knots: str) -> dict:

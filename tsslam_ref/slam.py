@@ -51,7 +51,7 @@ from .losses import RenderLossSettings
 from .mapping import estimate_bound, fit_map, make_map_optimizer, share_outside_bound
 from .render import RayBatch
 from .timings import Timings
-from .tracking import TrackingResult, check_ray_budget, constant_velocity_init, motion_scale, track_frame
+from .tracking import TrackingResult, check_ray_budget, constant_velocity_init, depth_problem, motion_scale, track_frame
 from .trajectory import BSplineTrajectory
 
 
@@ -285,7 +285,7 @@ def check_tracking(result: TrackingResult, reference: List[float], cfg: Config, 
     if len(reference) == 5 and best_loss > cfg.tracking.max_loss_ratio * float(np.median(reference)):
         raise TrackingFailure(
             f"tracking diverged at {where}: loss {best_loss:.4g} is more than {cfg.tracking.max_loss_ratio:g} x "
-            f"the median {np.median(reference):.4g} of the first tracked frames"
+            f"the median {np.median(reference):.4g} of the first tracked frames{depth_problem(cfg, frame.depth)}"
         )
     return best_loss
 

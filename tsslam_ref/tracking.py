@@ -141,6 +141,22 @@ def track_frame(
     return TrackingResult(pose=best_pose, losses=losses, best_iteration=best_iteration)
 
 
+def depth_problem(cfg: Config, depth: torch.Tensor) -> str:
+    """'; ' + what is wrong with a frame's (H, W) depth in metres (0 = missing) when most of it cannot
+    be used: under 10 % of the pixels measured, or most of the measured depth beyond
+    min(``data.depth_trunc``, ``render.far``); '' otherwise.  Appended to a tracking failure's message."""
+    measured = depth[depth > 0]
+    if measured.numel() < 0.1 * depth.numel():
+        share = 100 * measured.numel() / depth.numel()
+        return f"; only {share:.0f} % of this frame's pixels have a depth: check its depth image"
+    limit = min(cfg.data.depth_trunc, cfg.render.far)
+    beyond = float((measured >= limit).double().mean())
+    if beyond > 0.5:
+        return (f"; {100 * beyond:.0f} % of this frame's measured depth lies beyond {limit:g} m (data.depth_trunc, "
+                f"render.far): check its depth image")
+    return ""
+
+
 def check_ray_budget(cfg: Config, height: int, width: int) -> None:
     """ValueError naming the key when a frame of ``height`` x ``width`` px (after crop and resize)
     has fewer pixels than a step samples: tracking inside ``tracking.ignore_edge``, the first map."""
