@@ -14,6 +14,8 @@ import numpy as np
 
 C = np.array([[6, 0, 0, 0], [5, 3, -3, 1], [1, 3, 3, -2], [0, 0, 0, 1]], dtype=np.float64) / 6.0
 OFFSET = {"paper": 2, "basalt": 0}
+NON_CUMULATIVE = np.array([[1, 4, 1, 0], [-3, 0, 3, 0], [3, -6, 3, 0], [-1, 3, -3, 1]], dtype=np.float64) / 6.0
+"""The textbook non-cumulative matrix, p(u) = [1, u, u², u³] M [P_k..P_{k+3}]ᵀ (for the mistake only)."""
 
 
 def hat(v):
@@ -120,7 +122,10 @@ def evaluate(data, dtype=np.float64, mistake=None):
     the increment in the world frame, composed on the right as if it were the body one), "old_omega"
     (ω̇'s cross product with ω^(j), before its update and rotation by A_jᵀ), "no_V" (joint SE(3) vectors:
     Exp(ρ, φ) = [Exp(φ), ρ] and Log likewise, V(φ) left out), "world_twists" (joint SE(3) vectors:
-    ξ_j = Log(T_{k+j} T_{k+j-1}⁻¹) composed on the right).
+    ξ_j = Log(T_{k+j} T_{k+j-1}⁻¹) composed on the right), "clamp_ends" (u clamped to [0, 1], so a
+    time within rounding outside the domain is evaluated at its end), "left_product" (R = A_3 A_2 A_1 R_k,
+    the increments on the left in R alone), "non_cumulative" (the non-cumulative matrix's weights in the
+    cumulative sum), "omegadot_sign" (ω̇'s cross term subtracted), "no_t0" (u from t / Δt: t0 forgotten).
     """
     if data.get("representation", "split") == "se3":
         return evaluate_se3(data, with_v=mistake != "no_V", world_twists=mistake == "world_twists")
@@ -133,6 +138,13 @@ def evaluate(data, dtype=np.float64, mistake=None):
     n = len(rotations)
     out = {key: [] for key in ("R", "p", "v", "a", "omega_body", "omegadot_body")}
     basis_p = C.T if mistake == "transposed_basis" else C
+    if mistake == "non_cumulative":
+        C_used = NON_CUMULATIVE.T
+        basis_p = C_used
+    else:
+        C_used = C
+    if mistake == "no_t0":
+        t0 = 0.0
     offset = OFFSET[convention]
     if mistake == "other_convention":
         offset = OFFSET["basalt" if convention == "paper" else "paper"]
@@ -149,10 +161,10 @@ def evaluate(data, dtype=np.float64, mistake=None):
             s_float = i + (relative_ns - i * dt_ns) / dt_ns
         else:
             i = exact_segment(t, t0, dt, offset, n)
-        u = dtype(s_float - i)
-        B = (C @ np.array([1, u, u * u, u * u * u], dtype=np.float64)).astype(dtype)
-        Bd = (C @ np.array([0, 1, 2 * u, 3 * u * u], dtype=np.float64)).astype(dtype)
-        Bdd = (C @ np.array([0, 0, 2, 6 * u], dtype=np.float64)).astype(dtype)
+        u = dtype(min(max(s_float - i, 0.0), 1.0) if mistake == "clamp_ends" else s_float - i)
+        B = (C_used @ np.array([1, u, u * u, u * u * u], dtype=np.float64)).astype(dtype)
+        Bd = (C_used @ np.array([0, 1, 2 * u, 3 * u * u], dtype=np.float64)).astype(dtype)
+        Bdd = (C_used @ np.array([0, 0, 2, 6 * u], dtype=np.float64)).astype(dtype)
         Bp = (basis_p @ np.array([1, u, u * u, u * u * u], dtype=np.float64)).astype(dtype)
         Bpd = (basis_p @ np.array([0, 1, 2 * u, 3 * u * u], dtype=np.float64)).astype(dtype)
         Bpdd = (basis_p @ np.array([0, 0, 2, 6 * u], dtype=np.float64)).astype(dtype)
@@ -169,11 +181,12 @@ def evaluate(data, dtype=np.float64, mistake=None):
                 rotations[i + j - 1].T @ rotations[i + j])
             d = log_so3(increment.astype(np.float64)).astype(dtype)
             A = exp_so3(B[j] * d.astype(np.float64)).astype(dtype)
-            R = R @ A
+            R = A @ R if mistake == "left_product" else R @ A
             previous = omega
             omega = A.T @ omega + Bd[j] / scale_v * d
             crossed = previous if mistake == "old_omega" else omega  # (A_jᵀ ω^(j)) × d_j would equal ω^(j+1) × d_j
-            omega_dot = Bd[j] / scale_v * np.cross(crossed, d) + A.T @ omega_dot + Bdd[j] / scale_a * d
+            sign = -1.0 if mistake == "omegadot_sign" else 1.0
+            omega_dot = sign * Bd[j] / scale_v * np.cross(crossed, d) + A.T @ omega_dot + Bdd[j] / scale_a * d
         if mistake == "world_frame":
             omega, omega_dot = R @ omega, R @ omega_dot
         if mistake == "transposed_R":

@@ -119,6 +119,13 @@ def run_check(capsys, reference, candidate, tmp_path, *extra):
     ("paper_dt0.03_tum_stamps", "nanoseconds", "rounded to whole nanoseconds"),
     ("paper_dt0.25_large_rot", "world_increments", "the rotation's composition"),
     ("basalt_dt1_large_rot", "old_omega", "only omegadot fails"),
+    ("basalt_dt1_large_rot", "omegadot_sign", "only omegadot fails: check its recursion term by term"),
+    ("paper_dt0.03_tum_stamps", "clamp_ends", "errors only at the domain's end times (2 of the 2"),
+    ("paper_dt0.25_large_rot", "left_product", "only R fails while omega and omegadot pass"),
+    ("paper_dt0.25_large_rot", "non_cumulative", "NON-CUMULATIVE basis"),
+    ("basalt_dt1_large_rot", "non_cumulative", "NON-CUMULATIVE basis"),
+    ("basalt_dt0.1_floor_knots", "no_t0", "or t0 not subtracted (t0 = 0.1 s is 1 dt)"),
+    ("jacobians_paper_dt0.25", "no_t0", "or t0 not subtracted (t0 = 0.5 s is 2 dt)"),
 ])
 def test_each_planted_mistake_triggers_its_hint(capsys, tmp_path, vector, mistake, expected):
     data = load(spline_kit.VECTOR_DIR / f"{vector}.json")
@@ -126,6 +133,31 @@ def test_each_planted_mistake_triggers_its_hint(capsys, tmp_path, vector, mistak
     code, out = run_check(capsys, data, candidate, tmp_path)
     assert code == 1 and "FAIL" in out and expected in out, out
     assert "worst at index" in out and "u = " in out and "ref " in out and "cand " in out
+
+
+def test_a_bug_at_the_domain_ends_is_not_offered_a_looser_tolerance(capsys, tmp_path):
+    """Clamping u at t_min / t_max of the TUM-stamp vector (whose end times lie within rounding
+    outside the exact domain) errs by 3e-6 of the scale at two times: the float32 hint took it for
+    rounding and advised --rtol 1e-5, under which the bug passes; t_max moved 1 ns inside likewise."""
+    data = load(spline_kit.VECTOR_DIR / "paper_dt0.03_tum_stamps.json")
+    code, out = run_check(capsys, data, as_candidate(data, spline_formulas.evaluate(data, mistake="clamp_ends")),
+                          tmp_path)
+    assert code == 1 and "errors only at the domain's end times" in out and "--rtol" not in out, out
+    data = load(spline_kit.VECTOR_DIR / "paper_dt0.25_large_rot.json")
+    inside = dict(data, times=[t - 1e-9 if t == max(data["times"]) else t for t in data["times"]])
+    candidate = dict(as_candidate(inside, spline_formulas.evaluate(inside)), times=data["times"])
+    code, out = run_check(capsys, data, candidate, tmp_path)
+    assert code == 1 and "errors only at the domain's end times (1 of the" in out and "--rtol" not in out, out
+
+
+def test_a_time_written_with_too_few_digits_is_named_as_such():
+    data = load(spline_kit.VECTOR_DIR / "paper_dt0.03_tum_stamps.json")
+    written = np.array([float(f"{t:.15g}") for t in data["times"]])
+    with pytest.raises(conformance.ConformanceError, match="too few digits: write times with 17 significant"):
+        conformance.match_times(np.asarray(data["times"]), written, "candidate")
+    with pytest.raises(conformance.ConformanceError) as other:  # another time altogether: no such guess
+        conformance.match_times(np.asarray(data["times"]), np.asarray(data["times"]) + 0.001, "candidate")
+    assert "digits" not in str(other.value)
 
 
 UNIFORM_SPLIT = [path.stem for path in spline_kit.shipped_vectors()

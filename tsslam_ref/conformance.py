@@ -292,9 +292,12 @@ def match_times(ref_times: np.ndarray, cand_times: np.ndarray, candidate_name: s
     unmatched = np.flatnonzero(gap > TIME_MATCH * np.maximum(1.0, np.abs(cand_times)))
     if unmatched.size:
         m = int(unmatched[0])
+        digits = (" (so close that it was most likely written with too few digits: write times with 17 significant "
+                  "digits, repr() or %.17g, so they read back as the same float64)"
+                  if gap[m] <= 1e-14 * max(1.0, abs(float(cand_times[m]))) else "")
         raise ConformanceError(f"{candidate_name}: time {float(cand_times[m])!r} (index {m}) is not among the "
-                               f"reference times (nearest {float(sorted_times[nearest[m]])!r}); evaluate at the "
-                               f"reference's times")
+                               f"reference times (nearest {float(sorted_times[nearest[m]])!r}){digits}; evaluate at "
+                               f"the reference's times")
     return order[nearest]
 
 
