@@ -91,6 +91,33 @@ def test_push_back_pop_front_and_window_keep_the_curve():
         tiny.push_back(R[3] @ so3_exp(torch.tensor([2.0, 0.0, 0.0], dtype=F64)), P[3])
 
 
+def test_a_popped_trajectory_keeps_no_start_pose_so_ba_on_it_keeps_the_curve():
+    """pop_front kept the dropped start's pose: SplinePoses (as BA builds it) pins control point 0 so
+    that the curve starts at start_pose, and moved the popped curve's new start there (1.2 m)."""
+    R, P = random_controls(31, 9)
+    traj = BSplineTrajectory(R, P, 0.3, 0.0)
+    traj.start_pose = traj.poses(np.array(traj.domain()[0]))
+    traj.pop_front()
+    assert traj.start_pose is None
+    times = np.linspace(*traj.domain(), 7)
+    unmoved = SplinePoses(traj, [1, 2, 3], times, traj.poses(times), 1e-3, 1e-3)
+    torch.testing.assert_close(unmoved.poses(), traj.poses(times), atol=1e-12, rtol=0)
+
+
+def test_planned_knots_and_dynamics_windows_refuse_float32_seconds():
+    R, P = random_controls(32, 6)
+    traj = BSplineTrajectory(R, P, 0.3, 1305000064.0)
+    end = traj.knot_time(traj.n_ctrl + 1)
+    with pytest.raises(TypeError, match="end_time must be float64 seconds"):  # was 58 s off at t + 70 s
+        traj.plan_interval_end(traj.n_ctrl - 3, np.float32(end + 70.0))
+    with pytest.raises(TypeError, match="assumed_spacing must be float64"):
+        traj.plan_interval_end(traj.n_ctrl - 3, end + 0.1, assumed_spacing=np.float32(0.3))
+    from tsslam_ref.dynamics import sample_times
+
+    with pytest.raises(TypeError, match="t_start must be float64"):  # was "need t_end > t_start"
+        sample_times(np.float32(1.3e9), 1.3e9 + 0.3, 4)
+
+
 def test_pop_front_at_epoch_stamps_does_not_drift_in_time():
     R, P = random_controls(28, 1005)
     traj = BSplineTrajectory(R, P, 0.03, 1.3e9)

@@ -40,6 +40,7 @@ import torch
 
 from tsslam_ref.config import DynamicsConfig
 from tsslam_ref.spline import SplineSample
+from tsslam_ref.times import check_float64_seconds
 from tsslam_ref.trajectory import BSplineTrajectory
 
 
@@ -135,6 +136,8 @@ def sample_times(
     """
     if n_samples < 1:
         raise ValueError(f"n_samples must be >= 1, got {n_samples}")
+    check_float64_seconds("t_start", t_start)
+    check_float64_seconds("t_end", t_end)
     if not t_end > t_start:
         raise ValueError(f"need t_end > t_start, got [{t_start}, {t_end}] s")
     if jitter:

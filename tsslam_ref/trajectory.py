@@ -271,6 +271,8 @@ class BSplineTrajectory:
         if n < self.n_ctrl - 3:
             raise ValueError(f"interval {n} is already covered by the {self.n_ctrl} control points; only "
                              f"intervals >= {max(self.n_ctrl - 3, 0)} can be planned")
+        check_float64_seconds("end_time", end_time)
+        check_float64_seconds("assumed_spacing", 0.0 if assumed_spacing is None else assumed_spacing)
         offset = spline_module.first_segment_offset(self.convention)
         self._set_knot(n + offset + 1, float(end_time))
         if assumed_spacing is not None:
@@ -280,9 +282,13 @@ class BSplineTrajectory:
             self._knots = np.concatenate([self._knots, assumed])
 
     def pop_front(self) -> None:
-        """Drop control point 0 and advance t0 by dt; the curve is unchanged where still defined."""
+        """Drop control point 0 and advance t0 by dt; the curve is unchanged where still defined.
+
+        ``start_pose`` goes too (as in :meth:`window`): it is the pose of the start just dropped, and BA,
+        which pins control point 0 to it, would move the new start there."""
         if self.n_ctrl <= 4:
             raise ValueError(f"pop_front would leave {self.n_ctrl - 1} control points; a cubic spline needs 4")
+        self.start_pose = None
         self.control_rotations = self.control_rotations[1:]
         self.control_translations = self.control_translations[1:]
         if self._knots is None:  # t0 = origin + pops·dt, not t0 += dt, whose rounding adds up pop after pop
