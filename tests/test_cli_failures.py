@@ -489,6 +489,13 @@ def test_resume_of_a_finished_run_without_a_checkpoint_says_it_is_finished(runs)
     other = cli("run", "--data", "room", "--out", finished.name, *CHEAP, "--seed", "1", "--resume", cwd=root)
     refused(other, "--resume refused", "config.json", "seed was 0 in config.json, this command gives 1")
     assert snapshot(finished) == before
+    # a run of an earlier version, whose config.json holds mesh.voxel_eval (read by nothing, since removed)
+    saved = json.loads((finished / "config.json").read_text())
+    saved["mesh"]["voxel_eval"] = 0.05
+    (finished / "config.json").write_text(json.dumps(saved))
+    older = cli("run", "--data", "room", "--out", finished.name, *CHEAP, "--resume", cwd=root)
+    assert older.returncode == 0 and "finished run" in older.stdout, older.stdout + older.stderr
+    assert checkpoint.config_differences(saved, config_module.load(str(finished / "config.json"))) == []
 
 
 def test_export_rate_on_a_finished_run_writes_the_export_from_its_checkpoint(runs):

@@ -1,5 +1,5 @@
 """Two runs on one output folder: the second is refused while the first goes, and a killed run's
-lock does not stand in the way of the next one (``run_outputs.output_folder_lock``)."""
+lock file does not stand in the way of the next one (``run_outputs.output_folder_lock``, flock)."""
 
 import os
 import socket
@@ -43,7 +43,7 @@ def test_a_run_on_a_folder_another_process_writes_is_refused_and_changes_nothing
         error = capsys.readouterr().err.strip()
         assert code == run.EXIT_BAD_INPUT, error
         assert error.startswith(f"error: another run (process {holder.pid} on {socket.gethostname()} since ")
-        assert str(out / run_outputs.LOCK_NAME) in error and len(error.splitlines()) == 1
+        assert len(error.splitlines()) == 1
         assert files_of(out) == before
     finally:
         holder.communicate("", timeout=60)
@@ -63,41 +63,48 @@ def test_two_runs_past_the_folder_check_at_once_the_second_is_refused_by_the_loc
 
 
 def test_a_killed_runs_lock_is_named_then_taken_over(tmp_path):
+    """A killed run leaves its run.lock unlocked (the kernel drops a dead process's flock), whatever
+    it says: its process id (which a reboot or a container may give to another process), its host."""
     out = tmp_path / "run"
     earlier_run(out)
-    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     lock = out / run_outputs.LOCK_NAME
-    lock.write_text(f"{int(ended.stdout)} {socket.gethostname()} 2026-01-01 00:00:00\n")
-    with pytest.raises(ValueError, match="file.s. a killed run left"):
-        run_outputs.check_output_folder(out, overwrite=False, resume=False, data_folder=str(BUNDLED))
-    run_outputs.check_output_folder(out, overwrite=True, resume=False, data_folder=str(BUNDLED))
-    with run_outputs.output_folder_lock(out) as held:
-        assert held.read_text().split()[0] == str(os.getpid())
-    assert not lock.exists()
+    for content in (f"process {os.getpid()} on {socket.gethostname()} since 2026-01-01 00:00:00\n",
+                    "process 1 on some-other-host since 2026-01-01 00:00:00\n", ""):
+        lock.write_text(content)
+        with pytest.raises(ValueError, match="file.s. a killed run left"):
+            run_outputs.check_output_folder(out, overwrite=False, resume=False, data_folder=str(BUNDLED))
+        run_outputs.check_output_folder(out, overwrite=True, resume=False, data_folder=str(BUNDLED))
+        with run_outputs.output_folder_lock(out) as held:
+            assert held.read_text().startswith(f"process {os.getpid()} on {socket.gethostname()} since ")
+        assert not lock.exists()
 
 
-def test_a_lock_naming_this_process_id_that_this_process_does_not_hold_is_taken_over(tmp_path):
-    """In a container every start gets the same low process ids: a killed run's lock can name ours."""
+def test_the_lock_of_a_run_killed_with_sigkill_is_free_at_once(tmp_path):
     out = tmp_path / "run"
-    out.mkdir()
-    (out / run_outputs.LOCK_NAME).write_text(f"{os.getpid()} {socket.gethostname()} 2026-01-01 00:00:00\n")
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert holder.stdout.readline().strip() == "held"
+    with pytest.raises(run_outputs.FolderInUse, match=f"process {holder.pid} "):
+        run_outputs.check_output_folder(out, overwrite=True, resume=False, data_folder=str(BUNDLED))
+    holder.kill()  # no finally, no unlink: the file stays, the kernel drops the lock
+    holder.wait(timeout=60)
+    assert (out / run_outputs.LOCK_NAME).read_text().startswith(f"process {holder.pid} ")
+    run_outputs.check_output_folder(out, overwrite=True, resume=False, data_folder=str(BUNDLED))
+    with run_outputs.output_folder_lock(out):
+        pass
+    assert list(out.iterdir()) == []
+
+
+def test_a_held_lock_is_refused_in_the_same_process_too(tmp_path):
+    out = tmp_path / "run"
     with run_outputs.output_folder_lock(out):
         with pytest.raises(run_outputs.FolderInUse, match=f"another run .process {os.getpid()} "):
-            with run_outputs.output_folder_lock(out):  # the one this process does hold is refused
-                pass
-    assert not (out / run_outputs.LOCK_NAME).exists()
-
-
-def test_a_lock_of_another_host_or_of_unknown_content_is_not_taken(tmp_path):
-    out = tmp_path / "run"
-    out.mkdir()
-    lock = out / run_outputs.LOCK_NAME
-    for content in ("1 some-other-host 2026-01-01 00:00:00\n", "", "not a lock\n"):
-        lock.write_text(content)
-        with pytest.raises(run_outputs.FolderInUse, match="remove"):
             with run_outputs.output_folder_lock(out):
                 pass
-        assert lock.read_text() == content
+        with pytest.raises(run_outputs.FolderInUse, match="another run"):
+            run_outputs.check_output_folder(out, overwrite=True, resume=False, data_folder=str(BUNDLED))
+        assert (out / run_outputs.LOCK_NAME).exists()  # the refused attempt left the holder's lock alone
+    assert not (out / run_outputs.LOCK_NAME).exists()
 
 
 def test_the_lock_is_removed_when_the_run_raises(tmp_path):

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from . import config as config_module
+from .config_io import RETIRED_KEYS
 from .data import default_sequence_path
 from .files import atomic_path
 
@@ -224,8 +225,10 @@ def config_differences(saved: Dict[str, Any], cfg: config_module.Config,
                        saved_in: str = "the checkpoint") -> List[str]:
     """'key: saved -> now' for every config value that differs from the saved config (``saved_in``
     names where it was saved, for the message); not ``device``, whose resolved value
-    :func:`environment_changes` compares (a warning)."""
+    :func:`environment_changes` compares (a warning), nor keys that earlier versions saved and nothing
+    read (``config_io.RETIRED_KEYS``)."""
     old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))
+    old = {key: value for key, value in old.items() if key not in RETIRED_KEYS}
     changes = []
     for key in sorted(set(old) | set(new)):
         before, after = old.get(key, "<absent>"), new.get(key, "<absent>")

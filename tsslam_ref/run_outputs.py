@@ -20,6 +20,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, List
 
+try:
+    import fcntl
+except ImportError:  # Windows: runs do not lock their folder
+    fcntl = None
+
 import numpy as np
 
 from . import data as data_module
@@ -93,75 +98,64 @@ def remove_previous_outputs(out: Path) -> List[Path]:
 
 
 class FolderInUse(ValueError):
-    """Another run, which may still be going, holds the output folder (:func:`output_folder_lock`)."""
+    """Another going run holds the output folder (:func:`output_folder_lock`)."""
 
 
 LOCK_NAME = "run.lock"
-"""The file a going run keeps in its folder (its process id, host and start time); removed when the run
-ends, left by a killed one (a later run on the folder replaces it)."""
+"""The file a going run holds locked in its folder (``flock``; it names the process, host and start
+time); the run removes it as it ends.  A killed run's file is left, unlocked: the kernel released the
+lock with the process, so the next run takes it."""
 
 
 @contextmanager
 def output_folder_lock(out: Path) -> Iterator[Path]:
     """Create ``out`` and hold it for this process while the block runs: a second run on the same
-    folder (``--resume`` or ``--overwrite`` beside a going run) is refused with a ValueError naming the
-    other process; a lock whose process has ended on this host is taken over."""
+    folder (``--resume`` or ``--overwrite`` beside a going run, from any process) gets
+    :class:`FolderInUse` naming the other run.  Without ``fcntl`` (Windows) nothing is locked."""
     out.mkdir(parents=True, exist_ok=True)
     lock = out / LOCK_NAME
-    owner = f"{os.getpid()} {socket.gethostname()} {time.strftime('%Y-%m-%d %H:%M:%S')}\n"
-    for _ in range(2):
+    if fcntl is None:
+        yield lock
+        return
+    while True:
+        handle = open(lock, "a+")
         try:
-            descriptor = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            break
-        except FileExistsError:
-            _refuse_if_held(out)
-            lock.unlink(missing_ok=True)  # its process has ended: a killed run's lock
-    else:
-        raise FolderInUse(f"cannot take the lock {lock}: another run took it at the same moment")
-    with os.fdopen(descriptor, "w") as handle:
-        handle.write(owner)
-    _HELD.add(lock.resolve())
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            raise FolderInUse(_in_use_message(out)) from None
+        if lock.exists() and os.path.samestat(os.fstat(handle.fileno()), os.stat(lock)):
+            break  # the file at the name, not one the run before us removed as we opened it
+        handle.close()
     try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"process {os.getpid()} on {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        handle.flush()
         yield lock
     finally:
-        _HELD.discard(lock.resolve())
-        lock.unlink(missing_ok=True)
-
-
-_HELD = set()
-"""The locks this process holds: a lock naming this process's id but not among them was left by an
-earlier process that had the same id (a container starts its processes at the same low ids)."""
+        lock.unlink(missing_ok=True)  # while still locked: no other run holds this file
+        handle.close()
 
 
 def _refuse_if_held(out: Path) -> None:
-    """ValueError when a run that may still be going holds ``out`` (:func:`output_folder_lock`)."""
+    """:class:`FolderInUse` when a going run holds ``out``'s lock (checked without taking it)."""
     lock = out / LOCK_NAME
-    holder = _live_holder(lock)
-    if holder:
-        raise FolderInUse(f"another run ({holder}) is writing {out}; wait for it to end or choose another --out "
-                         f"(if no such run is going, remove {lock})")
-
-
-def _live_holder(lock: Path) -> str:
-    """'process P on HOST since TIME' when the lock's process may still run, '' when it has ended (same
-    host, no such process) or the file is gone; a lock of another host counts as live."""
-    try:
-        pid, host, since = lock.read_text().split(maxsplit=2)
-        pid = int(pid)
-    except FileNotFoundError:
-        return ""
-    except ValueError:  # being written this instant, or not ours: do not take it
-        return f"lock file {lock} of unknown content"
-    if host == socket.gethostname() and pid == os.getpid() and lock.resolve() not in _HELD:
-        return ""
-    if host == socket.gethostname():
+    if fcntl is None or not lock.is_file():
+        return
+    with open(lock) as handle:
         try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return ""
-        except PermissionError:  # a process of another user
-            pass
-    return f"process {pid} on {host} since {since.strip()}"
+            fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FolderInUse(_in_use_message(out)) from None
+
+
+def _in_use_message(out: Path) -> str:
+    try:
+        holder = (out / LOCK_NAME).read_text().strip() or "its details not written yet"
+    except OSError:
+        holder = "its details unreadable"
+    return f"another run ({holder}) is writing {out}; wait for it to end or choose another --out"
 
 
 SMALL_CROP_SHARE = 0.025
