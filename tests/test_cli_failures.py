@@ -957,7 +957,8 @@ def test_settings_the_method_never_reads_are_noted_and_change_nothing(runs):
 def test_keys_of_the_other_method_are_matched_by_name_and_section():
     unread = config_module.overrides_without_effect
     assert unread("tsslam", ["mapping.map_every=3", "mapping.map_every_x=1", "spline.dt=0.1"]) == [
-        "mapping.map_every=3 (TS-SLAM maps once per spline interval and every mapping.tsslam_map_every frames)"]
+        "mapping.map_every=3 has no effect with --method tsslam (TS-SLAM maps once per spline interval and every "
+        "mapping.tsslam_map_every frames)"]
     assert [text.split(" ")[0] for text in unread("coslam", ["mapping.tsslam_map_every=0", "mapping.map_every=3",
                                                             "splines.dt=1", "local_ba.enabled=false"])] == [
         "mapping.tsslam_map_every=0", "local_ba.enabled=false"]
@@ -965,7 +966,7 @@ def test_keys_of_the_other_method_are_matched_by_name_and_section():
         config_module.load("tum-cpu"), ["spline.knots=adaptive"])
     policy = ["spline.dt_min=0.2", "spline.dt_max=0.5", "spline.rotation_tolerance=1", "spline.position_tolerance=1"]
     assert unread("tsslam", policy + ["spline.dt=0.2"], uniform) == [
-        f"{text} (read only with spline.knots=adaptive)" for text in policy]
+        f"{text} has no effect with uniform knots (read only with spline.knots=adaptive)" for text in policy]
     assert unread("tsslam", policy, adaptive) == [] and unread("tsslam", policy) == []
 
 

@@ -474,3 +474,32 @@ def test_joint_se3_with_world_side_increments_is_named(vector):
     assert not report["ok"] and any("WORLD-side increments" in hint for hint in report["hints"]), report["hints"]
     correct = conformance_hints.check(data, as_candidate(data, spline_formulas.evaluate(data)))
     assert correct["ok"] and not correct["hints"]
+
+
+@pytest.mark.parametrize("keys", [("R",), ("omegadot_body",)])
+def test_a_rotation_stored_in_float32_alone_is_blamed_on_the_storage_not_on_the_formula(keys):
+    """Only R (or only omegadot) rounded to float32: the structural hints ("R's own product", "the
+    cross term's sign") told a correct float64 implementation to fix its formulas."""
+    data = load(spline_kit.VECTOR_DIR / "paper_dt0.25_large_rot.json")
+    outputs = {key: np.asarray(data[key], dtype=np.float32 if key in keys else np.float64)
+               for key in conformance.OUTPUT_KEYS}
+    report = conformance_hints.check(data, as_candidate(data, outputs))
+    assert [row["quantity"] for row in report["rows"] if not row["ok"]] == list(keys)
+    assert report["hints"] and report["hints"][0].startswith(f"only {keys[0]} fail, by rounding-sized errors")
+    assert not any("product" in hint or "term by term" in hint for hint in report["hints"]), report["hints"]
+
+
+def test_float32_jacobians_are_not_called_transposed_where_the_transpose_is_the_same_block():
+    """J_v's blocks are multiples of the identity: "the TRANSPOSE of the reference's" matched float32
+    rounding of them (found under --rtol 2e-7)."""
+    data = load(spline_kit.VECTOR_DIR / "jacobians_paper_dt0.25.json")
+    report = conformance_hints.check(data, as_candidate(data, ours_in_float32(data)), conformance.DEFAULT_ATOL, 2e-7)
+    assert not report["ok"] and not any("TRANSPOSE" in hint for hint in report["hints"]), report["hints"]
+
+
+def test_float32_failing_at_a_few_times_under_a_looser_rtol_is_still_named_without_more_tolerance():
+    data = load(spline_kit.VECTOR_DIR / "paper_dt0.25_large_rot.json")  # R and a fail, at 3.5 % of the times
+    report = conformance_hints.check(data, as_candidate(data, ours_in_float32(data)), conformance.DEFAULT_ATOL, 3e-7)
+    assert not report["ok"]
+    hint = next(hint for hint in report["hints"] if hint.startswith("errors at the float32 level"))
+    assert "% of the times: look at those before any looser tolerance" in hint and "--rtol" not in hint

@@ -6,6 +6,7 @@ autograd, scipy's Slerp, a numpy re-projection written here, the clean render fo
 """
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -167,8 +168,13 @@ def test_mesh_lies_on_the_zero_level_set():
 
 
 def test_synthesize_round_trip(tmp_path):
-    out = synthetic.synthesize(tmp_path / "syn", n_frames=4, width=32, height=24, fps=15.0, seed=2,
-                               clean_depth=True, mesh_voxel=0.15)
+    umask = os.umask(0o022)  # a usual umask: under 0o077 mkdtemp's 0o700 would be what mkdir gives too
+    try:
+        out = synthetic.synthesize(tmp_path / "syn", n_frames=4, width=32, height=24, fps=15.0, seed=2,
+                                   clean_depth=True, mesh_voxel=0.15)
+        (tmp_path / "made_by_mkdir").mkdir()
+    finally:
+        os.umask(umask)
     sequence = data.load_sequence(out)
     scene_info = json.loads((out / "scene.json").read_text())
     k = synthetic.default_intrinsics(32, 24)
@@ -183,8 +189,8 @@ def test_synthesize_round_trip(tmp_path):
     np.testing.assert_allclose(frame.depth, depth, atol=0.5 / 5000 + 1e-6)
     np.testing.assert_allclose(frame.rgb, rgb, atol=0.5 / 255 + 1e-6)
     assert (out / "gt_mesh.ply").stat().st_size > 1000
-    (tmp_path / "made_by_mkdir").mkdir()  # the folder is as readable as one mkdir makes (not mkdtemp's 0o700)
-    assert out.stat().st_mode & 0o777 == (tmp_path / "made_by_mkdir").stat().st_mode & 0o777
+    # the folder is as readable as one mkdir makes (not mkdtemp's 0o700)
+    assert out.stat().st_mode & 0o777 == (tmp_path / "made_by_mkdir").stat().st_mode & 0o777 == 0o755
     with pytest.raises(FileExistsError, match="not empty"):
         synthetic.synthesize(out, n_frames=2, width=32, height=24)
     synthetic.synthesize(out, n_frames=2, width=32, height=24, overwrite=True, mesh_voxel=0.2)

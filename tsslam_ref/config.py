@@ -379,8 +379,9 @@ ADAPTIVE_ONLY = ("spline.dt_min", "spline.dt_max", "spline.rotation_tolerance", 
 
 
 def overrides_without_effect(method: str, overrides: Sequence[str], cfg: Optional["Config"] = None) -> List[str]:
-    """Of the overrides ``KEY=VALUE``, those whose key ``method`` never reads, each with the reason
-    (with ``cfg``, also the knot policy's settings when its knots are uniform)."""
+    """Of the overrides ``KEY=VALUE``, those whose key ``method`` never reads, each as 'KEY=VALUE has
+    no effect with --method M (reason)' (with ``cfg``, also the knot policy's settings when its knots
+    are uniform: '... has no effect with uniform knots (...)')."""
     keys, reason = IGNORED_BY_METHOD.get(method, ((), ""))
     uniform = cfg is not None and method == "tsslam" and cfg.spline.knots == "uniform"
 
@@ -390,7 +391,8 @@ def overrides_without_effect(method: str, overrides: Sequence[str], cfg: Optiona
     def ignored(text: str) -> bool:
         return any(key_of(text).startswith(name) if name.endswith(".") else key_of(text) == name for name in keys)
 
-    return [f"{text} ({reason})" if ignored(text) else f"{text} (read only with spline.knots=adaptive)"
+    return [f"{text} has no effect with --method {method} ({reason})" if ignored(text) else
+            f"{text} has no effect with uniform knots (read only with spline.knots=adaptive)"
             for text in overrides if ignored(text) or (uniform and key_of(text) in ADAPTIVE_ONLY)]
 
 

@@ -274,6 +274,13 @@ def evaluate_input(data: dict, source: str = "input", jacobians: bool = False) -
 # Comparison
 
 
+def _printed_shorter(reference: float, candidate: float) -> bool:
+    """Whether ``candidate`` is ``reference`` printed with 6 to 16 significant digits, or 3 to 12
+    decimals, and read back."""
+    shorter = [f"{reference:.{digits}g}" for digits in range(6, 17)] + [f"{reference:.{d}f}" for d in range(3, 13)]
+    return any(float(text) == candidate for text in shorter)
+
+
 def match_times(ref_times: np.ndarray, cand_times: np.ndarray, candidate_name: str) -> np.ndarray:
     """(M_cand,) index into the reference times of each candidate time.
 
@@ -292,9 +299,9 @@ def match_times(ref_times: np.ndarray, cand_times: np.ndarray, candidate_name: s
     unmatched = np.flatnonzero(gap > TIME_MATCH * np.maximum(1.0, np.abs(cand_times)))
     if unmatched.size:
         m = int(unmatched[0])
-        digits = (" (so close that it was most likely written with too few digits: write times with 17 significant "
-                  "digits, repr() or %.17g, so they read back as the same float64)"
-                  if gap[m] <= 1e-14 * max(1.0, abs(float(cand_times[m]))) else "")
+        digits = (" (the reference's time written with too few digits: write times with 17 significant digits, "
+                  "repr() or %.17g, so they read back as the same float64)"
+                  if _printed_shorter(float(sorted_times[nearest[m]]), float(cand_times[m])) else "")
         raise ConformanceError(f"{candidate_name}: time {float(cand_times[m])!r} (index {m}) is not among the "
                                f"reference times (nearest {float(sorted_times[nearest[m]])!r}){digits}; evaluate at "
                                f"the reference's times")

@@ -5,11 +5,12 @@ of a failed comparison's errors, name the likely mistake, mostly by evaluating t
 that mistake made on purpose and asking whether the candidate equals it: angular rates in the
 world frame, rotations stored transposed, derivatives off by a power of Δt, the joint SE(3) spline
 instead of the split one, the transposed basis matrix or the non-cumulative one, an index
-convention shifted by whole segments (or t0 not subtracted), times rounded to whole nanoseconds (basalt-headers' int64 ns), with non-uniform knots the
-uniform basis on each segment or control points shifted by one against the knots, for the joint
-SE(3) spline world-side increments; otherwise the size of the errors (float32 or float64 rounding,
-when they sit at many times) and where they sit (only next to knots, only at the domain's ends), and
-which of R, omega, omegadot fail.
+convention shifted by whole segments (or t0 not subtracted), times rounded to whole nanoseconds
+(basalt-headers' int64 ns), with non-uniform knots the uniform basis on each segment or control
+points shifted by one against the knots, for the joint SE(3) spline world-side increments;
+otherwise the size of the errors (float32 or float64 rounding, when they sit at many times) and
+where they sit (only next to knots, only at the domain's ends), and which of R, omega, omegadot
+fail.
 
 Jacobians (when both files hold them): blocks transposed, in reverse order, of the opposite sign,
 off by a power of Δt, or for a right perturbation instead of the left one
@@ -59,7 +60,8 @@ NON_CUMULATIVE = np.array([[1, 4, 1, 0], [-3, 0, 3, 0], [3, -6, 3, 0], [-1, 3, -
 powers of u): its weights put in the cumulative sum in place of B_j are the common mistake."""
 
 
-def _transposed_basis_translation(parsed: dict, times: np.ndarray, matrix: Optional[np.ndarray] = None) -> np.ndarray:
+def _weighted_cumulative_translation(parsed: dict, times: np.ndarray,
+                                     matrix: Optional[np.ndarray] = None) -> np.ndarray:
     """p(t) of the cumulative sum with the weights [1, u, u², u³] @ ``matrix`` (default Cᵀ: the basis
     matrix transposed, B = Cᵀ [1, u, u², u³]ᵀ, the common typo); (M, 3)."""
     first = spline.active_control_indices(times, parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
@@ -111,8 +113,8 @@ def _bad_times(failing: set, rows: dict) -> np.ndarray:
 
 
 SPREAD_SHARE = 0.25
-"""Rounding (float32, times rounded) leaves errors at most times; a hint that blames it (and offers a
-looser tolerance) needs errors at this share of the times at least: a bug at a few times is a bug."""
+"""Rounding (float32, times rounded) leaves errors at most times; with errors at fewer than this
+share of the times the rounding hints offer no looser tolerance: a bug at a few times is a bug."""
 
 
 def _precision_hint(failing: set, rows: dict) -> List[str]:
@@ -122,17 +124,20 @@ def _precision_hint(failing: set, rows: dict) -> List[str]:
     largest = max(scaled)
     if not failing or largest >= 3e-5 or sum(value > 1e-12 for value in scaled) < 4:
         return []
-    if _bad_times(failing, rows).mean() < SPREAD_SHARE:
-        return []
+    share = _bad_times(failing, rows).mean()
+    few = (f"; but the errors sit at only {100 * share:.0f} % of the times: look at those before any looser "
+           f"tolerance" if share < SPREAD_SHARE else "")
     if largest >= FLOAT32_LEVEL:
+        advice = few or "; compute in float64, or check with --rtol 1e-5 if float32 is intended"
         return [f"errors at the float32 level across the quantities (largest {largest:.1e} of the scale; float32 "
                 f"keeps about 6e-8, float64 1e-16): float32 arithmetic or float32 outputs?, or float64 that loses "
                 f"digits to large absolute times (knots or t0 near 1e9 s keep about 1e-7 s: form t - t0 before "
-                f"anything else); compute in float64, or check with --rtol 1e-5 if float32 is intended"]
+                f"anything else){advice}"]
+    advice = few or "; check those with --rtol 1e-7"
     return [f"errors between float64 rounding (1e-14 of the scale) and float32's (6e-8) across the quantities "
             f"(largest {largest:.1e}): times rounded before evaluation (whole nanoseconds, as basalt-headers' "
-            f"int64 ns, give up to 4.3e-8 on the shipped vectors; check those with --rtol 1e-7)?, or a small-angle "
-            f"series (Exp, Log, J_r) used up to too large an angle?"]
+            f"int64 ns, give up to 4.3e-8 on the shipped vectors{advice})?, or a small-angle series (Exp, Log, "
+            f"J_r) used up to too large an angle?"]
 
 
 def _representation_hint(failing: set, cands, parsed: Optional[dict], times: np.ndarray) -> List[str]:
@@ -251,10 +256,10 @@ def _transposed_basis_hint(failing: set, cands, parsed: dict, times: np.ndarray)
     """The basis matrix transposed, or the non-cumulative matrix in the cumulative form (uniform
     knots, split representation)."""
     if "p" in failing and parsed["representation"] == "split" and parsed["knots"] is None:
-        if _close(cands["p"], _transposed_basis_translation(parsed, times)):
+        if _close(cands["p"], _weighted_cumulative_translation(parsed, times)):
             return ["p equals the spline with the TRANSPOSED basis matrix: B(u) = C [1, u, u^2, u^3]^T with "
                     "rows of C = (6,0,0,0), (5,3,-3,1), (1,3,3,-2), (0,0,0,1) over 6"]
-        if _close(cands["p"], _transposed_basis_translation(parsed, times, NON_CUMULATIVE)):
+        if _close(cands["p"], _weighted_cumulative_translation(parsed, times, NON_CUMULATIVE)):
             return ["p equals the cumulative sum weighted by the NON-CUMULATIVE basis (M = 1/6 [[1,4,1,0], "
                     "[-3,0,3,0], [3,-6,3,0], [-1,3,-3,1]], whose weights multiply the control points themselves): "
                     "the cumulative form's B_j(u) = sum of the non-cumulative weights j..3, i.e. B(u) = C [1, u, "
@@ -328,10 +333,17 @@ def _se3_side_hint(failing: set, cands, parsed: dict, times: np.ndarray) -> List
             "composed on the right: the increments are body-side, xi_j = Log(T_{k+j-1}^-1 T_{k+j})"]
 
 
-def _rotation_part_hints(failing: set) -> List[str]:
+def _rotation_part_hints(failing: set, rows: dict) -> List[str]:
     """Patterns of the rotation's recursion (Eq. 6 and 9): which of R, omega, omegadot fail (the
-    values only: Jacobians that fail along with them do not hide the pattern)."""
+    values only: Jacobians that fail along with them do not hide the pattern); by rounding-sized
+    errors, the storage rather than the formula."""
     failing = failing & set(conformance.OUTPUT_KEYS)
+    rotational = [{"R"}, {"omegadot_body"}, {"R", "omega_body", "omegadot_body"}]
+    largest = max((rows[key]["scaled"] for key in failing), default=0.0)
+    if failing in rotational and largest < 3e-5:
+        return [f"only {', '.join(sorted(failing))} fail, by rounding-sized errors (largest {largest:.1e} of the "
+                f"scale; float32 keeps about 6e-8): stored or converted in float32, or a small-angle series used "
+                f"too far? Compute and write them in float64"]
     if failing == {"R", "omega_body", "omegadot_body"}:
         return ["R, omega and omegadot fail while p, v and a pass: the rotation's composition; R(t) = R_k "
                 "A_1 A_2 A_3 with A_j = Exp(B_j d_j) and d_j = Log(R_{k+j-1}^T R_{k+j}): increments on the RIGHT "
@@ -392,7 +404,7 @@ def _jacobian_hints(failing: set, refs, cands, parsed: Optional[dict], first: Op
         if key not in failing:
             continue
         for model, meaning in _jacobian_models(key, refs, parsed, first):
-            if _close(cands[key], model):
+            if _close(cands[key], model) and not _close(model, refs[key]):  # a mistake that changes nothing is none
                 found.setdefault(meaning, []).append(key)
                 break
     return [f"{', '.join(keys)}: {meaning}" for meaning, keys in found.items()]
@@ -430,7 +442,7 @@ def diagnose(report: dict) -> List[str]:
     hints = _frame_hints(failing, refs, cands) + _time_scale_hints(failing, refs, cands, parsed)
     ends = [] if parsed is None else _end_times_hint(failing, rows, parsed, times)
     hints += ends or _nanosecond_hint(failing, cands, parsed, times) or _precision_hint(failing, rows)
-    hints += _representation_hint(failing, cands, parsed, times) + _rotation_part_hints(failing)
+    hints += _representation_hint(failing, cands, parsed, times) + _rotation_part_hints(failing, rows)
     if parsed is not None:
         hints += _knot_rule_hint(failing, rows, parsed, times) + _convention_hint(failing, cands, parsed, times)
         hints += _transposed_basis_hint(failing, cands, parsed, times)

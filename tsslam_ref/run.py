@@ -456,7 +456,7 @@ def execute(plan: Plan) -> int:
     for note in data_notes(sequence):  # frames left out, a camera chosen by default
         print(f"note: {note}")
     for ignored in config_module.overrides_without_effect(cfg.method, plan.args.overrides, cfg):
-        print(f"note: --set {ignored} has no effect with --method {cfg.method}")
+        print(f"note: --set {ignored}")
     try:
         run_loop = parallel.run_slam_in_two_threads if cfg.parallel else slam.run_slam
         result = run_loop(sequence, cfg, device=plan.device, state=state, on_frame=on_frame)
