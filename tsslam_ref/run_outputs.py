@@ -124,8 +124,11 @@ def output_folder_lock(out: Path) -> Iterator[Path]:
         except BlockingIOError:
             handle.close()
             raise FolderInUse(_in_use_message(out)) from None
-        if lock.exists() and os.path.samestat(os.fstat(handle.fileno()), os.stat(lock)):
-            break  # the file at the name, not one the run before us removed as we opened it
+        try:
+            if os.path.samestat(os.fstat(handle.fileno()), os.stat(lock)):
+                break  # the file at the name, not one the run before us removed as we opened it
+        except FileNotFoundError:  # removed as we opened it: open the new one
+            pass
         handle.close()
     try:
         handle.seek(0)
@@ -429,7 +432,8 @@ def motion_summary(timestamps: np.ndarray, poses: np.ndarray) -> dict:
     if speed[fastest] > LOST_SPEED:
         print(f"warning: the estimated camera moves {speed[fastest]:.1f} m/s from frame {fastest} to {fastest + 1} "
               f"(more than {LOST_SPEED:g} m/s, twice the fastest hand-held motion we know): tracking was most likely "
-              f"lost there, although its loss did not rise; check trajectory.png", file=sys.stderr)
+              f"lost there (the divergence stop watches the loss, which a lost camera need not raise); check "
+              f"trajectory.png", file=sys.stderr)
     return {"motion": {"peak_speed_m_s": float(speed[fastest]), "peak_speed_after_frame": fastest,
                        "peak_angular_speed_deg_s": float(angular_speed[turning]),
                        "peak_angular_speed_after_frame": turning}}
