@@ -31,3 +31,10 @@ def test_tilde_paths_name_the_home_folder_on_every_command_line(tmp_path, monkey
     assert (args.out, args.data, args.config) == (str(home / "runs/a"), str(home / "room"), str(home / "config.json"))
     assert run.main(["--out", "~/missing", "--resume", "--config", "tiny"]) == 2
     assert f"the output folder {home / 'missing'} does not exist" in capsys.readouterr().err
+
+
+def test_data_info_without_a_path_describes_the_bundled_slice_a_run_reads(capsys):
+    assert data.main(["info", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["name"] == "tum_fr3_teddy_160x120" and summary["path"] == str(data.default_sequence_path())
+    assert summary["frames_with_gt"] == len(data.load_sequence(data.default_sequence_path()))  # what a run uses

@@ -16,7 +16,7 @@ seconds of dataset time; pixel centres lie at integer coordinates (see ``Intrins
 
 Command line::
 
-    python -m tsslam_ref.data info PATH [--json]
+    python -m tsslam_ref.data info [PATH] [--json]
     python -m tsslam_ref.data synthesize --out DIR [--trajectory FILE|NAME [--start S]] [--frames N] [--size WxH]
                                          [--seed S] [--fps F] [--clean-depth] [--force]
                                          [--mesh-voxel M]
@@ -394,7 +394,8 @@ def build_parser() -> argparse.ArgumentParser:
                            epilog="Exit status: 0 done, 2 bad input (one line naming the file and what was expected).")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     info = commands.add_parser("info", help="summarise a dataset folder")
-    info.add_argument("path", type=user_path)
+    info.add_argument("path", type=user_path, nargs="?", default="",
+                      help="dataset folder (default: the bundled TUM fr3/teddy slice, which a run reads by default)")
     info.add_argument("--json", action="store_true", help="print JSON")
     synth = commands.add_parser("synthesize", help="render a synthetic TUM-layout sequence")
     synth.add_argument("--out", type=user_path, required=True)
@@ -419,7 +420,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _info(args: argparse.Namespace) -> int:
     """``info PATH [--json]``: check every frame's files and print the sequence's summary."""
     try:
-        sequence = load_sequence(args.path, require_gt=False)
+        sequence = load_sequence(args.path or default_sequence_path(), require_gt=False)
         n_files = sequence.check_files()
         summary = sequence_info(sequence)
     except (ValueError, OSError) as error:
