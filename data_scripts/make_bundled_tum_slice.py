@@ -23,6 +23,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
+from tsslam_ref.cli_args import number_in
 from tsslam_ref.data import load_sequence
 from tsslam_ref.datasets.tum_format import read_tum_trajectory
 from tsslam_ref.files import normal_folder
@@ -99,23 +100,16 @@ def _write_slice(source: Path, sequence, n_frames: int, factor: str, temporary: 
     (temporary / "README.md").write_text(README.format(n=n_frames, w=k.width, h=k.height, factor=factor))
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--source", type=Path, required=True, help="TUM folder of rgbd_dataset_freiburg3_teddy (its first 120 frames suffice)")
     parser.add_argument("--out", type=Path, default=ROOT / "tsslam_ref" / "assets" / "tum_fr3_teddy_160x120",
                         help="output folder (default: the bundled sequence's)")
-    parser.add_argument("--frames", type=_positive, default=104, help="associated frames kept (teddy: first 4 lack GT)")
-    parser.add_argument("--width", type=_positive, default=160, help="output width in pixels (default 160)")
+    whole = {"integer": True, "interval": "[1, 10**9]"}
+    parser.add_argument("--frames", type=number_in("--frames", 1, 10**9, **whole), default=104,
+                        help="associated frames kept (teddy: first 4 lack GT)")
+    parser.add_argument("--width", type=number_in("--width", 1, 10**9, **whole), default=160,
+                        help="output width in pixels (default 160)")
     parser.add_argument("--force", action="store_true", help="replace a non-empty --out")
     args = parser.parse_args(argv)
     for name in ("rgb.txt", "groundtruth.txt"):

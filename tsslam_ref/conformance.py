@@ -220,13 +220,16 @@ def evaluate_parsed(parsed: dict, times: Optional[np.ndarray] = None) -> Dict[st
     return {key: value.detach().cpu().numpy() for key, value in zip(OUTPUT_KEYS, values)}
 
 
+def domain(parsed: dict):
+    """(t_min, t_max) s, the closed domain of a parsed input (its knots, or n, dt, t0 and convention)."""
+    if parsed["knots"] is not None:
+        return knots.valid_time_range(parsed["knots"])
+    return spline.valid_time_range(parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"], parsed["convention"])
+
+
 def _first_outside(parsed: dict) -> str:
     """' index m' of the first time outside the closed domain of a parsed input ('' if none is)."""
-    if parsed["knots"] is not None:
-        t_min, t_max = knots.valid_time_range(parsed["knots"])
-    else:
-        t_min, t_max = spline.valid_time_range(parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
-                                               parsed["convention"])
+    t_min, t_max = domain(parsed)
     outside = np.flatnonzero(~((parsed["times"] >= t_min) & (parsed["times"] <= t_max)))
     return f" index {int(outside[0])}" if outside.size else ""
 

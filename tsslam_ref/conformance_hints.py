@@ -176,11 +176,7 @@ def _end_times_hint(failing: set, rows: dict, parsed: dict, times: np.ndarray) -
     """Errors only at the domain's end times (clamped, shifted or half-open code)."""
     if not failing:
         return []
-    if parsed["knots"] is not None:
-        t_min, t_max = knots.valid_time_range(parsed["knots"])
-    else:
-        t_min, t_max = spline.valid_time_range(parsed["rotvecs"].shape[0], parsed["dt"], parsed["t0"],
-                                               parsed["convention"])
+    t_min, t_max = conformance.domain(parsed)
     position = (times - t_min) / (t_max - t_min)  # 0 at t_min, 1 at t_max (t - t0 first: large stamps)
     at_end = (position < 1e-6) | (position > 1 - 1e-6)
     bad = _bad_times(failing, rows)

@@ -30,6 +30,7 @@ import numpy as np
 from . import data as data_module
 from . import trajectory_metrics as trajectory_metrics_module
 from .device import peak_memory, run_environment
+from .geometry import rotation_angle_deg
 from .files import atomic_path, atomic_write_text, is_temporary_of
 
 OUTPUT_NAMES = ("trajectory.txt", "metrics.json", "mesh.ply", "config.json", "trajectory.png", "errors.png",
@@ -426,8 +427,7 @@ def motion_summary(timestamps: np.ndarray, poses: np.ndarray) -> dict:
     spacing = np.diff(timestamps)
     speed = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) / spacing
     relative = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])  # R_i^T R_{i+1}
-    angle = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0))
-    angular_speed = np.degrees(angle) / spacing
+    angular_speed = rotation_angle_deg(relative) / spacing
     fastest, turning = int(np.argmax(speed)), int(np.argmax(angular_speed))
     if speed[fastest] > LOST_SPEED:
         print(f"warning: the estimated camera moves {speed[fastest]:.1f} m/s from frame {fastest} to {fastest + 1} "
