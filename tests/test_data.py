@@ -526,6 +526,26 @@ def test_generic_folder_layout(tmp_path):
         data.load_sequence(folder)
 
 
+def test_a_folder_without_its_camera_is_told_both_calibration_formats(tmp_path):
+    """The message pointed at a docs file that an installed package does not have; it now spells
+    out both formats, and what it says is enough: a file written from it is read."""
+    folder = _folder_layout(tmp_path / "capture", ["000000", "000001"])
+    (folder / "calibration.txt").unlink()
+    for dataset, error in (("folder", FileNotFoundError), ("auto", ValueError)):  # named, or detected
+        with pytest.raises(error) as refusal:
+            data.load_sequence(folder, dataset=dataset)
+        message = str(refusal.value)
+        assert '"fx"' in message and "calibration.txt (one line: fx fy cx cy" in message and "docs/" not in message
+    (folder / "intrinsics.json").write_text('{"fx": 9, "fy": 9, "cx": 3.5, "cy": 2.5}')
+    assert data.load_sequence(folder).intrinsics.fx == 9
+    tum = _tum_folder_without_calibration(tmp_path / "rgbd_dataset_freiburg1_desk")
+    for image in (tum / "depth").iterdir():  # not the built-in camera's 640x480
+        Image.fromarray(np.full((6, 8), 5000, np.uint16)).save(image)
+    with pytest.raises(ValueError, match=r"add the camera of these images as intrinsics\.json \(") as refusal:
+        data.load_sequence(tum)
+    assert "calibration.txt (one line" in str(refusal.value) and "docs/" not in str(refusal.value)
+
+
 def _folder_layout(folder, stems, depth_mm=800):
     (folder / "rgb").mkdir(parents=True)
     (folder / "depth").mkdir()

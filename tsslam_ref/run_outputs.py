@@ -214,7 +214,7 @@ def advance(progress, state, reached: dict) -> None:
         say(f"warning: frame {entry['frame']}: {100 * entry['outside_box']:.0f} % of its measured surface lies outside "
             f"the map's box ({box} m, {origin}); the map cannot hold that surface and the mesh misses it. If the "
             f"camera leaves the box, give one that covers the scene: --set "
-            f"'field.bound=[[xmin,xmax],[ymin,ymax],[zmin,zmax]]' (docs/map.md)", file=sys.stderr)
+            f"'field.bound=[[xmin,xmax],[ymin,ymax],[zmin,zmax]]' (metres, world frame)", file=sys.stderr)
 
 
 def outside_box_summary(log) -> dict:

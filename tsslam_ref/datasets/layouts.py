@@ -33,6 +33,8 @@ from tsslam_ref.geometry import opengl_to_opencv_pose
 DEPTH_SCALES = {"tum": 5000.0, "scannet": 1000.0, "neural_rgbd": 1000.0, "replica": 6553.5, "folder": 1000.0}
 """Standard PNG value per metre of each layout (Co-SLAM configs; folder: ours, millimetres)."""
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+CALIBRATION_FORMATS = ('intrinsics.json ({"fx": ..., "fy": ..., "cx": ..., "cy": ...}, pixels; optional "width", '
+                       '"height", "depth_scale") or calibration.txt (one line: fx fy cx cy [width height])')
 
 LAYOUTS = {
     "tum": "rgb.txt + depth.txt (+ groundtruth.txt), files listed relative to the folder",
@@ -134,8 +136,8 @@ def _builtin_camera(intrinsics: Intrinsics, first_depth: Path, folder: Path, wha
     size = image_size(first_depth)
     if size != (intrinsics.width, intrinsics.height):
         raise ValueError(f"{first_depth}: {size[0]}x{size[1]} image but no intrinsics.json/calibration.txt in "
-                         f"{folder}; {what} are for {intrinsics.width}x{intrinsics.height} images (add a "
-                         f"calibration file with this size's values; docs/data.md, 'Calibration files')")
+                         f"{folder}; {what} are for {intrinsics.width}x{intrinsics.height} images: add the camera "
+                         f"of these images as {CALIBRATION_FORMATS}")
     return intrinsics
 
 
@@ -424,7 +426,7 @@ def parse_folder(folder: Path, fps: float, max_time_diff: float) -> LayoutIndex:
     _stems_match(rgb_paths, depth_paths, folder / "rgb", folder / "depth")
     calibrated = _calibrated_intrinsics(folder, depth_paths[0])
     if calibrated is None:
-        raise FileNotFoundError(f"{folder}: needs intrinsics.json or calibration.txt (see docs/data.md)")
+        raise FileNotFoundError(f"{folder}: needs the camera as {CALIBRATION_FORMATS}")
     timestamps = folder_timestamps([p.stem for p in rgb_paths], fps, folder / "rgb")
     order = np.argsort(timestamps, kind="stable")  # '0.1' after '0.033333', whatever the sort by name said
     rgb_paths, depth_paths = [rgb_paths[i] for i in order], [depth_paths[i] for i in order]
@@ -470,14 +472,14 @@ def _looks_like(folder: Path) -> dict:
     """For each layout, the missing entries (empty list = matches)."""
     def missing(*names):
         return [n for n in names if not (folder / n).exists()]
-
     neural_depth = "depth_filtered" if (folder / "depth_filtered").is_dir() else "depth"
     return {
         "tum": missing("rgb.txt", "depth.txt"),
         "scannet": missing("color", "depth", "pose"),
         "neural_rgbd": missing("images", neural_depth, "poses.txt"),
         "replica": missing("results", "traj.txt"),
-        "folder": missing("rgb", "depth") + ([] if read_calibration_exists(folder) else ["intrinsics.json|calibration.txt"]),
+        "folder": missing("rgb", "depth")
+        + ([] if read_calibration_exists(folder) else [f"the camera: {CALIBRATION_FORMATS}"]),
     }
 
 
