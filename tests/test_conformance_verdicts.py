@@ -410,6 +410,28 @@ def test_check_all_of_a_folder_without_any_vector_is_bad_input(tmp_path, capsys)
     assert code == 2 and "holds none of the shipped names" in err
 
 
+
+def test_inputs_refuses_before_writing_any_file_when_one_is_the_users(tmp_path, capsys):
+    """Exit 2 means nothing written (docs/cli.md): the refusal came mid-loop, after other files."""
+    folder = tmp_path / "inputs"
+    folder.mkdir()
+    mine = folder / VECTOR_PATHS[len(VECTOR_PATHS) // 2].name  # one in the middle of the list
+    mine.write_text('{"mine": 1}')
+    assert spline_kit.main(["inputs", str(folder)]) == 2
+    assert [path.name for path in folder.iterdir()] == [mine.name] and mine.read_text() == '{"mine": 1}'
+    assert "nothing was written" in capsys.readouterr().err
+    assert spline_kit.main(["inputs", str(folder), "--force"]) == 0 and len(list(folder.iterdir())) == len(VECTOR_PATHS)
+    capsys.readouterr()
+    reference = VECTOR_PATHS[0]
+    data = json.loads(reference.read_text())
+    (tmp_path / "mine.json").write_text(json.dumps(data))
+    assert spline_kit.main(["check", str(reference), str(tmp_path / "mine.json")]) == 0
+    first = capsys.readouterr().out.splitlines()[0]  # the report names what it compares
+    assert first.startswith(f"{tmp_path / 'mine.json'} against {reference}: error = max"), first
+    assert spline_kit.main(["check", reference.stem, str(tmp_path / "mine.json")]) == 0  # a shipped name, as typed
+    assert capsys.readouterr().out.startswith(f"{tmp_path / 'mine.json'} against {reference.stem}: ")
+
+
 def test_check_all_counts_a_file_still_holding_the_input_as_missing(tmp_path, capsys):
     """The documented workflow writes the inputs into FOLDER and the user's outputs over them; a
     file nobody evaluated is missing (named as the input), so --allow-missing still makes a partial

@@ -80,10 +80,15 @@ def write_json_atomic(path: str, data: dict, force: bool = False) -> None:
     An existing file is replaced only if this kit wrote it (``written_by``) or ``force``;
     otherwise FileExistsError with a message that says so.
     """
+    _refuse_foreign(path, force)
+    atomic_write_text(path, json.dumps(data) + "\n")
+
+
+def _refuse_foreign(path: str, force: bool, written: str = "") -> None:
+    """FileExistsError when ``path`` exists, the kit did not write it and ``force`` is off."""
     if os.path.exists(path) and not force and not _written_by_kit(path):
         raise FileExistsError(f"{path} exists and was not written by this kit; pass --force to overwrite it "
-                              f"(files the kit wrote are replaced on a re-run)")
-    atomic_write_text(path, json.dumps(data) + "\n")
+                              f"({written}files the kit wrote are replaced on a re-run)")
 
 
 def _epilog() -> str:
@@ -144,7 +149,11 @@ def _list() -> int:
 
 
 def _inputs(folder: str, force: bool) -> int:
+    """Every shipped vector's input part to ``folder``; refused before writing any when one target
+    exists that the kit did not write (without ``force``)."""
     os.makedirs(folder, exist_ok=True)
+    for path in shipped_vectors():
+        _refuse_foreign(os.path.join(folder, path.name), force, written="nothing was written; ")
     for path in shipped_vectors():
         data = conformance.load_json(str(path))
         subset = {key: data[key] for key in conformance.INPUT_KEYS + conformance.OPTIONAL_INPUT_KEYS if key in data}
@@ -159,8 +168,9 @@ def format_report(report: dict, reference_name: str = "reference", candidate_nam
     """Human-readable report: the error definition, one line per quantity, the worst time of each
     failing quantity, missing times and hints."""
     width = max([14] + [len(row["quantity"]) for row in report["rows"]])  # J_omegadot_body is 15
-    lines = ["error = max |cand - ref| over times and components; scale = max |ref|; "
-             f"pass if error <= atol + rtol * scale (atol {report['atol']:g}, rtol {report['rtol']:g})",
+    lines = [f"{candidate_name} against {reference_name}: error = max |cand - ref| over times and components; "
+             f"scale = max |ref|; pass if error <= atol + rtol * scale "
+             f"(atol {report['atol']:g}, rtol {report['rtol']:g})",
              f"{'quantity':<{width}} {'error':>10} {'scale':>10} {'error/scale':>11} {'bound':>10}  result"]
     for row in report["rows"]:
         lines.append(f"{row['quantity']:<{width}} {row['error']:10.3e} {row['scale']:10.3e} {row['scaled']:11.3e} "
@@ -224,11 +234,12 @@ def _segment_label(segment: int, knot_vector: Optional[np.ndarray]) -> str:
     return f"segment {segment} = [knots[{segment + 2}], knots[{segment + 3}]) = [{start!r}, {end!r}) s"
 
 
-def _check(reference_path: str, candidate_path: str, atol: float, rtol: float) -> dict:
-    """Print the report of one check and its verdict; returns the report (``ok``, ``jacobians``)."""
+def _check(reference_path: str, candidate_path: str, atol: float, rtol: float, reference_name: str = "") -> dict:
+    """Print the report of one check and its verdict; returns the report (``ok``, ``jacobians``).
+    ``reference_name``: the reference as the user named it (default its path)."""
     report = conformance_hints.check(conformance.load_json(reference_path), conformance.load_json(candidate_path),
                                      atol, rtol, reference_path, candidate_path)
-    print(format_report(report, reference_path, candidate_path))
+    print(format_report(report, reference_name or reference_path, candidate_path))
     print("PASS" if report["ok"] else "FAIL")
     return report
 
@@ -249,7 +260,7 @@ def _check_all(folder: str, atol: float, rtol: float, allow_missing: bool = Fals
             continue
         print(f"== {path.stem}")
         try:
-            report = _check(str(path), candidate, atol, rtol)
+            report = _check(str(path), candidate, atol, rtol, reference_name=f"shipped {path.stem}")
             results[path.stem] = "PASS" if report["ok"] else "FAIL"
             if report["ok"] and report["jacobians"]:
                 jacobians[path.stem] = report["jacobians"]
@@ -325,7 +336,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         if args.command == "check":
             conformance.check_tolerances(args.atol, args.rtol)
-            return 0 if _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol)["ok"] else 1
+            report = _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol, args.reference)
+            return 0 if report["ok"] else 1
         return _check_all(args.folder, args.atol, args.rtol, args.allow_missing)
     except BrokenPipeError:  # the reader of our output went away: cli_args.interruptible ends quietly
         raise
