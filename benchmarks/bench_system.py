@@ -319,8 +319,10 @@ def main() -> None:
     tune_cpu_allocator()
 
     try:
-        base = config.apply_overrides(config.load(args.config), args.overrides)
-        base.data.path = args.data
+        base = config.load(args.config)
+        if args.data:  # read as `run --data` reads it: the folder's layout and depth scale with a preset
+            config.read_data_folder(base, args.data, args.config)
+        base = config.apply_overrides(base, args.overrides)
         if args.frames:
             from tsslam_ref.run import parse_frames
 

@@ -9,6 +9,7 @@ mesh of the grid held whole (the PLY bytes of both ways must be equal).
 import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -333,3 +334,23 @@ def test_a_set_is_announced_as_changing_every_row_the_baselines_too(monkeypatch,
     out = capsys.readouterr().out
     assert ran == [("coslam", "adaptive"), ("tsslam", "adaptive")]
     assert "--set on every row: spline.knots=adaptive (--adaptive adds an adaptive-knots row instead)" in out, out
+
+
+def test_a_folder_of_ones_own_is_read_as_run_reads_it(tmp_path, monkeypatch):
+    """With a preset, ``run --data`` takes the folder's layout and its own depth scale; the benchmark
+    kept the preset's (``tum``, 5000) and refused a folder whose calibration file says 1000."""
+    from tsslam_ref import data
+
+    folder = tmp_path / "mine"
+    shutil.copytree(data.default_sequence_path(), folder)
+    calibration = json.loads((folder / "intrinsics.json").read_text())
+    (folder / "intrinsics.json").write_text(json.dumps(dict(calibration, depth_scale=1000.0)))
+    module = _bench_system()
+    seen = []
+    monkeypatch.setattr(module, "run_once", lambda sequence, cfg: seen.append(sequence.depth_scale)
+                        or {"failed": "not run in this test"})
+    monkeypatch.setattr(sys, "argv", ["bench_system.py", "--data", str(folder), "--frames", "0:6", "--seeds", "0",
+                                      "--threads", "1", "--skip", "baseline"])
+    module.main()
+    assert seen == [1000.0]
+

@@ -954,6 +954,40 @@ def test_settings_the_method_never_reads_are_noted_and_change_nothing(runs):
     assert (runs["root"] / "unread" / "trajectory.txt").read_bytes() == (runs["planted"] / "trajectory.txt").read_bytes()
 
 
+
+def test_keys_an_ablation_switch_leaves_unread_are_noted_and_change_nothing(runs):
+    """'w/o B-S.' (``local_ba.use_spline=false``) runs no curve fit, deviation check or L_DR, and a
+    run renders no whole image: their keys were taken without a word.  The oracle is the run
+    without them: the same trajectory, byte for byte."""
+    ablation = [*CHEAP, "--method", "tsslam", "--set", "local_ba.use_spline=false"]
+    unread = ["dynamics.a_max=0.01", "local_ba.fit_iters=0", "local_ba.max_deviation=1e-6",
+              "spline.last_interval=last_frame", "render.chunk=1"]
+    plain = cli("run", "--data", "room", "--out", "no_spline", *ablation, cwd=runs["root"])
+    noted = cli("run", "--data", "room", "--out", "no_spline_unread", *ablation,
+                *[word for key in unread for word in ("--set", key)], cwd=runs["root"])
+    assert plain.returncode == 0 and noted.returncode == 0, (plain.stderr, noted.stderr)
+    notes = [line.split("--set ")[1].split(" ")[0] for line in noted.stdout.splitlines() if "has no effect" in line]
+    assert notes == unread, noted.stdout
+    assert "has no effect" not in plain.stdout
+    assert ((runs["root"] / "no_spline_unread" / "trajectory.txt").read_bytes()
+            == (runs["root"] / "no_spline" / "trajectory.txt").read_bytes())
+
+
+def test_local_ba_switched_off_notes_its_own_settings_and_the_baseline_takes_any_window():
+    unread = config_module.overrides_without_effect
+    without_lba = config_module.apply_overrides(config_module.load("tum-cpu"), ["local_ba.enabled=false"])
+    keys = ["local_ba.refine_iters=3", "local_ba.lr_rot=1e-3", "local_ba.window=3", "dynamics.a_max=1"]
+    assert [text.split(" has no effect with ")[1] for text in unread("tsslam", keys, without_lba)] == [
+        "local_ba.enabled=false (no curve fit and no window stages)"] * 2  # the window sets L_DR's range
+    without_dr = config_module.apply_overrides(config_module.load("tum-cpu"), ["local_ba.use_dynamics=false"])
+    assert [text.split(" ")[0] for text in unread("tsslam", keys, without_dr)] == ["dynamics.a_max=1"]
+    # the baseline reads no local_ba key, so local BA's rule fit_controls <= window is not its to enforce
+    baseline = config_module.apply_overrides(config_module.load("tum-cpu"), ["method=coslam", "local_ba.window=2"])
+    assert baseline.local_ba.window == 2
+    with pytest.raises(ValueError, match="local_ba.fit_controls = 3 must be <= local_ba.window = 2"):
+        config_module.apply_overrides(baseline, ["method=tsslam"])
+
+
 def test_keys_of_the_other_method_are_matched_by_name_and_section():
     unread = config_module.overrides_without_effect
     assert unread("tsslam", ["mapping.map_every=3", "mapping.map_every_x=1", "spline.dt=0.1"]) == [

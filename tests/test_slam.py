@@ -188,6 +188,22 @@ def test_without_local_ba_the_run_ends_cleanly(synthetic_sequence):
         assert ate["ate_rmse_m"] < 0.5 * still["ate_rmse_m"], (ate["ate_rmse_m"], still["ate_rmse_m"])
 
 
+
+def test_without_the_spline_switching_local_ba_off_runs_no_window_stage(synthetic_sequence, monkeypatch):
+    """'w/o B-S.' and 'w/o LBA' together: the discrete window stage ran all the same, so the
+    combination gave the 'w/o B-S.' run, with ``local_ba.enabled = false`` in its config.json."""
+    calls = []
+    refine = local_ba.refine_discrete_window
+    monkeypatch.setattr(local_ba, "refine_discrete_window", lambda *args, **kw: calls.append(1) or refine(*args, **kw))
+    sequence = data.load_sequence(synthetic_sequence, frame_stop=14)
+    for enabled in (True, False):
+        cfg = small_config("tsslam")
+        cfg.local_ba.use_spline, cfg.local_ba.enabled, cfg.tracking.iters = False, enabled, 2
+        calls.clear()
+        result = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
+        assert bool(calls) == enabled and ("lba_others" in result.state.timings.table()) == enabled
+
+
 def test_a_spline_that_leaves_tracking_stops_the_run_with_a_message():
     """check_spline_follows_tracking: the 'w/o LBA' failure path, on a spline displaced by 0.5 m."""
     cfg = small_config("tsslam")

@@ -101,7 +101,9 @@ class FieldConfig(_Settings):
     log2_hashmap_size: int = ranged(16, ">=", 4)
     """log2 of the per-level table size T (Co-SLAM ``grid.hash_size``)."""
     voxel_sdf: float = ranged(0.02, ">", 0)
-    """Finest cell size in metres; finest resolution = max box side / voxel_sdf (Co-SLAM)."""
+    """Finest cell size in metres; finest resolution = int(max box side / voxel_sdf) (Co-SLAM).  As in
+    Co-SLAM a value above 10 is the resolution itself, and a finest resolution below
+    ``base_resolution`` (a small box) makes the finer levels coarser, not finer."""
     oneblob_bins: int = ranged(16, ">=", 2)
     """OneBlob bins per axis (Co-SLAM ``pos.n_bins``)."""
     geo_feat_dim: int = ranged(15, ">=", 1)
@@ -144,7 +146,7 @@ class RenderConfig(_Settings):
     perturb: bool = True
     """Stratified jitter of the sorted samples (Co-SLAM ``perturb: 1``)."""
     chunk: int = ranged(4096, ">=", 1)
-    """Rays per chunk for full-image rendering (ours)."""
+    """Rays per chunk of ``render.render_image`` (whole images; ours).  A SLAM run renders none."""
 
 
 @dataclass
@@ -156,7 +158,8 @@ class LossConfig(_Settings):
     sdf_weight: float = ranged(1000.0, ">=", 0)
     fs_weight: float = ranged(10.0, ">=", 0)
     smooth_weight: float = ranged(1e-5, ">=", 0)
-    """Feature total-variation weight, global BA only (Co-SLAM)."""
+    """Feature total-variation weight, in every optimisation that moves the map after the first frame
+    (Co-SLAM: its global BA; here also the map update and local BA's joint stage, off by default)."""
     smooth_pts: int = ranged(32, ">=", 2)
     """Lattice points per axis for the smoothness term (Co-SLAM)."""
     smooth_vox: float = ranged(0.1, ">", 0)
@@ -377,23 +380,36 @@ IGNORED_BY_METHOD: Dict[str, Tuple[Tuple[str, ...], str]] = {
 ADAPTIVE_ONLY = ("spline.dt_min", "spline.dt_max", "spline.rotation_tolerance", "spline.position_tolerance")
 """The knot policy's settings: read only with ``spline.knots=adaptive``."""
 
+UNREAD_WHEN_OFF: Tuple[Tuple[str, Tuple[str, ...], str], ...] = (
+    ("local_ba.use_spline", ("dynamics.", "local_ba.use_dynamics", "local_ba.fit_iters", "local_ba.fit_controls",
+                             "local_ba.max_deviation", "spline.last_interval"),
+     "one pose per frame: no curve approximation, deviation check or L_DR"),
+    ("local_ba.enabled", ("local_ba.fit_iters", "local_ba.refine_iters", "local_ba.joint_iters", "local_ba.n_rays",
+                          "local_ba.lr_rot", "local_ba.lr_trans"), "no curve fit and no window stages"),
+    ("local_ba.use_dynamics", ("dynamics.",), "no L_DR"),
+)
+"""TS-SLAM's ablation switches (paper Table V): each switch, the keys it leaves unread when false, why."""
+
 
 def overrides_without_effect(method: str, overrides: Sequence[str], cfg: Optional["Config"] = None) -> List[str]:
-    """Of the overrides ``KEY=VALUE``, those whose key ``method`` never reads, each as 'KEY=VALUE has
-    no effect with --method M (reason)' (with ``cfg``, also the knot policy's settings when its knots
-    are uniform: '... has no effect with uniform knots (...)')."""
+    """Of the overrides ``KEY=VALUE``, those whose key the run never reads, each as 'KEY=VALUE has no
+    effect with --method M (reason)'; with ``cfg`` also, for TS-SLAM, the knot policy's settings
+    with uniform knots and the keys an ablation switch set to false leaves unread ('... has no effect
+    with local_ba.enabled=false (reason)'); ``render.chunk`` is read by ``render_image`` alone."""
     keys, reason = IGNORED_BY_METHOD.get(method, ((), ""))
-    uniform = cfg is not None and method == "tsslam" and cfg.spline.knots == "uniform"
+    rules = [(keys, f"with --method {method} ({reason})"), (("render.chunk",), "in a run (it renders no whole image)")]
+    if cfg is not None and method == "tsslam":
+        if cfg.spline.knots == "uniform":
+            rules.append((ADAPTIVE_ONLY, "with uniform knots (read only with spline.knots=adaptive)"))
+        rules += [(unread, f"with {switch}=false ({why})") for switch, unread, why in UNREAD_WHEN_OFF
+                  if not getattr(getattr(cfg, switch.split(".")[0]), switch.split(".")[1])]
 
-    def key_of(text: str) -> str:
-        return text.split("=", 1)[0].strip()
+    def reads_none(text: str, names: Sequence[str]) -> bool:
+        key = text.split("=", 1)[0].strip()
+        return any(key.startswith(name) if name.endswith(".") else key == name for name in names)
 
-    def ignored(text: str) -> bool:
-        return any(key_of(text).startswith(name) if name.endswith(".") else key_of(text) == name for name in keys)
-
-    return [f"{text} has no effect with --method {method} ({reason})" if ignored(text) else
-            f"{text} has no effect with uniform knots (read only with spline.knots=adaptive)"
-            for text in overrides if ignored(text) or (uniform and key_of(text) in ADAPTIVE_ONLY)]
+    notes = [(text, next((why for names, why in rules if reads_none(text, names)), None)) for text in overrides]
+    return [f"{text} has no effect {why}" for text, why in notes if why is not None]
 
 
 # --------------------------------------------------------------------------------------------
@@ -486,3 +502,13 @@ def load(name_or_file: str) -> Config:
     raise ValueError(
         f"config '{name_or_file}' is neither a preset ({', '.join(PRESETS)}) nor an existing JSON file"
     )
+
+
+def read_data_folder(cfg: Config, path: str, config_name: Optional[str]) -> None:
+    """``cfg.data.path = path``.  With a preset (``config_name`` a preset's name or None) the folder
+    is the user's own: its layout is detected and its depth scale is its own (calibration file, else
+    the layout's standard), not the preset's dataset's; a config file keeps its ``data`` settings.
+    ``--dataset`` and ``--set data.*`` applied afterwards still decide."""
+    cfg.data.path = path
+    if config_name is None or config_name in PRESETS:
+        cfg.data.dataset, cfg.data.depth_scale = "auto", None

@@ -235,7 +235,7 @@ class HashGridEncoding(nn.Module):
     ):
         super().__init__()
         if res_max < 1:
-            raise ValueError(f"res_max must be >= 1, got {res_max} (box too small for voxel_sdf?)")
+            raise ValueError(f"res_max must be >= 1, got {res_max} (field.voxel_sdf, metres, above the box's side?)")
         if n_levels < 2:
             raise ValueError(f"HashGridEncoding needs n_levels >= 2, got {n_levels}")
         self.res_max = int(res_max)

@@ -146,14 +146,10 @@ def resolve_config(args) -> config_module.Config:
     cfg = config_module.load(args.config or "tum-cpu")
     cfg.method, cfg.device = args.method or cfg.method, args.device or cfg.device
     cfg.seed = cfg.seed if args.seed is None else args.seed
-    if args.data:
-        cfg.data.path = args.data
+    if args.data:  # the user's own folder: its layout and depth scale, unless a config file says
+        config_module.read_data_folder(cfg, args.data, args.config)
     if args.parallel:
         cfg.parallel = True
-    if args.data and (args.config is None or args.config in config_module.PRESETS):
-        # the user's own folder: its layout, and its own depth scale (calibration file, else the
-        # layout's standard), not the preset's dataset's; --dataset and --set data.* still decide
-        cfg.data.dataset, cfg.data.depth_scale = "auto", None
     if args.dataset:
         cfg.data.dataset = "tum" if args.dataset == "synthetic" else args.dataset
     frames = parse_frames(args.frames)

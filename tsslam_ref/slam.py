@@ -435,14 +435,14 @@ def commit_interval(state: SLAMState, frame: FrameTensors, trajectory: BSplineTr
 
 def discrete_pose_interval(state: SLAMState, frame: FrameTensors, n: int) -> None:
     """The "w/o B-S." ablation's interval: the window stages on the discrete poses of the frames
-    of the last ``local_ba.window`` intervals, then Co-SLAM's global BA."""
+    of the last ``local_ba.window`` intervals (unless ``local_ba.enabled`` is off), then Co-SLAM's global BA."""
     cfg = state.cfg
     times = state.timestamps[: frame.index + 1]
     interval_end = state.trajectory.interval(n)[1]
     window_start = state.trajectory.knot_time_before(interval_end_knot(state.trajectory, n), cfg.local_ba.window)
-    with state.timings.stage("lba_others", cfg.local_ba.refine_iters + cfg.local_ba.joint_iters):
-        frames = [j for j in sorted(state.window_rays) if window_start <= times[j] < interval_end]
-        if frames:
+    frames = [j for j in sorted(state.window_rays) if window_start <= times[j] < interval_end]
+    if frames and cfg.local_ba.enabled:
+        with state.timings.stage("lba_others", cfg.local_ba.refine_iters + cfg.local_ba.joint_iters):
             keyframe_set = set(state.keyframes.frame_indices)
             state.frame_poses[frames] = local_ba.refine_discrete_window(
                 state.field, state.map_optimizer, state.frame_poses[frames], [state.window_rays[j] for j in frames],
