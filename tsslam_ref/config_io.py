@@ -132,7 +132,8 @@ def validate(cfg: Any, source: str = "config") -> Any:
     _check_bound(cfg.field.bound, source)
     if cfg.render.far <= cfg.render.near:
         raise ValueError(f"{source}: render.far = {cfg.render.far!r} must be > render.near = {cfg.render.near!r}")
-    if cfg.method == "tsslam" and cfg.local_ba.fit_controls > cfg.local_ba.window:  # the baseline reads neither
+    fits = cfg.method == "tsslam" and cfg.local_ba.use_spline and cfg.local_ba.enabled  # else no curve fit reads it
+    if fits and cfg.local_ba.fit_controls > cfg.local_ba.window:
         raise ValueError(f"{source}: local_ba.fit_controls = {cfg.local_ba.fit_controls} must be <= "
                          f"local_ba.window = {cfg.local_ba.window}")
     return cfg
