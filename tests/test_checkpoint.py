@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import checkpoint, config, data, slam, synthetic
+from tsslam_ref import checkpoint, config, data, files, slam, synthetic
 
 
 class Payload:
@@ -96,6 +96,27 @@ def test_a_saved_state_reads_back_identically(state, tmp_path):
         else:
             assert before[key] == after[key], key
     assert torch.equal(checkpoint.load(path).generator.get_state(), state.generator.get_state())
+
+
+
+@pytest.mark.parametrize("inside", [KeyboardInterrupt, OSError])
+def test_torch_saves_runtime_error_is_told_apart_a_ctrl_c_from_a_failed_write(state, tmp_path, monkeypatch, inside):
+    """torch's zip writer reports a failed write (a full disk), and a Ctrl-C inside it, as a
+    RuntimeError: the run printed a traceback and exit 1 instead of its one line and exit 2 / 130."""
+    target = tmp_path / "checkpoint.pt"
+    target.write_bytes(b"the previous checkpoint")
+
+    def failing_save(values, path):
+        try:
+            raise inside()
+        except inside:
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 8384 vs 8296")
+
+    monkeypatch.setattr(torch, "save", failing_save)
+    with pytest.raises(KeyboardInterrupt if inside is KeyboardInterrupt else files.OutputWriteError) as raised:
+        checkpoint.save(state, target)
+    assert inside is KeyboardInterrupt or str(target) in str(raised.value)
+    assert target.read_bytes() == b"the previous checkpoint" and [p.name for p in tmp_path.iterdir()] == [target.name]
 
 
 @pytest.mark.parametrize("inside_torch_file", [False, True])

@@ -176,7 +176,15 @@ def test_config_files_and_output_paths_are_named(tmp_path, capsys):
     refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "not empty", "it would replace config.json, "
                        "1 file(s) a killed run left and keep the other 1 entries")
     (tmp_path / "taken" / ".checkpoint.pt.abcd1234.tmp").unlink()
+    (tmp_path / "taken" / "notes.txt").unlink()  # a run stopped before its first checkpoint: --resume has nothing
+    with pytest.raises(ValueError, match=r"would replace config\.json\)$"):
+        run_outputs.check_output_folder(tmp_path / "taken", overwrite=False, resume=False, data_folder=str(tmp_path))
+    (tmp_path / "taken" / "checkpoint.pt").write_text("a checkpoint")
+    with pytest.raises(ValueError, match=r"would replace checkpoint\.pt, config\.json\) or --resume to continue it$"):
+        run_outputs.check_output_folder(tmp_path / "taken", overwrite=False, resume=False, data_folder=str(tmp_path))
+    (tmp_path / "taken" / "checkpoint.pt").unlink()
     (tmp_path / "taken" / "config.json").unlink()
+    (tmp_path / "taken" / "notes.txt").write_text("mine")
     assert snapshot(tmp_path) == before
 
 
@@ -986,6 +994,8 @@ def test_local_ba_switched_off_notes_its_own_settings_and_the_baseline_takes_any
     assert baseline.local_ba.window == 2
     with pytest.raises(ValueError, match="local_ba.fit_controls = 3 must be <= local_ba.window = 2"):
         config_module.apply_overrides(baseline, ["method=tsslam"])
+    for ablation in ("local_ba.use_spline=false", "local_ba.enabled=false"):  # no curve fit either
+        assert config_module.apply_overrides(baseline, ["method=tsslam", ablation]).local_ba.window == 2
 
 
 def test_keys_of_the_other_method_are_matched_by_name_and_section():
@@ -1002,6 +1012,38 @@ def test_keys_of_the_other_method_are_matched_by_name_and_section():
     assert unread("tsslam", policy + ["spline.dt=0.2"], uniform) == [
         f"{text} has no effect with uniform knots (read only with spline.knots=adaptive)" for text in policy]
     assert unread("tsslam", policy, adaptive) == [] and unread("tsslam", policy) == []
+
+
+
+def test_a_full_disk_at_a_checkpoint_gives_one_line_naming_the_file(runs):
+    """torch.save reports a failed write as a RuntimeError: a checkpoint that met a full disk (here a
+    file-size limit, with SIGXFSZ ignored so that writes fail with EFBIG) ended in a traceback and
+    exit 1, and a failed write inside the loop was worded as a frame that could not be read."""
+    import resource
+    import signal
+
+    def file_size_limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))  # the checkpoint is megabytes
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    result = subprocess.run([sys.executable, "-m", "tsslam_ref.run", "--data", "room", "--out", "full", *CHEAP],
+                            cwd=runs["root"], env=env, preexec_fn=file_size_limit, capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: cannot write the outputs in full: ") and "checkpoint.pt failed" in last, last
+    assert "replacing the file" not in last and not list((runs["root"] / "full").glob(".*.tmp"))
+
+
+
+@pytest.mark.parametrize("module", ["run", "data", "eval", "spline_kit"])
+def test_every_command_line_helps_under_python_OO(module, tmp_path):
+    """``python -OO`` strips docstrings: a parser built from ``__doc__`` failed with an AttributeError."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    result = subprocess.run([sys.executable, "-OO", "-m", f"tsslam_ref.{module}", "--help"], cwd=tmp_path, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and result.stdout.startswith("usage: python -m tsslam_ref."), result.stderr
 
 
 def test_a_parallel_run_stopped_with_ctrl_c_resumes(runs):

@@ -2,6 +2,8 @@
 
 import dataclasses
 import math
+import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -522,6 +524,29 @@ def test_a_missing_compiler_is_named_before_torch_tries_to_build(monkeypatch):
     with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler: '/nonexistent/c\\+\\+' \\(\\$CXX\\)"):
         assert not hash_kernel.available()
     assert calls == []  # torch's own banner about the compiler's version never comes
+
+
+
+@pytest.mark.parametrize("setting", ["no standard output", "a cache it cannot write"])
+def test_a_built_kernel_loads_without_stdout_and_from_a_cache_it_cannot_write(setting, tmp_path):
+    """Two ways a finished build was not used and the run silently took the PyTorch path (slower,
+    other last bits): ``>&-`` (torch flushes sys.stdout, None then, while it loads) and a cache the
+    user may read but not write (torch wants its lock file; simulated, as root may write anywhere).
+    In a child process: loading the real library twice in one process aborts it."""
+    import subprocess
+    import sys
+
+    assert hash_kernel.available(), hash_kernel.load_error()  # the build the child finds in the cache
+    script = {"no standard output": "import sys; sys.stdout = None\n",
+              "a cache it cannot write": "from torch.utils import cpp_extension\n"
+                                         "def locked(*args, **kwargs):\n"
+                                         "    raise PermissionError(13, 'Permission denied', 'lock')\n"
+                                         "cpp_extension.load = locked\n"}[setting]
+    script += ("import sys\nfrom tsslam_ref import hash_kernel\n"
+               "print(hash_kernel.available(), hash_kernel.load_error(), file=sys.stderr)\n")
+    result = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=600,
+                            env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+    assert result.stderr.strip().splitlines()[-1] == "True None", result.stderr
 
 
 def test_environment_switch_turns_the_kernel_off(monkeypatch):

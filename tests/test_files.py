@@ -106,3 +106,15 @@ def test_a_dangling_link_named_like_our_temporary_is_removed(tmp_path):
     assert files.remove_stray_temporaries(tmp_path, lambda name: name == "metrics.json") == [
         tmp_path / ".metrics.json.a1b2c3d4.tmp"]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_path_through_a_link_and_up_is_written_where_the_system_finds_it(tmp_path, monkeypatch):
+    """'out/../x' with 'out' a link: the system resolves '..' from the link's target, while
+    ``mkstemp`` made a relative folder absolute as text (into another folder), so every write failed."""
+    (tmp_path / "real" / "inner").mkdir(parents=True)
+    (tmp_path / "real" / "run").mkdir()  # 'out/../run' is this folder; there is no tmp_path / "run"
+    (tmp_path / "out").symlink_to(tmp_path / "real" / "inner")
+    monkeypatch.chdir(tmp_path)
+    files.atomic_write_text("out/../run/x.txt", "written")
+    assert (tmp_path / "real" / "run" / "x.txt").read_text() == "written"
+    assert [path.name for path in (tmp_path / "real" / "run").iterdir()] == ["x.txt"]  # no stray temporary

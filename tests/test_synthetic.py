@@ -361,3 +361,27 @@ def test_default_intrinsics_put_the_principal_point_at_the_image_centre():
     k = synthetic.default_intrinsics(640, 480)
     assert (k.fx, k.fy, k.cx, k.cy, k.width, k.height) == (525.0, 525.0, 319.5, 239.5, 640, 480)
     assert synthetic.default_intrinsics(320, 240).fx == 262.5
+
+
+def test_synthesize_stopped_by_sigterm_leaves_no_scratch_folder(tmp_path):
+    """A batch scheduler's SIGTERM killed `data synthesize` without a word and left its hidden
+    scratch folder (``.<name>.<random>``) for good; it now stops as on Ctrl-C: one line, exit 130,
+    the scratch folder removed and no dataset folder made."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    command = [sys.executable, "-m", "tsslam_ref.data", "synthesize", "--out", str(tmp_path / "room"),
+               "--frames", "400", "--size", "64x48"]
+    process = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".room.*")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)  # until the frames are being written
+    assert process.poll() is None, process.communicate()
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130 and "interrupted; nothing was left half-written" in err, (process.returncode, err)
+    assert list(tmp_path.iterdir()) == []

@@ -202,7 +202,15 @@ def save(state, path, environment: Optional[Dict[str, Any]] = None) -> Path:
     if environment is not None:
         plain["environment"] = environment
     with atomic_path(path) as temporary:
-        torch.save(plain, temporary)
+        try:
+            torch.save(plain, temporary)
+        except RuntimeError as error:  # torch's zip writer turns a failed write, or a Ctrl-C in it, into this
+            cause = error.__context__
+            while cause is not None and not isinstance(cause, KeyboardInterrupt):
+                cause = cause.__context__
+            if cause is not None:
+                raise cause from None
+            raise OSError(f"torch.save: {error} (a full disk or a file-size limit?)") from error
     return Path(path)
 
 

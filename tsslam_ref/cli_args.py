@@ -51,12 +51,14 @@ EXIT_INTERRUPTED = 130
 
 
 def interruptible(main, prog: str) -> int:
-    """Run ``main()``; Ctrl-C prints one line and returns 130 instead of a traceback.
+    """Run ``main()``; Ctrl-C or SIGTERM (:func:`stop_on_sigterm_as_on_ctrl_c`) prints one line and
+    returns 130 instead of a traceback (or, for SIGTERM, a silent death that left scratch folders).
 
     For commands whose writes are atomic (a new file or folder renamed into place at the end),
     so an interruption leaves nothing half-written."""
     import sys
 
+    stop_on_sigterm_as_on_ctrl_c()
     try:
         code = main()
         sys.stdout.flush()  # here, not at exit, so that a closed pipe is caught below

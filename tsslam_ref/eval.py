@@ -98,7 +98,8 @@ def _build_parser():
     """The command line: ``trajectory GT EST`` and ``mesh REC GT`` with their options."""
     from tsslam_ref.cli_args import OneLineParser, number_in, user_path
 
-    parser = OneLineParser(prog="python -m tsslam_ref.eval", description=__doc__.split("\n")[0],
+    parser = OneLineParser(prog="python -m tsslam_ref.eval",  # not __doc__: `python -OO` drops it
+                           description="Trajectory metrics (ATE, RPE) and mesh metrics (Accuracy, Completion).",
                            epilog="Exit status: 0 done, 2 bad input (one line naming the file and what was expected).")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     trajectory = commands.add_parser("trajectory", help="ATE/RPE of EST against GT (TUM format files)")

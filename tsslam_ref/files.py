@@ -48,6 +48,11 @@ def _umask() -> int:
     return mask
 
 
+class OutputWriteError(OSError):
+    """Writing an output file failed (a full disk, permissions changed): the file is named, its
+    ``errno`` is the cause's, and whatever was at the final name is left as it was."""
+
+
 @contextlib.contextmanager
 def atomic_path(path: PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it becomes ``path`` atomically.
@@ -61,23 +66,31 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     Raises:
         IsADirectoryError: ``path`` is a folder (not a link to one).
         FileNotFoundError: the folder ``path`` would go into does not exist.
+        OutputWriteError: an OSError while writing, naming ``path``.
     """
     path = Path(path)
     if path.is_dir() and not path.is_symlink():
         raise IsADirectoryError(f"{path}: is a folder, expected a file name to write")
     if not path.parent.is_dir():
         raise FileNotFoundError(f"{path}: the folder {path.parent} does not exist")
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(handle)
+    # the folder as the system finds it: mkstemp would drop a 'link/..' as text and miss the real folder
+    folder = os.path.realpath(path.parent)
+    temporary = None
     try:
+        handle, temporary = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
+        os.close(handle)
         yield Path(temporary)
         with open(temporary, "rb+") as stream:
             os.fsync(stream.fileno())
         os.chmod(temporary, normal_mode())
         os.replace(temporary, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as error:
+        with contextlib.suppress(FileNotFoundError, TypeError):  # TypeError: mkstemp itself failed
             os.unlink(temporary)
+        if isinstance(error, OSError) and not isinstance(error, OutputWriteError):
+            reason = f"writing {path} failed: {error.strerror or error}"
+            written = OutputWriteError(reason) if error.errno is None else OutputWriteError(error.errno, reason)
+            raise written from error
         raise
 
 

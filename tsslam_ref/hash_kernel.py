@@ -22,10 +22,12 @@ CUDA field always uses the PyTorch path.
 Layer 1 (map): imports torch only.
 """
 
+import contextlib
 import hashlib
 import os
 import re
 import shutil
+import sys
 import sysconfig
 import threading
 import time
@@ -123,6 +125,21 @@ def failure_summary(message: str, limit: int = 400) -> str:
 _TELLING = re.compile(r"error:|not found|no such file|permission denied|fatal|required|cannot|killed", re.IGNORECASE)
 
 
+@contextlib.contextmanager
+def _standard_streams():
+    """stdout and stderr for the build while the process has none (``>&-``): torch flushes them
+    while it loads, and an AttributeError on None made every such run take the PyTorch path."""
+    missing = [name for name in ("stdout", "stderr") if getattr(sys, name) is None]
+    with open(os.devnull, "w") as sink:
+        for name in missing:
+            setattr(sys, name, sink)
+        try:
+            yield
+        finally:
+            for name in missing:
+                setattr(sys, name, None)
+
+
 def _build() -> bool:
     try:
         from torch.utils import cpp_extension
@@ -141,14 +158,15 @@ def _build() -> bool:
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
 
-        cpp_extension.load(
-            name=name,
-            sources=[str(SOURCE), str(ONEBLOB_SOURCE)],
-            extra_cflags=CFLAGS,
-            extra_ldflags=LDFLAGS,
-            is_python_module=False,
-            verbose=False,
-        )
+        try:
+            with _standard_streams():
+                cpp_extension.load(name=name, sources=[str(SOURCE), str(ONEBLOB_SOURCE)], extra_cflags=CFLAGS,
+                                   extra_ldflags=LDFLAGS, is_python_module=False, verbose=False)
+        except PermissionError:  # a cache this user may read but not write (its lock file): use a finished build
+            built = Path(cpp_extension._get_build_directory(name, verbose=False)) / f"{name}.so"
+            if not built.is_file():
+                raise
+            torch.ops.load_library(str(built))  # the name holds the sources' and flags' hash: never stale
         return True
     except Exception as error:  # no compiler, no ninja, a failed build: fall back, say why once
         _STATE["error"] = f"{type(error).__name__}: {error}"

@@ -49,10 +49,10 @@ from . import data as data_module
 from . import device as device_module
 from . import knot_schedule, tracking
 from .cli_args import OneLineParser, number_in, silence_stdout, stop_on_sigterm_as_on_ctrl_c, user_path
-from .files import atomic_write_text, remove_stray_temporaries
+from .files import OutputWriteError, atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
-from .run_outputs import advance, check_output_folder, data_notes, export_file_name, write_outputs
+from .run_outputs import advance, check_output_folder, data_error_advice, data_notes, export_file_name, write_outputs
 from .run_outputs import FolderInUse, close_progress, output_folder_lock, write_partial_trajectory
 from .export import MAX_EXPORT_RATE, export_times
 
@@ -462,10 +462,9 @@ def execute(plan: Plan) -> int:
         return _tracking_failed(plan, progress, failure)
     except (ValueError, OSError) as error:  # a frame that cannot be read (checked cheaply before the run)
         close_progress(progress)
-        how = ("after replacing the file, run the same command with --resume to continue from its checkpoint ({} frames "
-               "done); after removing the frame from the lists instead, with --overwrite".format(reached["checkpoint"])
-               if (out / "checkpoint.pt").is_file() else "after fixing the data, run the same command with --overwrite")
-        print(f"error: {error}; the outputs so far are in {out}: {how}", file=sys.stderr)
+        if isinstance(error, OutputWriteError):  # not the data: the output folder stopped taking files (main)
+            raise
+        print(f"error: {error}; the outputs so far are in {out}: {data_error_advice(out, reached)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     close_progress(progress)
     write_outputs(plan, result)
