@@ -58,11 +58,11 @@ def peak_memory_mb(field, optimizer, points, device):
         torch.cuda.reset_peak_memory_stats(device)
         time_iterations(field, optimizer, points, 1, device)
         return torch.cuda.max_memory_allocated(device) / 2**20
-    return peak_memory(device)["peak_rss_mib"]
+    return peak_memory(device).get("peak_rss_mib", float("nan"))  # nan where Python has no `resource` (Windows)
 
 
 def main(argv=None):
-    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--repeats", type=number_in("--repeats", 1, 10000, integer=True), default=10)
     parser.add_argument("--rays", type=number_in("--rays", 1, 10000000, integer=True), nargs="+", default=[256, 1024, 4096])
     parser.add_argument("--presets", nargs="+", choices=sorted(config.PRESETS), default=["tum-cpu", "synthetic-cpu", "tum", "synthetic"])

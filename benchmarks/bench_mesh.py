@@ -105,7 +105,7 @@ def run_child(variant: str, args) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--preset", default="tum-cpu", choices=sorted(config.PRESETS))
     parser.add_argument("--voxel", type=number_in("--voxel", 0, 10, low_open=True), default=None,
                         help="grid spacing in m, in (0, 10] (default: the preset's mesh.voxel_final)")

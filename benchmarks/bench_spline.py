@@ -66,7 +66,7 @@ def autograd_in_time(R, P, times, dt):
 
 
 def main() -> None:
-    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--n", type=number_in("--n", 1, 1000000000, integer=True), default=1_000_000, help="number of query times")
     parser.add_argument("--chunk", type=number_in("--chunk", 1, 1000000000, integer=True), default=131072, help="times per evaluate call (memory bound)")
     parser.add_argument("--n-ctrl", type=number_in("--n-ctrl", 4, 10**7, integer=True), default=1000)

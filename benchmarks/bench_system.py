@@ -48,7 +48,7 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 import torch
@@ -234,7 +234,11 @@ def stage_ratio(rows_now: List[Dict], rows_stored: List[Dict], stage: str) -> st
     return "-" if now is None or stored is None else f"{now:.0f} / {stored:.0f}"
 
 
-def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mib: float) -> List[str]:
+def _mib(value: Optional[float]) -> str:
+    return "not measured (no `resource` module on this system)" if value is None else f"{value:.0f} MiB"
+
+
+def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mib: Optional[float]) -> List[str]:
     """The ``--against`` table: every row measured now and stored, seed by seed the same runs."""
     lines = ["| row | ATE mean (cm): now / stored seeds | RPE mean (cm): now / stored seeds | ATE, RPE vs stored "
              "| frames/s now / stored | tracking ms/it now / stored | GBA ms/it | map update ms/it |",
@@ -258,7 +262,7 @@ def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mi
     if missing:
         lines.append(f"not in the stored file: {', '.join(missing)}")
     stored_rss = stored.get("peak_rss_mib")
-    lines.append(f"peak RSS: {peak_rss_mib:.0f} MiB now, "
+    lines.append(f"peak RSS: {_mib(peak_rss_mib)} now, "
                  + (f"{stored_rss:.0f} MiB stored" if stored_rss is not None else "not in the stored file"))
     lines.extend(environment_lines(stored["settings"].get("environment") or {}, environment))
     if "data_fingerprint" not in stored["settings"]:
@@ -291,7 +295,8 @@ def _seed(option: str):
 
 def main() -> None:
     parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM slice)")
+    parser.add_argument("--data", default="", help="dataset folder (default: the config's data.path, which the "
+                                                   "presets leave empty: the bundled TUM slice)")
     parser.add_argument("--config", default="tum-cpu")
     parser.add_argument("--frames", default=None, help="START:STOP[:STEP]")
     parser.add_argument("--seeds", type=_seed("--seeds"), nargs="+", default=[0])
@@ -333,7 +338,7 @@ def main() -> None:
     ground_truth = ground_truth_known(sequence)
     with_ground_truth = 0 if ground_truth is None else int(ground_truth[1].sum())
     if with_ground_truth < 3:
-        parser.error(f"sequence {sequence.name} ({args.data or 'bundled'}, frames {args.frames or 'all'}): "
+        parser.error(f"sequence {sequence.name} ({base.data.path or 'bundled'}, frames {args.frames or 'all'}): "
                      f"{with_ground_truth} of {len(sequence)} frames have a ground-truth pose; "
                      "ATE and RPE need at least 3 (widen --frames or use a sequence with ground truth)")
     variants = {"Co-SLAM (baseline)": ["method=coslam"], "TS-SLAM": ["method=tsslam"]}
@@ -360,7 +365,7 @@ def main() -> None:
         print(f"--set on every row: {' '.join(args.overrides)} (--adaptive adds an adaptive-knots row instead)")
     main_variants = ("Co-SLAM (baseline)", "TS-SLAM", ADAPTIVE)
     ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else args.seeds[:1]
-    settings = {"preset": base.name, "data": args.data or "bundled", "sequence": sequence.name,
+    settings = {"preset": base.name, "data": base.data.path or "bundled", "sequence": sequence.name,
                 "frames": len(sequence), "frame_range": args.frames, "threads": args.threads,
                 "data_fingerprint": data_fingerprint(sequence),
                 "overrides": args.overrides, "seeds": args.seeds, "ablation_seeds": ablation_seeds,
@@ -417,8 +422,8 @@ def main() -> None:
     speed_line = adaptive_speed_line(results)
     if speed_line:
         print(speed_line)
-    peak_rss_mib = peak_memory(torch.device("cpu"))["peak_rss_mib"]
-    print(f"\npeak RSS of this process (all runs above): {peak_rss_mib:.0f} MiB")
+    peak_rss_mib = peak_memory(torch.device("cpu")).get("peak_rss_mib")  # None where Python has no `resource`
+    print(f"\npeak RSS of this process (all runs above): {_mib(peak_rss_mib)}")
     if args.json:
         write_rows(args.json, settings, results, peak_rss_mib=peak_rss_mib)
     if stored is not None:

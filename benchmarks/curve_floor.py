@@ -56,7 +56,7 @@ def curve_rows(times: np.ndarray, truth: torch.Tensor, noisy: torch.Tensor, dts,
 
 
 def main(argv=None):
-    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--stretch", type=parse_stretch, nargs="+", default=[parse_stretch(s) for s in STRETCHES],
                         help="NAME:START, a shipped trajectory (or a TUM-format file) and seconds from its start")
     parser.add_argument("--frames", type=int, default=60)

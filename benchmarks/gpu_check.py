@@ -206,7 +206,7 @@ def _unwritable(path: Path) -> str:
 
 
 def main(argv=None) -> int:
-    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--frames", default="0:20", help="START:STOP[:STEP] of the bundled slice (default 0:20)")
     parser.add_argument("--seeds", type=number_in("--seeds", 0, 2**32 - 1, integer=True, interval="[0, 2**32 - 1]"),
                         nargs="+", default=[0, 1, 2])

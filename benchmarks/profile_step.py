@@ -135,7 +135,7 @@ TUM_PRESETS = [name for name in sorted(config.PRESETS) if config.load(name).data
 
 
 def main(argv=None):
-    parser = OneLineParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--preset", default="tum-cpu", choices=TUM_PRESETS,
                         help="a preset for the bundled TUM slice (default tum-cpu)")
     parser.add_argument("--repeats", type=number_in("--repeats", 1, 10000, integer=True), default=20)

@@ -102,7 +102,7 @@ def table_cells(figures: Dict[str, float]) -> str:
 
 
 def main() -> None:
-    parser = OneLineParser(description=__doc__.split("\n")[0])
+    parser = OneLineParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--data", default="", help="dataset folder (default: the bundled TUM slice)")
     parser.add_argument("--preset", default="tum-cpu")
     parser.add_argument("--frames", type=number_in("--frames", 3, 100000, integer=True), default=40, help="first N frames (default 40)")

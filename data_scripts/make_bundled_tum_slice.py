@@ -15,6 +15,7 @@ into tsslam_ref/assets/tum_fr3_teddy_160x120/.  Usage:
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -56,7 +57,7 @@ def make_slice(source: Path, out: Path, n_frames: int, width: int, force: bool) 
     sequence = load_sequence(source, dataset="tum", resize_width=width, require_gt=False, frame_stop=n_frames)
     native_width = load_sequence(source, dataset="tum", require_gt=False, frame_stop=1).intrinsics.width
     out.parent.mkdir(parents=True, exist_ok=True)
-    temporary = normal_folder(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    temporary = normal_folder(tempfile.mkdtemp(dir=os.path.realpath(out.parent), prefix=f".{out.name}."))
     try:
         _write_slice(source, sequence, n_frames, f"1/{native_width / width:g}", temporary)
     except BaseException:
@@ -101,7 +102,7 @@ def _write_slice(source: Path, sequence, n_frames: int, factor: str, temporary: 
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     parser.add_argument("--source", type=Path, required=True, help="TUM folder of rgbd_dataset_freiburg3_teddy (its first 120 frames suffice)")
     parser.add_argument("--out", type=Path, default=ROOT / "tsslam_ref" / "assets" / "tum_fr3_teddy_160x120",
                         help="output folder (default: the bundled sequence's)")

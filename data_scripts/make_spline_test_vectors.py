@@ -114,7 +114,7 @@ def knot_vector():
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     default_out = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tsslam_ref", "assets", "spline_vectors")
     parser.add_argument("--out", default=default_out)
     parser.add_argument("--force", action="store_true", help="overwrite existing vector files")

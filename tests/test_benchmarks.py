@@ -354,3 +354,16 @@ def test_a_folder_of_ones_own_is_read_as_run_reads_it(tmp_path, monkeypatch):
     module.main()
     assert seen == [1000.0]
 
+
+
+def test_a_system_without_a_resident_memory_figure_still_gets_its_table(monkeypatch, capsys, tmp_path):
+    """``device.peak_memory`` has no ``peak_rss_mib`` where Python lacks ``resource`` (Windows): the
+    benchmark ended with a KeyError after all its runs, before the table and the JSON file."""
+    module = _bench_system()
+    monkeypatch.setattr(module, "run_once", lambda sequence, cfg: {"failed": "not run in this test"})
+    monkeypatch.setattr(module, "peak_memory", lambda device: {})
+    monkeypatch.setattr(sys, "argv", ["bench_system.py", "--frames", "0:6", "--seeds", "0", "--threads", "1",
+                                      "--skip", "baseline", "--json", str(tmp_path / "rows.json")])
+    module.main()
+    assert "peak RSS of this process (all runs above): not measured" in capsys.readouterr().out
+    assert json.loads((tmp_path / "rows.json").read_text())["peak_rss_mib"] is None

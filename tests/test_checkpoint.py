@@ -118,6 +118,14 @@ def test_torch_saves_runtime_error_is_told_apart_a_ctrl_c_from_a_failed_write(st
     assert inside is KeyboardInterrupt or str(target) in str(raised.value)
     assert target.read_bytes() == b"the previous checkpoint" and [p.name for p in tmp_path.iterdir()] == [target.name]
 
+    def device_fault(values, path):  # any other RuntimeError stays itself: not a full disk
+        raise RuntimeError("CUDA error: an illegal memory access was encountered")
+
+    monkeypatch.setattr(torch, "save", device_fault)
+    with pytest.raises(RuntimeError, match="illegal memory access") as raised:
+        checkpoint.save(state, target)
+    assert not isinstance(raised.value, OSError) and target.read_bytes() == b"the previous checkpoint"
+
 
 @pytest.mark.parametrize("inside_torch_file", [False, True])
 def test_a_planted_pickle_never_runs(tmp_path, inside_torch_file):

@@ -171,10 +171,10 @@ def test_config_files_and_output_paths_are_named(tmp_path, capsys):
                        "none of its 1 entries is a file a run writes")
     (tmp_path / "taken" / "config.json").write_text("{}")  # the user's own config.json, say
     refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "not empty",
-                       "it would replace config.json and keep the other 1 entries")
+                       "it would replace config.json and keep 1 other entry")
     (tmp_path / "taken" / ".checkpoint.pt.abcd1234.tmp").write_text("left by a killed run")  # --overwrite removes it
     refused_in_process(capsys, run.main, ["--out", tmp_path / "taken"], "not empty", "it would replace config.json, "
-                       "1 file(s) a killed run left and keep the other 1 entries")
+                       "1 file(s) a killed run left and keep 1 other entry")
     (tmp_path / "taken" / ".checkpoint.pt.abcd1234.tmp").unlink()
     (tmp_path / "taken" / "notes.txt").unlink()  # a run stopped before its first checkpoint: --resume has nothing
     with pytest.raises(ValueError, match=r"would replace config\.json\)$"):
@@ -1034,6 +1034,12 @@ def test_a_full_disk_at_a_checkpoint_gives_one_line_naming_the_file(runs):
     last = result.stderr.strip().splitlines()[-1]
     assert last.startswith("error: cannot write the outputs in full: ") and "checkpoint.pt failed" in last, last
     assert "replacing the file" not in last and not list((runs["root"] / "full").glob(".*.tmp"))
+    assert last.endswith("run with --overwrite"), last  # no checkpoint was written: --resume would be refused
+    # a stop whose message names no file of the data is not blamed on the data either
+    other = cli("run", "--data", "room", "--out", "coarse", *CHEAP, "--set", "field.voxel_sdf=9", cwd=runs["root"])
+    last = other.stderr.strip().splitlines()[-1]
+    assert other.returncode == 2 and "res_max" in last and last.endswith(
+        "after fixing the cause, run the same command with --overwrite"), other.stderr
 
 
 
@@ -1044,6 +1050,25 @@ def test_every_command_line_helps_under_python_OO(module, tmp_path):
     result = subprocess.run([sys.executable, "-OO", "-m", f"tsslam_ref.{module}", "--help"], cwd=tmp_path, env=env,
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0 and result.stdout.startswith("usage: python -m tsslam_ref."), result.stderr
+
+
+
+def test_output_in_an_encoding_without_the_folder_names_characters_is_escaped_not_a_traceback(tmp_path):
+    """Windows encodes redirected output in its ANSI code page (cp1252 here, through
+    PYTHONIOENCODING): a folder named 'Łódź' printed to a log file ended the command with a
+    UnicodeEncodeError traceback (`run` after writing its config.json)."""
+    from tsslam_ref import data as data_module
+
+    folder = tmp_path / "Łódź"
+    shutil.copytree(data_module.default_sequence_path(), folder)
+    env = dict(os.environ, PYTHONIOENCODING="cp1252",
+               PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    info = subprocess.run([sys.executable, "-m", "tsslam_ref.data", "info", str(folder)], cwd=tmp_path, env=env,
+                          capture_output=True, timeout=300)
+    assert info.returncode == 0 and b"\\u0141\xf3d\\u017a" in info.stdout, info.stderr.decode("cp1252", "replace")
+    kit = subprocess.run([sys.executable, "-m", "tsslam_ref.spline_kit", "docs"], cwd=tmp_path, env=env,
+                         capture_output=True, timeout=300)
+    assert kit.returncode == 0 and b"Traceback" not in kit.stderr, kit.stderr.decode("cp1252", "replace")
 
 
 def test_a_parallel_run_stopped_with_ctrl_c_resumes(runs):

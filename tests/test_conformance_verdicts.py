@@ -421,7 +421,11 @@ def test_inputs_refuses_before_writing_any_file_when_one_is_the_users(tmp_path, 
     assert [path.name for path in folder.iterdir()] == [mine.name] and mine.read_text() == '{"mine": 1}'
     assert "nothing was written" in capsys.readouterr().err
     assert spline_kit.main(["inputs", str(folder), "--force"]) == 0 and len(list(folder.iterdir())) == len(VECTOR_PATHS)
-    capsys.readouterr()
+    for path in folder.iterdir():
+        path.unlink()
+    (folder / mine.name).mkdir()  # a folder of a vector's name: not even --force writes the others first
+    assert spline_kit.main(["inputs", str(folder), "--force"]) == 2
+    assert [path.name for path in folder.iterdir()] == [mine.name] and "is a folder" in capsys.readouterr().err
     reference = VECTOR_PATHS[0]
     data = json.loads(reference.read_text())
     (tmp_path / "mine.json").write_text(json.dumps(data))

@@ -1051,3 +1051,61 @@ def test_info_measures_gaps_over_the_frames_a_run_keeps():
     info = data.sequence_info(data.load_sequence(data.default_sequence_path(), require_gt=False))
     assert info["largest_gap_after_frame"] == int(np.argmax(np.diff(kept)))
     assert info["largest_gap_s"] == np.max(np.diff(kept)) and info["frames"] == len(kept) + 4
+
+
+def _bom(path):
+    """The file as Windows Notepad ('UTF-8 with BOM') or PowerShell 5 saves it: a byte-order mark first."""
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+
+
+def test_files_saved_with_a_byte_order_mark_and_upper_case_depth_names_are_read(tmp_path):
+    """Only the TUM lists took a UTF-8 byte-order mark: calibration.txt, intrinsics.json and a
+    ScanNet pose file with one were refused with their invisible first character quoted, and
+    ScanNet depth named '.PNG' (a Windows export) was 'no depth PNGs'."""
+    folder = _folder_layout(tmp_path / "capture", ["000000", "000001"])
+    (folder / "calibration.txt").write_text("# camera\n9 9 3.5 2.5\n")
+    _bom(folder / "calibration.txt")
+    assert data.load_sequence(folder).intrinsics.fx == 9
+    (folder / "calibration.txt").unlink()
+    (folder / "intrinsics.json").write_text('{"fx": 9, "fy": 8, "cx": 3.5, "cy": 2.5}')
+    _bom(folder / "intrinsics.json")
+    assert data.load_sequence(folder).intrinsics.fy == 8
+    scannet = tmp_path / "scene0000_00"
+    for sub in ("color", "depth", "pose", "intrinsic"):
+        (scannet / sub).mkdir(parents=True)
+    poses = _random_poses(2)
+    for n in range(2):
+        Image.fromarray(np.full((6, 8, 3), 40 * n, np.uint8)).save(scannet / f"color/{n}.jpg", quality=100)
+        iio.imwrite(scannet / f"depth/{n}.PNG", _depth(8, 6, 1.5, 1000))
+        np.savetxt(scannet / f"pose/{n}.txt", poses[n])
+        _bom(scannet / f"pose/{n}.txt")
+    np.savetxt(scannet / "intrinsic/intrinsic_depth.txt", [[6, 0, 3.5, 0], [0, 6, 2.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    _bom(scannet / "intrinsic/intrinsic_depth.txt")
+    sequence = data.load_sequence(scannet)
+    np.testing.assert_allclose(sequence[1].pose_c2w, poses[1], atol=1e-12)
+
+
+def test_synthesize_counts_start_from_the_origin_line_of_a_file_with_a_byte_order_mark(tmp_path):
+    """With a byte-order mark the '# origin:' line was not seen, so --start counted from the first
+    stamp instead (15 s off on a shipped stretch), silently."""
+    path = tmp_path / "stretch.txt"
+    lines = ["# origin: 100.0"] + [_tum_line(115.0 + i / 30, pose) for i, pose in enumerate(_random_poses(3))]
+    path.write_text("\n".join(lines) + "\n")
+    assert data.trajectory_origin(path) == 100.0
+    _bom(path)
+    assert data.trajectory_origin(path) == 100.0
+
+
+@pytest.mark.parametrize("listed, hint", [("rgb\\{}.png", "separates folders with '\\', as on Windows"),
+                                          ("rgb/{}.PNG", "the folder holds '{}.png': names differ in case")])
+def test_a_listed_name_that_only_windows_or_macos_would_find_says_why(tum_folder, listed, hint):
+    """A list written on Windows (backslashes) or naming a file in another case (their disks
+    ignore case) works there and failed here with a bare 'not found'."""
+    folder = tum_folder[0]
+    lines = (folder / "rgb.txt").read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    stamp = lines[first].split()[0]
+    lines[first] = f"{stamp} {listed.format(stamp)}"
+    (folder / "rgb.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(FileNotFoundError, match=re.escape(hint.format(stamp))):
+        data.load_sequence(folder)

@@ -644,3 +644,25 @@ def test_points_that_are_not_an_n_by_3_tensor_are_refused_naming_what_was_expect
         field(torch.zeros(5, 3).numpy())
     with pytest.raises(ValueError, match=r"points must have shape \(N, 3\), got \(3,\)"):
         field.sdf(torch.zeros(3))
+
+
+def test_on_windows_the_kernel_is_not_built_and_the_reason_is_not_a_missing_gcc(monkeypatch):
+    """PyTorch compiles with MSVC on Windows, which ignores the kernel's GCC/Clang flags: the advice
+    was to install g++ or set CXX, after which cl built an unoptimised single-thread kernel."""
+    from torch.utils import cpp_extension
+
+    calls = []
+    monkeypatch.setattr(cpp_extension, "load", lambda *args, **kwargs: calls.append(1))
+    monkeypatch.setattr(hash_kernel, "_STATE", {"loaded": None, "error": None})
+    monkeypatch.delenv("TSSLAM_NO_COMPILED_KERNEL", raising=False)
+    import warnings
+
+    monkeypatch.setattr(hash_kernel.os, "name", "nt")
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            built, reason = hash_kernel.available(), hash_kernel.load_error()
+    finally:
+        monkeypatch.undo()  # os.name back before pytest (pathlib) reads it
+    assert not built and calls == [] and "MSVC ignores" in reason, (built, calls, reason)
+    assert [str(warning.message).count("MSVC ignores") for warning in caught] == [1]

@@ -106,3 +106,15 @@ def test_allowed_long_functions_are_still_long():
     """An allow-list entry that has been split meanwhile is stale: remove it from the list."""
     stale = sorted(ALLOWED_LONG_FUNCTIONS - set(long_functions()))
     assert not stale, f"remove from ALLOWED_LONG_FUNCTIONS, these are {MAX_FUNCTION_LINES} lines or less now: {stale}"
+
+
+def test_no_code_calls_a_method_on_a_docstring():
+    """``python -OO`` sets every ``__doc__`` to None: a command-line parser built from
+    ``__doc__.split(...)`` failed before printing its --help (the eval command and the scripts)."""
+    roots = [PACKAGE, PACKAGE.parent / "benchmarks", PACKAGE.parent / "data_scripts"]
+    calls = []
+    for path in sorted(p for root in roots if root.is_dir() for p in root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "__doc__":
+                calls.append(f"{path.name}:{node.lineno}")
+    assert calls == [], f"methods called on __doc__ (None under python -OO): {calls}"

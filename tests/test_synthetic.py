@@ -376,7 +376,8 @@ def test_synthesize_stopped_by_sigterm_leaves_no_scratch_folder(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     command = [sys.executable, "-m", "tsslam_ref.data", "synthesize", "--out", str(tmp_path / "room"),
                "--frames", "400", "--size", "64x48"]
-    process = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
     deadline = time.monotonic() + 120
     while not list(tmp_path.glob(".room.*")) and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)  # until the frames are being written
@@ -385,3 +386,16 @@ def test_synthesize_stopped_by_sigterm_leaves_no_scratch_folder(tmp_path):
     _, err = process.communicate(timeout=120)
     assert process.returncode == 130 and "interrupted; nothing was left half-written" in err, (process.returncode, err)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_synthesize_through_a_link_and_up_writes_where_the_system_finds_the_folder(tmp_path, monkeypatch):
+    """'out/../run/room' with 'out' a link: the scratch folder's parent was tidied as text into a
+    folder that does not exist ("The directory does not exist")."""
+    (tmp_path / "real" / "inner").mkdir(parents=True)
+    (tmp_path / "real" / "run").mkdir()
+    (tmp_path / "out").symlink_to(tmp_path / "real" / "inner")
+    monkeypatch.chdir(tmp_path)
+    synthetic.synthesize("out/../run/room", n_frames=3, width=32, height=24, fps=30.0, seed=0)
+    assert (tmp_path / "real" / "run" / "room" / "rgb.txt").is_file()
+    assert [path.name for path in (tmp_path / "real" / "run").iterdir()] == ["room"]
+

@@ -19,6 +19,7 @@ Layer 4 (system): used by ``run.py``; knows the state of ``slam.py``.
 """
 
 import json
+import re
 import zipfile
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -195,6 +196,10 @@ def from_plain(values: Dict[str, Any], device=None):
     )
 
 
+_WRITER_FAILURE = re.compile(r"inline_container|PytorchStreamWriter|iostream error")
+"""How torch's zip writer words a failed write: other RuntimeErrors (a CUDA fault) stay what they are."""
+
+
 def save(state, path, environment: Optional[Dict[str, Any]] = None) -> Path:
     """Write the loop state to ``path`` atomically (a new file, the user's normal mode), with the
     ``environment`` the run started in (``device.run_environment``), which ``--resume`` compares."""
@@ -205,12 +210,16 @@ def save(state, path, environment: Optional[Dict[str, Any]] = None) -> Path:
         try:
             torch.save(plain, temporary)
         except RuntimeError as error:  # torch's zip writer turns a failed write, or a Ctrl-C in it, into this
-            cause = error.__context__
-            while cause is not None and not isinstance(cause, KeyboardInterrupt):
+            chain, cause = [], error
+            while cause is not None:
+                chain.append(cause)
                 cause = cause.__context__
-            if cause is not None:
-                raise cause from None
-            raise OSError(f"torch.save: {error} (a full disk or a file-size limit?)") from error
+            interrupt = next((cause for cause in chain if isinstance(cause, KeyboardInterrupt)), None)
+            if interrupt is not None:
+                raise interrupt from None
+            if any(_WRITER_FAILURE.search(str(cause)) for cause in chain):
+                raise OSError(f"torch.save: {error} (a full disk or a file-size limit?)") from error
+            raise
     return Path(path)
 
 

@@ -59,6 +59,7 @@ def interruptible(main, prog: str) -> int:
     import sys
 
     stop_on_sigterm_as_on_ctrl_c()
+    escape_what_output_cannot_encode()
     try:
         code = main()
         sys.stdout.flush()  # here, not at exit, so that a closed pipe is caught below
@@ -69,6 +70,17 @@ def interruptible(main, prog: str) -> int:
     except BrokenPipeError:  # output piped into `head` or a pager that quit: stop quietly, as Unix tools do
         silence_stdout()
         return 0
+
+
+def escape_what_output_cannot_encode() -> None:
+    """Write characters the output's encoding lacks as escapes (``\\u0141``) instead of stopping the
+    command with a UnicodeEncodeError: Windows encodes redirected output in its ANSI code page, so
+    a non-ASCII folder name printed to a log file ended a run with a traceback."""
+    import sys
+
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None and hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
 
 
 def stop_on_sigterm_as_on_ctrl_c() -> None:

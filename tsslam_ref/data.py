@@ -103,7 +103,7 @@ def trajectory_origin(path) -> float:
     (a shipped stretch records the first stamp of the full recording it was cut from), else the
     file's smallest timestamp."""
     try:
-        with open(path) as handle:
+        with open(path, encoding="utf-8-sig") as handle:  # a byte-order mark would hide the '#'
             for number, line in enumerate(handle, start=1):
                 if not line.startswith("#"):
                     break

@@ -146,6 +146,8 @@ def _build() -> bool:
 
         os.environ["PATH"] = ninja_search_path(os.environ.get("PATH", ""))
 
+        if os.name == "nt":  # MSVC ignores these flags (no optimisation, no threads): the PyTorch path is better
+            raise RuntimeError("the kernel is built with GCC/Clang flags (-O3, -fopenmp), which Windows' MSVC ignores")
         compiler = os.environ.get("CXX", "c++")
         if shutil.which(compiler) is None:  # before torch, whose banner would blame the compiler's version
             raise RuntimeError(f"no C++ compiler: {compiler!r} ({'$CXX' if 'CXX' in os.environ else 'the default'}) "
@@ -163,8 +165,11 @@ def _build() -> bool:
                 cpp_extension.load(name=name, sources=[str(SOURCE), str(ONEBLOB_SOURCE)], extra_cflags=CFLAGS,
                                    extra_ldflags=LDFLAGS, is_python_module=False, verbose=False)
         except PermissionError:  # a cache this user may read but not write (its lock file): use a finished build
-            built = Path(cpp_extension._get_build_directory(name, verbose=False)) / f"{name}.so"
-            if not built.is_file():
+            try:  # torch's private helper, as above
+                built = Path(cpp_extension._get_build_directory(name, verbose=False)) / f"{name}.so"
+            except Exception:
+                built = None
+            if built is None or not built.is_file():
                 raise
             torch.ops.load_library(str(built))  # the name holds the sources' and flags' hash: never stale
         return True

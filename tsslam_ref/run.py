@@ -48,11 +48,13 @@ from . import config as config_module
 from . import data as data_module
 from . import device as device_module
 from . import knot_schedule, tracking
-from .cli_args import OneLineParser, number_in, silence_stdout, stop_on_sigterm_as_on_ctrl_c, user_path
+from .cli_args import OneLineParser, escape_what_output_cannot_encode, number_in, silence_stdout
+from .cli_args import stop_on_sigterm_as_on_ctrl_c, user_path
 from .files import OutputWriteError, atomic_write_text, remove_stray_temporaries
 from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics  # noqa: F401  (re-exported)
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
-from .run_outputs import advance, check_output_folder, data_error_advice, data_notes, export_file_name, write_outputs
+from .run_outputs import advance, check_output_folder, data_error_advice, data_notes, export_file_name
+from .run_outputs import restart_advice, write_outputs
 from .run_outputs import FolderInUse, close_progress, output_folder_lock, write_partial_trajectory
 from .export import MAX_EXPORT_RATE, export_times
 
@@ -464,7 +466,8 @@ def execute(plan: Plan) -> int:
         close_progress(progress)
         if isinstance(error, OutputWriteError):  # not the data: the output folder stopped taking files (main)
             raise
-        print(f"error: {error}; the outputs so far are in {out}: {data_error_advice(out, reached)}", file=sys.stderr)
+        advice = data_error_advice(out, reached, error, str(sequence.path))
+        print(f"error: {error}; the outputs so far are in {out}: {advice}", file=sys.stderr)
         return EXIT_BAD_INPUT
     close_progress(progress)
     write_outputs(plan, result)
@@ -478,6 +481,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     stop_on_sigterm_as_on_ctrl_c()
+    escape_what_output_cannot_encode()
     try:
         plan = prepare(args)
     except (ValueError, OSError) as error:
@@ -500,12 +504,12 @@ def main(argv: Optional[List[str]] = None) -> int:
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # stdout piped into a reader that quit (`| head`)
         silence_stdout()
-        print(f"error: standard output was closed (the reader of a pipe quit), so the run stopped; --resume "
-              f"continues it from its last checkpoint in {plan.out}", file=sys.stderr)
+        print(f"error: standard output was closed (the reader of a pipe quit), so the run in {plan.out} stopped; "
+              f"run the same command with {restart_advice(plan.out)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except OSError as error:  # the output folder stopped taking files (disk full, permissions changed)
         print(f"error: cannot write the outputs in {plan.out}: {error}; what was written before is intact "
-              f"(files are replaced whole), free the space or fix the folder and run with --resume or --overwrite",
+              f"(files are replaced whole), free the space or fix the folder and run with {restart_advice(plan.out)}",
               file=sys.stderr)
         return EXIT_BAD_INPUT
 

@@ -76,12 +76,13 @@ def check_output_folder(out: Path, overwrite: bool, resume: bool, data_folder: s
         if ours or leftovers:  # a run removes the leftovers too
             removed = ours + ([f"{len(leftovers)} file(s) a killed run left"] if leftovers else [])
             kept = len(names) - len(ours) - len(leftovers)
-            replaced = f"it would replace {', '.join(removed)}" + (f" and keep the other {kept} entries" if kept else "")
+            others = f" and keep {kept} other {'entry' if kept == 1 else 'entries'}" if kept else ""
+            replaced = f"it would replace {', '.join(removed)}{others}"
         else:
             replaced = f"none of its {len(names)} entries is a file a run writes"
-        resume = " or --resume to continue it" if (out / "checkpoint.pt").is_file() else ""  # else refused
+        or_resume = " or --resume to continue it" if (out / "checkpoint.pt").is_file() else ""  # else refused
         raise ValueError(f"output folder {out} is not empty; pass --overwrite to replace the files of an earlier run "
-                         f"({replaced}){resume}")
+                         f"({replaced}){or_resume}")
     for name in names:
         entry = out / name
         if is_output_name(name) and entry.is_dir() and not entry.is_symlink():
@@ -218,15 +219,23 @@ def advance(progress, state, reached: dict) -> None:
             f"'field.bound=[[xmin,xmax],[ymin,ymax],[zmin,zmax]]' (metres, world frame)", file=sys.stderr)
 
 
+def data_error_advice(out: Path, reached: dict, error: Exception, data_folder: str) -> str:
+    """What to do after the loop stopped on ``error`` (``reached``: the progress record, its
+    ``checkpoint`` the frames the last checkpoint holds): a frame of the data that could not be read
+    (its message names a file under ``data_folder``), or another cause."""
+    if data_folder and data_folder in str(error):
+        if (out / "checkpoint.pt").is_file():
+            return (f"after replacing the file, run the same command with --resume to continue from its checkpoint "
+                    f"({reached['checkpoint']} frames done); after removing the frame from the lists instead, "
+                    f"with --overwrite")
+        return "after fixing the data, run the same command with --overwrite"
+    return f"after fixing the cause, run the same command with {restart_advice(out)}"
 
-def data_error_advice(out: Path, reached: dict) -> str:
-    """What to do after a frame of the data could not be read mid-run (``reached``: the progress
-    record, its ``checkpoint`` the frames the last checkpoint holds)."""
-    if (out / "checkpoint.pt").is_file():
-        return (f"after replacing the file, run the same command with --resume to continue from its checkpoint "
-                f"({reached['checkpoint']} frames done); after removing the frame from the lists instead, "
-                f"with --overwrite")
-    return "after fixing the data, run the same command with --overwrite"
+
+def restart_advice(out: Path) -> str:
+    """How a stopped run in ``out`` starts again: from its checkpoint when it has one."""
+    return "--resume (from its checkpoint) or --overwrite" if (out / "checkpoint.pt").is_file() else "--overwrite"
+
 
 def outside_box_summary(log) -> dict:
     """metrics.json's ``outside_box``: the largest share of a tracked frame's measured surface

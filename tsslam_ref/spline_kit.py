@@ -84,11 +84,14 @@ def write_json_atomic(path: str, data: dict, force: bool = False) -> None:
     atomic_write_text(path, json.dumps(data) + "\n")
 
 
-def _refuse_foreign(path: str, force: bool, written: str = "") -> None:
-    """FileExistsError when ``path`` exists, the kit did not write it and ``force`` is off."""
+def _refuse_foreign(path: str, force: bool, outcome: str = "") -> None:
+    """IsADirectoryError when ``path`` is a folder; FileExistsError when it exists, the kit did not
+    write it and ``force`` is off.  ``outcome``: what the refusal left, said first in the message."""
+    if os.path.isdir(path) and not os.path.islink(path):
+        raise IsADirectoryError(f"{path}: is a folder, expected a file name to write ({outcome}move it away first)")
     if os.path.exists(path) and not force and not _written_by_kit(path):
         raise FileExistsError(f"{path} exists and was not written by this kit; pass --force to overwrite it "
-                              f"({written}files the kit wrote are replaced on a re-run)")
+                              f"({outcome}files the kit wrote are replaced on a re-run)")
 
 
 def _epilog() -> str:
@@ -153,7 +156,7 @@ def _inputs(folder: str, force: bool) -> int:
     exists that the kit did not write (without ``force``)."""
     os.makedirs(folder, exist_ok=True)
     for path in shipped_vectors():
-        _refuse_foreign(os.path.join(folder, path.name), force, written="nothing was written; ")
+        _refuse_foreign(os.path.join(folder, path.name), force, outcome="nothing was written; ")
     for path in shipped_vectors():
         data = conformance.load_json(str(path))
         subset = {key: data[key] for key in conformance.INPUT_KEYS + conformance.OPTIONAL_INPUT_KEYS if key in data}
@@ -336,7 +339,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         if args.command == "check":
             conformance.check_tolerances(args.atol, args.rtol)
-            report = _check(resolve_reference(args.reference), args.candidate, args.atol, args.rtol, args.reference)
+            reference = resolve_reference(args.reference)
+            report = _check(reference, args.candidate, args.atol, args.rtol, reference_name=args.reference)
             return 0 if report["ok"] else 1
         return _check_all(args.folder, args.atol, args.rtol, args.allow_missing)
     except BrokenPipeError:  # the reader of our output went away: cli_args.interruptible ends quietly

@@ -434,7 +434,8 @@ def synthesize(out_dir, trajectory=None, n_frames: int = 60, width: int = 160, h
             f"(need >= {MIN_CLEARANCE} m; the room is {ROOM_MIN}..{ROOM_MAX}); use fewer frames or another start_time"
         )
     out.parent.mkdir(parents=True, exist_ok=True)
-    temporary = normal_folder(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
+    # the parent as the system finds it ('link/..' goes up from the link's target, not as text)
+    temporary = normal_folder(tempfile.mkdtemp(dir=os.path.realpath(out.parent), prefix=f".{out.name}."))
     try:
         _write_sequence(temporary, scene, intrinsics, times, poses, clean_depth, seed, mesh_voxel)
         settings = {"bound": scene.bound.tolist(), "intrinsics": intrinsics.to_dict(), "fps": fps, "seed": seed,

@@ -161,7 +161,7 @@ def _checked_calibration(values: dict, where) -> dict:
 def _read_intrinsics_json(json_path: Path) -> dict:
     """The checked calibration of an ``intrinsics.json`` (see :func:`read_calibration`)."""
     try:
-        values = json.loads(json_path.read_text(encoding="utf-8"))
+        values = json.loads(json_path.read_text(encoding="utf-8-sig"))
     except UnicodeDecodeError:
         raise ValueError(f"{json_path}: not a text file; expected a JSON object with fx, fy, cx, cy") from None
     except json.JSONDecodeError as error:
@@ -205,7 +205,7 @@ def read_calibration(folder: Path) -> Optional[dict]:
     text_path = Path(folder) / CALIBRATION_TXT
     if text_path.is_file():
         try:
-            text = text_path.read_text(encoding="utf-8")
+            text = text_path.read_text(encoding="utf-8-sig")
         except UnicodeDecodeError:
             raise ValueError(f"{text_path}: not a text file; expected a line 'fx fy cx cy [width height]'") from None
         for number, line in enumerate(text.splitlines(), start=1):

@@ -27,7 +27,8 @@ from tsslam_ref.datasets.intrinsics import (
     Intrinsics,
     read_calibration,
 )
-from tsslam_ref.datasets.tum_format import associate_nearest, ground_truth_at, read_file_list, read_tum_trajectory
+from tsslam_ref.datasets.tum_format import (associate_nearest, ground_truth_at, listed_file, read_file_list,
+                                            read_tum_trajectory)
 from tsslam_ref.geometry import opengl_to_opencv_pose
 
 DEPTH_SCALES = {"tum": 5000.0, "scannet": 1000.0, "neural_rgbd": 1000.0, "replica": 6553.5, "folder": 1000.0}
@@ -141,30 +142,6 @@ def _builtin_camera(intrinsics: Intrinsics, first_depth: Path, folder: Path, wha
     return intrinsics
 
 
-def listed_file(folder: Path, listing: Path, line: int, name: str) -> Path:
-    """``folder / name`` for a file named on line ``line`` of ``listing``, checked to stay inside.
-
-    A list may name files in the dataset folder and its sub-folders only: an absolute path, a
-    path through '..' that leaves the folder, or a symbolic link whose target lies outside the
-    folder is refused (a dataset list should not make the program read, say, a file in /etc).
-    Symbolic links whose targets stay inside the folder are allowed.
-
-    Raises:
-        ValueError: '<listing>:<line>: ...' for a path leaving the folder.
-        FileNotFoundError: '<listing>:<line>: ...' for a missing file.
-    """
-    if Path(name).is_absolute():
-        raise ValueError(f"{listing}:{line}: '{name}' is an absolute path; expected a path relative to the dataset folder {folder}")
-    path = folder / name
-    root = folder.resolve()
-    if not path.resolve().is_relative_to(root):
-        raise ValueError(f"{listing}:{line}: '{name}' leads outside the dataset folder {root} "
-                         f"(to {path.resolve()}); expected a file inside it")
-    if not path.is_file():
-        raise FileNotFoundError(f"{listing}:{line}: listed file '{name}' not found")
-    return path
-
-
 def tum_camera(folder: Path) -> str:
     """'freiburg1' | 'freiburg2' | 'freiburg3' from the folder name (fr3 when none is named)."""
     return named_tum_camera(folder) or "freiburg3"
@@ -238,7 +215,7 @@ def _read_matrix_lines(path: Path, per_line: int, what: str):
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path}: file not found ({what})")
     values, line_numbers = [], []
-    with open(path) as handle:
+    with open(path, encoding="utf-8-sig") as handle:  # a byte-order mark (Windows editors) is no data
         for number, line in enumerate(handle, start=1):
             fields = line.split()
             if not fields:
@@ -309,7 +286,7 @@ def parse_scannet(folder: Path, fps: float) -> LayoutIndex:
     intrinsic/intrinsic_depth.txt.  Colour is resized to the depth size; time = n / fps."""
     for sub in ("color", "depth", "pose"):
         _require_dir(folder / sub)
-    depth_paths = sorted((folder / "depth").glob("*.png"), key=lambda p: natural_key(p.name))
+    depth_paths = [p for p in _images(folder / "depth") if p.suffix.lower() == ".png"]  # .PNG too
     if not depth_paths:
         raise ValueError(f"{folder / 'depth'}: no depth PNGs")
     colour = {p.stem: p for p in _images(folder / "color")}
@@ -378,7 +355,7 @@ def _neural_rgbd_camera(folder: Path, first_depth: Path) -> Intrinsics:
         without = "without focal.txt the release's values (fx = fy = 554.256)"
         return _builtin_camera(release, first_depth, folder, without)
     try:
-        focal = float(focal_path.read_text().split()[0])
+        focal = float(focal_path.read_text(encoding="utf-8-sig").split()[0])
     except (ValueError, IndexError):
         raise ValueError(f"{focal_path}:1: expected one number (the focal length in pixels)") from None
     return _intrinsics_from(focal_path, focal, focal, width / 2.0, height / 2.0, width, height)

@@ -88,6 +88,43 @@ def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
     return np.asarray(stamps, dtype=np.float64), names, numbers
 
 
+def listed_file(folder: Path, listing: Path, line: int, name: str) -> Path:
+    """``folder / name`` for a file named on line ``line`` of ``listing``, checked to stay inside.
+
+    A list may name files in the dataset folder and its sub-folders only: an absolute path, a
+    path through '..' that leaves the folder, or a symbolic link whose target lies outside the
+    folder is refused (a dataset list should not make the program read, say, a file in /etc).
+    Symbolic links whose targets stay inside the folder are allowed.
+
+    Raises:
+        ValueError: '<listing>:<line>: ...' for a path leaving the folder.
+        FileNotFoundError: '<listing>:<line>: ...' for a missing file.
+    """
+    if Path(name).is_absolute():
+        raise ValueError(f"{listing}:{line}: '{name}' is an absolute path; expected a path relative to the dataset folder {folder}")
+    path = folder / name
+    root = folder.resolve()
+    if not path.resolve().is_relative_to(root):
+        raise ValueError(f"{listing}:{line}: '{name}' leads outside the dataset folder {root} "
+                         f"(to {path.resolve()}); expected a file inside it")
+    if not path.is_file():
+        raise FileNotFoundError(f"{listing}:{line}: listed file '{name}' not found{_missing_file_hint(folder, name)}")
+    return path
+
+
+def _missing_file_hint(folder: Path, name: str) -> str:
+    """Why a listed name that works on Windows or macOS is missing here: a backslash separator, or
+    a name that differs from the file's only in case (their disks ignore case)."""
+    if "\\" in name:
+        return " (the list separates folders with '\\', as on Windows: write '/')"
+    parent = (folder / name).parent
+    if parent.is_dir():
+        same = [entry.name for entry in parent.iterdir() if entry.name.lower() == Path(name).name.lower()]
+        if same:
+            return f" (the folder holds '{same[0]}': names differ in case, which Windows and macOS disks ignore)"
+    return ""
+
+
 def read_tum_trajectory(path, unique_stamps: bool = False) -> Tuple[np.ndarray, np.ndarray]:
     """Read a TUM trajectory: ``timestamp tx ty tz qx qy qz qw`` per line, '#' comments.
 
