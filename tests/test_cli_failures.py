@@ -504,6 +504,15 @@ def test_resume_of_a_finished_run_without_a_checkpoint_says_it_is_finished(runs)
     older = cli("run", "--data", "room", "--out", finished.name, *CHEAP, "--resume", cwd=root)
     assert older.returncode == 0 and "finished run" in older.stdout, older.stdout + older.stderr
     assert checkpoint.config_differences(saved, config_module.load(str(finished / "config.json"))) == []
+    # ... and without the keys added since (each counts at the default it gets when the file is loaded): these
+    # were refused as settings the user had changed, from "<absent>" to their defaults
+    del saved["data"]["require_gt"], saved["spline"]["last_interval"]
+    (finished / "config.json").write_text(json.dumps(saved))
+    older = cli("run", "--data", "room", "--out", finished.name, *CHEAP, "--resume", cwd=root)
+    assert older.returncode == 0 and "finished run" in older.stdout, older.stdout + older.stderr
+    changed = cli("run", "--data", "room", "--out", finished.name, *CHEAP, "--resume", "--set", "data.require_gt=false",
+                  cwd=root)
+    refused(changed, "data.require_gt was true by default (", "of an earlier version, lacks it), this command gives false")
 
 
 def test_export_rate_on_a_finished_run_writes_the_export_from_its_checkpoint(runs):
@@ -1169,6 +1178,12 @@ def test_eval_mesh_cull_like_a_run_gives_the_runs_reconstruction_numbers(runs):
     assert again.returncode == 0 and json.loads(again.stdout) == scored, again.stderr
     refused(cli("eval", "mesh", "moved/mesh.ply", "room/gt_mesh.ply", "--data", "room", cwd=root),
             "--data names the data of the run given by --cull-like")
+    # earlier versions recorded --data as typed: relative to where that run started, so the same command
+    # scored against whatever folder of that name the current directory held
+    saved["data"]["path"] = "room"
+    (root / "moved" / "config.json").write_text(json.dumps(saved))
+    refused(cli("eval", "mesh", "moved/mesh.ply", "room/gt_mesh.ply", "--cull-like", "moved", cwd=root),
+            "records the data folder as 'room', relative to wherever that run started", "pass --data")
 
 
 def test_resume_naming_the_device_the_run_used_is_not_refused(runs, tmp_path, monkeypatch, capsys):

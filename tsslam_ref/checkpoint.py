@@ -243,12 +243,16 @@ def config_differences(saved: Dict[str, Any], cfg: config_module.Config,
     """'key: saved -> now' for every config value that differs from the saved config (``saved_in``
     names where it was saved, for the message); not ``device``, whose resolved value
     :func:`environment_changes` compares (a warning), nor keys that earlier versions saved and nothing
-    read (``config_io.RETIRED_KEYS``)."""
+    read (``config_io.RETIRED_KEYS``).  A key that earlier versions did not save counts at its default."""
     old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))
     old = {key: value for key, value in old.items() if key not in RETIRED_KEYS}
+    # a key a later version added is absent from an earlier version's file: it has the value loading that
+    # file gives it (the preset's the file names, as config.load sets a file's values on that preset)
+    preset = config_module.PRESETS.get(saved.get("name"), config_module.Config)
+    defaults = _flatten(config_module.to_dict(preset()))
     changes = []
     for key in sorted(set(old) | set(new)):
-        before, after = old.get(key, "<absent>"), new.get(key, "<absent>")
+        before, after = old.get(key, defaults.get(key, "<absent>")), new.get(key, "<absent>")
         if key == "device":  # "auto" and "cpu" may name one device: the one used is compared as environment
             continue
         if key == "data.path" and isinstance(before, str) and isinstance(after, str):
@@ -256,7 +260,8 @@ def config_differences(saved: Dict[str, Any], cfg: config_module.Config,
         else:
             same = json.dumps(before) == json.dumps(after)
         if not same:
-            changes.append(f"{key} was {json.dumps(before)} in {saved_in}, this command gives {json.dumps(after)}")
+            where = f"in {saved_in}" if key in old else f"by default ({saved_in}, of an earlier version, lacks it)"
+            changes.append(f"{key} was {json.dumps(before)} {where}, this command gives {json.dumps(after)}")
     return changes
 
 

@@ -71,6 +71,9 @@ def _as_the_run_culled(rec: trimesh.Trimesh, gt: trimesh.Trimesh, args) -> Dict[
     if not os.path.isfile(saved):
         raise ValueError(f"--cull-like {args.cull_like}: no config.json there; expected the output folder of a run")
     cfg = config_module.load(saved)
+    if not args.data and cfg.data.path and not os.path.isabs(os.path.expanduser(cfg.data.path)):
+        raise ValueError(f"--cull-like {args.cull_like}: its config.json records the data folder as "
+                         f"'{cfg.data.path}', relative to wherever that run started (an earlier version); pass --data")
     recorded, cfg.data.path = cfg.data.path, args.data or cfg.data.path
     try:
         sequence = load_from_config(cfg.data)
