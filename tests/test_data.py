@@ -391,18 +391,24 @@ def test_no_depth_within_tolerance_is_an_error_not_empty(tmp_path):
 # Other layouts
 
 
-def test_scannet_layout(tmp_path):
-    folder = tmp_path / "scene0000_00"
+def _scannet_scene(folder, numbers, poses, depth_metres, colour_size=(8, 6), depth_suffix=".png"):
+    """A ScanNet export of 8x6 depth (mm): color/<n>.jpg (grey 40 x its index), depth/<n><suffix>,
+    pose/<n>.txt for each frame number n; intrinsic/ made, left empty."""
     for sub in ("color", "depth", "pose", "intrinsic"):
         (folder / sub).mkdir(parents=True)
+    for i, (n, pose, metres) in enumerate(zip(numbers, poses, depth_metres)):
+        colour = np.full((colour_size[1], colour_size[0], 3), 40 * i, np.uint8)
+        Image.fromarray(colour).save(folder / f"color/{n}.jpg", quality=100)
+        iio.imwrite(folder / f"depth/{n}{depth_suffix}", _depth(8, 6, metres, 1000))
+        np.savetxt(folder / f"pose/{n}.txt", pose)
+    return folder
+
+
+def test_scannet_layout(tmp_path):
     poses = _random_poses(3)
-    for n in range(3):
-        Image.fromarray(np.full((12, 16, 3), 40 * n, np.uint8)).save(folder / f"color/{n * 10}.jpg", quality=100)
-        iio.imwrite(folder / f"depth/{n * 10}.png", _depth(8, 6, 1.5 + n, 1000))
-        pose = poses[n].copy()
-        if n == 1:
-            pose[0, 0] = -np.inf  # ScanNet's invalid poses
-        np.savetxt(folder / f"pose/{n * 10}.txt", pose)
+    stored = poses.copy()
+    stored[1, 0, 0] = -np.inf  # ScanNet's invalid poses
+    folder = _scannet_scene(tmp_path / "scene0000_00", [0, 10, 20], stored, [1.5, 2.5, 3.5], colour_size=(16, 12))
     np.savetxt(folder / "intrinsic/intrinsic_depth.txt", [[6.1, 0, 3.6, 0], [0, 6.2, 2.7, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     assert data.detect_dataset(folder) == "scannet"
     loose = data.load_sequence(folder, require_gt=False)
@@ -441,12 +447,7 @@ def test_neural_rgbd_release_images_take_its_focal_length(tmp_path):
 
 def test_scannet_intrinsics_of_another_image_size_are_refused(tmp_path):
     """A downsampled export that kept the 640x480 intrinsic_depth.txt: cx = 318.9 on 8x6 depth."""
-    folder = tmp_path / "scene0000_00"
-    for sub in ("color", "depth", "pose", "intrinsic"):
-        (folder / sub).mkdir(parents=True)
-    Image.fromarray(np.zeros((6, 8, 3), np.uint8)).save(folder / "color/0.jpg")
-    iio.imwrite(folder / "depth/0.png", _depth(8, 6, 1.5, 1000))
-    np.savetxt(folder / "pose/0.txt", np.eye(4))
+    folder = _scannet_scene(tmp_path / "scene0000_00", [0], [np.eye(4)], [1.5])
     np.savetxt(folder / "intrinsic/intrinsic_depth.txt",
                [[577.59, 0, 318.91, 0], [0, 578.73, 242.68, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     with pytest.raises(ValueError, match=r"intrinsic_depth\.txt: calibration cx = 318\.91 lies outside the 8x6 images"):
@@ -1070,14 +1071,9 @@ def test_files_saved_with_a_byte_order_mark_and_upper_case_depth_names_are_read(
     (folder / "intrinsics.json").write_text('{"fx": 9, "fy": 8, "cx": 3.5, "cy": 2.5}')
     _bom(folder / "intrinsics.json")
     assert data.load_sequence(folder).intrinsics.fy == 8
-    scannet = tmp_path / "scene0000_00"
-    for sub in ("color", "depth", "pose", "intrinsic"):
-        (scannet / sub).mkdir(parents=True)
     poses = _random_poses(2)
+    scannet = _scannet_scene(tmp_path / "scene0000_00", [0, 1], poses, [1.5, 1.5], depth_suffix=".PNG")
     for n in range(2):
-        Image.fromarray(np.full((6, 8, 3), 40 * n, np.uint8)).save(scannet / f"color/{n}.jpg", quality=100)
-        iio.imwrite(scannet / f"depth/{n}.PNG", _depth(8, 6, 1.5, 1000))
-        np.savetxt(scannet / f"pose/{n}.txt", poses[n])
         _bom(scannet / f"pose/{n}.txt")
     np.savetxt(scannet / "intrinsic/intrinsic_depth.txt", [[6, 0, 3.5, 0], [0, 6, 2.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     _bom(scannet / "intrinsic/intrinsic_depth.txt")

@@ -20,6 +20,7 @@ Layer 0 (base): dataclasses only, no torch.
 """
 
 import difflib
+import operator
 import os
 from dataclasses import dataclass
 from dataclasses import field as _field
@@ -402,7 +403,7 @@ def overrides_without_effect(method: str, overrides: Sequence[str], cfg: Optiona
         if cfg.spline.knots == "uniform":
             rules.append((ADAPTIVE_ONLY, "with uniform knots (read only with spline.knots=adaptive)"))
         rules += [(unread, f"with {switch}=false ({why})") for switch, unread, why in UNREAD_WHEN_OFF
-                  if not getattr(getattr(cfg, switch.split(".")[0]), switch.split(".")[1])]
+                  if not operator.attrgetter(switch)(cfg)]
 
     def reads_none(text: str, names: Sequence[str]) -> bool:
         key = text.split("=", 1)[0].strip()

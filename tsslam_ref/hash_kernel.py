@@ -153,10 +153,11 @@ def _build() -> bool:
             raise RuntimeError(f"no C++ compiler: {compiler!r} ({'$CXX' if 'CXX' in os.environ else 'the default'}) "
                                f"is not found on PATH; install one (e.g. g++) or set CXX")
         name = build_name()
-        try:  # a stale lock makes cpp_extension.load wait forever without a word: say so first
-            message = stale_lock_message(cpp_extension._get_build_directory(name, verbose=False))
+        try:
+            folder = cpp_extension._get_build_directory(name, verbose=False)
         except Exception:  # a private helper of torch: never let it break the build
-            message = None
+            folder = None
+        message = stale_lock_message(folder) if folder else None  # a stale lock makes load wait without a word
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
 
@@ -165,11 +166,8 @@ def _build() -> bool:
                 cpp_extension.load(name=name, sources=[str(SOURCE), str(ONEBLOB_SOURCE)], extra_cflags=CFLAGS,
                                    extra_ldflags=LDFLAGS, is_python_module=False, verbose=False)
         except PermissionError:  # a cache this user may read but not write (its lock file): use a finished build
-            try:  # torch's private helper, as above
-                built = Path(cpp_extension._get_build_directory(name, verbose=False)) / f"{name}.so"
-            except Exception:
-                built = None
-            if built is None or not built.is_file():
+            built = Path(folder or "") / f"{name}.so"
+            if not folder or not built.is_file():
                 raise
             torch.ops.load_library(str(built))  # the name holds the sources' and flags' hash: never stale
         return True
