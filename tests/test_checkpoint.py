@@ -3,12 +3,15 @@
 import copy
 import os
 import pickle
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from tsslam_ref import checkpoint, config, data, files, slam, synthetic
+import tsslam_ref
+from tsslam_ref import checkpoint, config, data, device, files, slam, synthetic
 
 
 class Payload:
@@ -335,3 +338,31 @@ def test_a_state_loaded_on_the_cpu_is_refused_by_a_run_on_another_device_naming_
         state_on_device(state, torch.device("meta"))
     with pytest.raises(ValueError, match="lives on cpu, the run on meta"):
         slam.prepare_run(live["sequence"], state.cfg, torch.device("meta"), state)
+
+
+def test_the_recorded_code_digest_follows_the_source_not_its_place_or_caches(tmp_path):
+    """metrics.json and a checkpoint record ``device.source_version()``; a resume compares it, so an
+    edited package is named.  Oracle: a copy of the package elsewhere has the same digest; compiled
+    caches and data beside the code leave it alone; a one-line edit of any source file changes it."""
+    package = Path(tsslam_ref.__file__).parent
+    copy = tmp_path / "elsewhere" / "tsslam_ref"
+    shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    original = device.source_version(package)
+    assert original.startswith(f"{tsslam_ref.__version__}, source ") and device.source_version(copy) == original
+    (copy / "__pycache__").mkdir()
+    (copy / "__pycache__" / "spline.cpython-311.pyc").write_bytes(os.urandom(64))
+    (copy / "assets" / "notes.txt").write_text("a user's file")
+    assert device.source_version(Path(str(copy))) == original  # a new Path object: not the cached answer
+    for edited in ("spline.py", "datasets/tum_format.py", "csrc/hash_grid.cpp"):
+        changed = tmp_path / edited.replace("/", "_") / "tsslam_ref"
+        shutil.copytree(copy, changed)
+        with open(changed / edited, "a") as source:
+            source.write("\n")
+        assert device.source_version(changed) != original, edited
+
+
+def test_a_checkpoint_of_an_earlier_version_without_the_code_digest_says_it_was_not_recorded():
+    now = {"tsslam_ref": "0.1.0, source 0123456789ab", "torch": "2.13.0+cpu"}
+    assert checkpoint.environment_changes({"torch": "2.13.0+cpu"}, now) == [
+        "tsslam_ref was not recorded (an earlier version) when the run started, now '0.1.0, source 0123456789ab'"]
+    assert checkpoint.environment_changes(dict(now), now) == []

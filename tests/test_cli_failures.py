@@ -852,12 +852,15 @@ def test_resume_in_another_environment_warns_and_metrics_record_both(runs, tmp_p
     _interrupted_beside_its_data(runs, tmp_path)
     started_in = checkpoint.read(tmp_path / "stopped" / "checkpoint.pt")["environment"]
     assert started_in["torch"] == torch.__version__ and started_in["map_kernels"]["hash_grid"] in ("compiled", "pytorch")
+    assert started_in["tsslam_ref"] == device_module.source_version()
     real = device_module.compute_environment
     monkeypatch.setattr(device_module, "compute_environment", lambda where: {**real(where), "torch": "0.0-other"})
+    monkeypatch.setattr(device_module, "source_version", lambda: "0.1.0, source edited")  # the package was edited
     monkeypatch.chdir(tmp_path)
     assert run.main([*CHEAP, "--data", "room", "--out", "stopped", "--resume"]) == 0
     warning = capsys.readouterr().err
     assert f"torch was '{torch.__version__}' when the run started, now '0.0-other'" in warning
+    assert f"tsslam_ref was '{started_in['tsslam_ref']}' when the run started, now '0.1.0, source edited'" in warning
     assert "frames from 4 on will not match" in warning
     metrics = json.loads((tmp_path / "stopped" / "metrics.json").read_text())
     assert metrics["environment"]["torch"] == "0.0-other" and metrics["environment_at_start"] == started_in

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import torch
 
+import tsslam_ref
 from tsslam_ref import config, data, device, eval as evaluation, global_ba, hash_kernel, local_ba, parallel, run
 from tsslam_ref import run_outputs, slam, synthetic
 from tsslam_ref.bundle import KeyframeDatabase
@@ -284,6 +285,7 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
         assert key in metrics
     assert 0 < metrics["runtime"]["lba_init"]["iterations_per_call"] < config.tiny().local_ba.fit_iters  # LM stops early
     paths = metrics["environment"].pop("map_kernels")
+    assert metrics["environment"].pop("tsslam_ref").startswith(f"{tsslam_ref.__version__}, source ")
     assert metrics["environment"] == {"torch": torch.__version__, "device": "cpu", "threads": torch.get_num_threads(),
                                       "cpu_capability": torch.backends.cpu.get_cpu_capability()}
     expected_path = "compiled" if hash_kernel.available() else "pytorch"

@@ -267,11 +267,12 @@ def config_differences(saved: Dict[str, Any], cfg: config_module.Config,
 
 def environment_changes(saved: Optional[Dict[str, Any]], now: Dict[str, Any]) -> List[str]:
     """'key was X when the run started, now Y' for each entry of ``device.run_environment`` that
-    differs (PyTorch, device, CPU kernels, threads, map kernels); none for a checkpoint without one."""
+    differs (the code, PyTorch, device, CPU kernels, threads, map kernels); none for a checkpoint
+    without one.  An entry the checkpoint lacks was not recorded by the version that wrote it."""
     if not isinstance(saved, dict):
         return []
-    return [f"{key} was {saved.get(key)!r} when the run started, now {now.get(key)!r}"
-            for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
+    return [f"{key} was {repr(saved[key]) if key in saved else 'not recorded (an earlier version)'} when the run "
+            f"started, now {now.get(key)!r}" for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
 
 
 def _check_crc(path: Path) -> None:

@@ -6,13 +6,16 @@ by ``slam``, ``parallel``, ``run`` and ``checkpoint``.
 
 import ctypes
 import dataclasses
+import functools
+import hashlib
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from . import hash_kernel
+from . import __version__, hash_kernel
 from .render import RayBatch, frame_rays, sample_pixels
 
 
@@ -77,10 +80,24 @@ def map_kernels(field, device: torch.device) -> dict:
     return paths
 
 
+@functools.lru_cache(maxsize=None)
+def source_version(package: Path = Path(__file__).parent) -> str:
+    """Which tsslam_ref ran: ``"0.1.0, source 1a2b3c4d5e6f"``, the version and the first 12 hex digits
+    of a SHA-256 over the package's code (each ``.py``, ``.cpp`` and ``.h`` file's path inside
+    ``package`` and bytes, in sorted order).  Equal digests mean the same code wherever it is
+    installed; any edit changes it, which a version number that stays put does not show."""
+    digest = hashlib.sha256()
+    for path in sorted(package.rglob("*")):
+        if path.suffix in (".py", ".cpp", ".h") and "__pycache__" not in path.parts and path.is_file():
+            digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return f"{__version__}, source {digest.hexdigest()[:12]}"
+
+
 def run_environment(device: torch.device, field) -> dict:
-    """:func:`compute_environment` with ``map_kernels`` (:func:`map_kernels` of ``field``): what
-    metrics.json and a checkpoint record, and what ``--resume`` compares."""
-    return {**compute_environment(device), "map_kernels": map_kernels(field, device)}
+    """:func:`compute_environment` with ``map_kernels`` (:func:`map_kernels` of ``field``) and the
+    code (``tsslam_ref``, :func:`source_version`): what metrics.json and a checkpoint record, and what
+    ``--resume`` compares."""
+    return {"tsslam_ref": source_version(), **compute_environment(device), "map_kernels": map_kernels(field, device)}
 
 
 def peak_memory(device: torch.device) -> dict:

@@ -12,8 +12,8 @@ Outputs in ``--out`` (default ``runs/<sequence>-<method>``):
   known), frames, frames_per_second (of the frames this process ran; null when a resume had none left),
   the runtime table, the reconstruction metrics when a ground-truth mesh is next to the data
   (``gt_mesh.ply``, written by the synthetic generator),
-  ``environment`` (:func:`tsslam_ref.device.compute_environment`: what besides the seed fixes the
-  numbers) and the peak memory (``peak_rss_mib``; ``peak_gpu_allocated_mib`` on CUDA);
+  ``environment`` (:func:`tsslam_ref.device.run_environment`: the code's version and source digest,
+  and what besides the seed fixes the numbers) and the peak memory (``peak_rss_mib``; ``peak_gpu_allocated_mib`` on CUDA);
 * ``mesh.ply`` - the final map's mesh (marching cubes at ``mesh.voxel_final``);
 * ``config.json`` - the resolved config; ``trajectory.png`` and ``errors.png`` - plots;
 * ``checkpoint.pt`` - the whole state every ``--checkpoint-every`` frames (``--resume`` continues);
