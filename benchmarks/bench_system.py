@@ -31,7 +31,8 @@ The JSON file (``--json``) holds ``settings`` (preset, data, frames, seeds, each
 seeds (for example the shipped ``tsslam_ref/assets/results/teddy_tum-cpu_3seeds.json``): for each
 row in both it prints the mean ATE and RPE against the stored seeds' range ("identical" when every
 seed's numbers are equal bit for bit, else "inside", "below" or "above" the range), frames/s and
-ms per iteration now / stored, and the peak RSS of both.  What a speed change needs to show:
+ms per iteration now / stored, the peak RSS of both, and the code that wrote the file when it is not
+this one (``settings.tsslam_ref``: version and source digest).  What a speed change needs to show:
 
     python benchmarks/bench_system.py --seeds 0 1 2 --skip baseline \
         --against tsslam_ref/assets/results/teddy_tum-cpu_3seeds.json
@@ -55,7 +56,7 @@ import torch
 
 from tsslam_ref import config, data, parallel, slam, spline_fit
 from tsslam_ref.cli_args import OneLineParser, number_in
-from tsslam_ref.device import compute_environment, map_kernels, peak_memory, tune_cpu_allocator
+from tsslam_ref.device import compute_environment, map_kernels, peak_memory, source_version, tune_cpu_allocator
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
 from tsslam_ref.run_outputs import ground_truth_known
 
@@ -265,6 +266,9 @@ def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mi
     lines.append(f"peak RSS: {_mib(peak_rss_mib)} now, "
                  + (f"{stored_rss:.0f} MiB stored" if stored_rss is not None else "not in the stored file"))
     lines.extend(environment_lines(stored["settings"].get("environment") or {}, environment))
+    stored_code = stored["settings"].get("tsslam_ref", "not recorded (an earlier version)")
+    if stored_code != source_version():  # a speed-up is a code change: "identical" rows show it kept every bit
+        lines.append(f"code: stored by tsslam_ref {stored_code}, now {source_version()}")
     if "data_fingerprint" not in stored["settings"]:
         lines.append("the stored file does not record the data's fingerprint (image size, time stamps, first "
                      "images): only the sequence's name, frame count and range were compared")
@@ -369,7 +373,7 @@ def main() -> None:
                 "frames": len(sequence), "frame_range": args.frames, "threads": args.threads,
                 "data_fingerprint": data_fingerprint(sequence),
                 "overrides": args.overrides, "seeds": args.seeds, "ablation_seeds": ablation_seeds,
-                "variants": variants, "environment": environment, "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
+                "variants": variants, "environment": environment, "tsslam_ref": source_version(), "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
     stored = None
     if args.against:
         try:

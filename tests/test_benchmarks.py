@@ -78,6 +78,14 @@ def test_comparison_table_rows_rss_and_environment():
     assert any("812 MiB now, 900 MiB stored" in line for line in lines)
     other = dict(environment, cpu_capability="AVX512")
     assert any(line.startswith("environment differs") for line in bench.comparison_lines(results, stored, other, 1.0))
+    # which code wrote the stored file: named when it is not this code, nothing when it is
+    now = f"now {bench.source_version()}"
+    assert f"code: stored by tsslam_ref not recorded (an earlier version), {now}" in lines
+    stored["settings"]["tsslam_ref"] = "0.1.0, source 0123456789ab"
+    assert f"code: stored by tsslam_ref 0.1.0, source 0123456789ab, {now}" in bench.comparison_lines(
+        results, stored, environment, 1.0)
+    stored["settings"]["tsslam_ref"] = bench.source_version()
+    assert not any(line.startswith("code:") for line in bench.comparison_lines(results, stored, environment, 1.0))
 
 
 def test_the_runtime_table_averages_every_column_over_the_seeds():
