@@ -6,8 +6,9 @@
 #   (default ${TSSLAM_DATA:-$HOME/datasets/tsslam_ref}/neural_rgbd_data)
 # Result: DEST/<scene>/images/, depth_filtered/, poses.txt  -> load_sequence(DEST/<scene>) ('neural_rgbd').
 # URL: the one used by Co-SLAM's script (verify before use).  The archive is tested and unpacked into a
-# scratch folder first: a failed or cut download exits non-zero and the next run fetches it again.
+# scratch folder first: a failed or cut download exits non-zero and the next run resumes it.
 set -euo pipefail
+source "$(dirname "$0")/fetch.sh"
 case "${1:-}" in
   -h|--help) sed -n '2,9p' "$0" | cut -c3-; exit 0 ;;
   -*) echo "error: unknown option $1 (usage: bash data_scripts/download_neural_rgbd.sh [DEST])" >&2; exit 2 ;;
@@ -16,8 +17,7 @@ DEST="${1:-${TSSLAM_DATA:-$HOME/datasets/tsslam_ref}/neural_rgbd_data}"
 URL="http://kaldir.vc.in.tum.de/neural_rgbd/neural_rgbd_data.zip"
 mkdir -p "$DEST"
 if [ -d "$DEST/breakfast_room" ] && [ ! -e "$DEST.zip" ]; then echo "have $DEST"; exit 0; fi
-curl -fL --retry 3 -o "$DEST.zip.part" "$URL"
-mv "$DEST.zip.part" "$DEST.zip"
+fetch "$URL" "$DEST.zip"
 if ! unzip -tq "$DEST.zip" > /dev/null; then echo "error: $DEST.zip is damaged; run the script again" >&2; exit 1; fi
 # the archive's top level is the scene folders (Co-SLAM unzips it inside data/neural_rgbd_data)
 rm -rf "$DEST.unpack"

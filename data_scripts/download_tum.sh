@@ -6,8 +6,9 @@
 # the layout `tsslam_ref.data.load_sequence` reads; the camera (fr1/fr2/fr3) comes from the folder name.
 # URLs: the TUM download server (verify before use; the older host vision.in.tum.de is tried second).
 # A sequence is unpacked into a scratch folder and moved into place only when the archive is whole, so
-# a failed or cut download exits non-zero and the next run fetches that sequence again.
+# a failed or cut download exits non-zero and the next run resumes that sequence.
 set -euo pipefail
+source "$(dirname "$0")/fetch.sh"
 case "${1:-}" in
   -h|--help) sed -n '2,9p' "$0" | cut -c3-; exit 0 ;;
   -*) echo "error: unknown option $1 (usage: bash data_scripts/download_tum.sh [DEST])" >&2; exit 2 ;;
@@ -20,10 +21,9 @@ for seq in freiburg1/rgbd_dataset_freiburg1_desk freiburg2/rgbd_dataset_freiburg
   if [ -f "$DEST/$name/rgb.txt" ] && [ ! -e "$DEST/$name.tgz" ]; then echo "have $name"; continue; fi
   fetched=no
   for host in https://cvg.cit.tum.de/rgbd/dataset https://vision.in.tum.de/rgbd/dataset; do
-    if curl -fL --retry 3 -o "$DEST/$name.tgz.part" "$host/$seq.tgz"; then fetched=yes; break; fi
+    if fetch "$host/$seq.tgz" "$DEST/$name.tgz"; then fetched=yes; break; fi
   done
   if [ "$fetched" != yes ]; then echo "error: could not download $seq.tgz from either host" >&2; exit 1; fi
-  mv "$DEST/$name.tgz.part" "$DEST/$name.tgz"
   if ! gzip -t "$DEST/$name.tgz"; then echo "error: $DEST/$name.tgz is damaged; run the script again" >&2; exit 1; fi
   rm -rf "$DEST/$name.unpack"
   mkdir "$DEST/$name.unpack"

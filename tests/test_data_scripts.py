@@ -7,6 +7,7 @@ Archive layouts: NeuralRGBD's ``neural_rgbd_data.zip`` holds the scene folders a
 """
 
 import os
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -91,6 +92,50 @@ def test_a_cut_download_fails_and_the_next_run_fetches_it_again(tmp_path):
     assert "wrote" in _run("download_replica.sh", dest, env).stdout
     assert (dest / "room0" / "traj.txt").read_text() == "0"
     assert sorted(p.name for p in dest.parent.iterdir()) == ["Replica"]  # no zip or scratch folder left
+
+
+def _real_curl_from_files(tmp_path, folder, ranges=True):
+    """The real ``curl`` on PATH behind a wrapper that serves the URL's file name from ``folder`` as a
+    file:// URL (curl resumes those as it does HTTP) and logs the bytes each call downloaded.  With
+    ``ranges=False`` a resume is refused as curl refuses it from a server without byte ranges (exit 33)."""
+    real = shutil.which("curl")
+    assert real, "these tests run the real curl"
+    bin_dir = tmp_path / "bin_real"
+    bin_dir.mkdir()
+    log = tmp_path / "downloaded.log"
+    refuse = "" if ranges else 'for arg in "$@"; do [ "$arg" = "-C" ] && exit 33; done\n'
+    (bin_dir / "curl").write_text(
+        f'#!/bin/sh\n{refuse}for arg in "$@"; do url="$arg"; done\nfile="{folder}/$(basename "$url")"\n'
+        'n=$#; i=1\nfor arg in "$@"; do [ "$i" -lt "$n" ] && set -- "$@" "$arg"; i=$((i + 1)); done\nshift "$n"\n'
+        f'exec "{real}" -sS -w "%{{size_download}}\\n" "$@" "file://$file" >> "{log}"\n')
+    (bin_dir / "curl").chmod(0o755)
+    return {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}, log
+
+
+def test_a_cut_download_resumes_from_its_part_file_and_one_that_cannot_starts_over(tmp_path):
+    """A cut download of a multi-gigabyte archive started again from zero on every run. Oracle: real
+    curl's count of downloaded bytes and the unpacked scene."""
+    served = tmp_path / "served"
+    served.mkdir()
+    whole = _zip(served / "Replica.zip", {"Replica/room0/traj.txt": "0", "Replica/room0/results/depth000000.png": "y" * 4000})
+    size = whole.stat().st_size
+    dest = tmp_path / "datasets" / "Replica"
+    dest.parent.mkdir()
+    Path(f"{dest}.zip.part").write_bytes(whole.read_bytes()[:1500])  # what a cut run left
+    env, log = _real_curl_from_files(tmp_path, served)
+    assert "wrote" in _run("download_replica.sh", dest, env).stdout
+    assert (dest / "room0" / "traj.txt").read_text() == "0"
+    assert log.read_text().split() == [str(size - 1500)]  # only the rest came
+    assert sorted(p.name for p in dest.parent.iterdir()) == ["Replica"]
+
+    other = tmp_path / "other"
+    other.mkdir()
+    Path(f"{other / 'Replica'}.zip.part").write_bytes(b"bytes of an older archive, served without ranges")
+    env, log = _real_curl_from_files(other, served, ranges=False)
+    result = _run("download_replica.sh", other / "Replica", env)
+    assert "could not resume" in result.stderr and "wrote" in result.stdout, result
+    assert (other / "Replica" / "room0" / "traj.txt").read_text() == "0"
+    assert log.read_text().split() == [str(size)]  # the whole archive, once
 
 
 def test_tum_sequences_unpack_whole_and_a_failed_host_is_an_error(tmp_path):
