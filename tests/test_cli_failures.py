@@ -1165,6 +1165,9 @@ def test_eval_mesh_cull_like_a_run_gives_the_runs_reconstruction_numbers(runs):
     for key, tolerance in (("accuracy_m", 1e-6), ("completion_m", 1e-6), ("completion_ratio", 3 / 50_000)):
         assert scored[key] == pytest.approx(metrics[key], abs=tolerance), key
     assert scored["n_points"] == metrics["n_points"] == 50_000 and scored["sampling_seed"] == 3
+    zero = cli("eval", "mesh", "meshed/mesh.ply", "room/gt_mesh.ply", "--cull-like", "meshed", "--seed", "0", "--json",
+               cwd=root)
+    assert zero.returncode == 0 and json.loads(zero.stdout)["sampling_seed"] == 0  # an explicit 0 is not "unset"
     plain = json.loads(cli("eval", "mesh", "meshed/mesh.ply", "room/gt_mesh.ply", "--json", cwd=root).stdout)
     assert plain["accuracy_m"] > 2 * metrics["accuracy_m"]  # unculled: the whole box's surface against the seen part
     refused(cli("eval", "mesh", "meshed/mesh.ply", "room/gt_mesh.ply", "--cull-like", "room", cwd=root),

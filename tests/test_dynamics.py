@@ -53,10 +53,12 @@ def test_log_barrier_rejects_bad_limit():
 def test_eq10_regularizer_equals_paper_formula_inside_the_barrier():
     rng = np.random.default_rng(0)
     acc = rng.normal(size=(20, 3))
-    acc *= 4.0 / np.linalg.norm(acc, axis=-1, keepdims=True).max()
+    acc *= 4.65 / np.linalg.norm(acc, axis=-1, keepdims=True).max()
     ang = rng.normal(size=(20, 3))
-    ang *= 2.0 / np.linalg.norm(ang, axis=-1, keepdims=True).max()
-    l1, l2, a_max, w_max = 0.3, 0.7, 5.0, 3.0  # ratios ≤ 0.8 < barrier_limit
+    ang *= 2.79 / np.linalg.norm(ang, axis=-1, keepdims=True).max()
+    # the largest ratios are 0.93 (4.65 / 5, 2.79 / 3): exact -ln(1 - x) only below the documented
+    # default barrier_limit of 0.95, which is not passed
+    l1, l2, a_max, w_max = 0.3, 0.7, 5.0, 3.0
     expected = -np.sum(l1 * np.log(1 - np.linalg.norm(acc, axis=-1) / a_max)
                        + l2 * np.log(1 - np.linalg.norm(ang, axis=-1) / w_max))
     value = dynamics.dynamics_regularizer(torch.as_tensor(acc), torch.as_tensor(ang), lambda_acc=l1,

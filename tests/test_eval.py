@@ -772,6 +772,28 @@ def test_cli_mesh(tmp_path, capsys):
     assert "warning:" in capsys.readouterr().err  # metres against millimetres: printed, and said
 
 
+def test_documented_defaults_hold_when_no_value_is_passed(tmp_path, capsys):
+    """docs/evaluation.md's defaults, used without passing them (the other tests pass every value):
+    evaluate_trajectory and `eval trajectory` match within 0.01 s (evo's), associate within 0.02 s
+    (TUM's associate.py), `eval mesh` samples 200000 points.  Oracle: stamps 8 and 15 ms off
+    alternately, so only the 8 ms half is within 0.01 s; 15 and 25 ms for 0.02 s."""
+    times = 1.0 + 0.1 * np.arange(20)
+    positions = np.outer(np.arange(20), [0.05, 0.02, 0.01])
+    positions[:, 1] += 0.1 * np.sin(np.arange(20))  # not collinear: the alignment is unique
+    late = times + np.where(np.arange(20) % 2 == 0, 0.008, 0.015)
+    assert ev.evaluate_trajectory(times, _poses_at(positions), late, _poses_at(positions))["n_matched"] == 10
+    _write_tum(tmp_path / "gt.txt", times, _poses_at(positions))
+    _write_tum(tmp_path / "est.txt", late, _poses_at(positions))
+    assert ev.main(["trajectory", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_matched"] == 10
+    idx_a, _ = ev.associate(times, times + np.where(np.arange(20) % 2 == 0, 0.015, 0.025))
+    assert idx_a.tolist() == list(range(0, 20, 2))
+    trimesh.creation.icosphere(subdivisions=2, radius=1.0).export(tmp_path / "gt.ply")
+    trimesh.creation.icosphere(subdivisions=2, radius=1.01).export(tmp_path / "rec.ply")
+    assert ev.main(["mesh", str(tmp_path / "rec.ply"), str(tmp_path / "gt.ply"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_points"] == 200000
+
+
 def test_cull_mesh_keeps_the_cap_a_camera_sees_on_a_sphere():
     """From distance 3 on the axis, a unit sphere is visible exactly where z > 1/3 (tangent cone)."""
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)

@@ -45,9 +45,15 @@ def test_sharp_turn_shortens_interval_and_stays_in_bounds():
     assert all(ARGS["dt_min"] <= h <= ARGS["dt_max"] for h in lengths)
 
 
-def test_deterministic():
-    track = _track(lambda t: np.sin(3 * t), lambda t: np.array([np.cos(2 * t), t, 0.0]))
-    assert knot_policy.next_interval(*track, **ARGS) == knot_policy.next_interval(*track, **ARGS)
+def test_the_peak_acceleration_of_a_longer_track_is_its_largest_not_its_mean():
+    """One jolt among ten second differences: the turn starts at frame 6 (0 -> 1.2 rad/s in one
+    frame spacing, 36 rad/s²), the motion at frame 3 (0 -> 0.3 m/s, 9 m/s²); all else is steady.
+    By hand the peaks are 36 and 9 (their means over the track would be 3.6 and 0.9)."""
+    track = _track(lambda t: 1.2 * max(0.0, t - 6 / 30), lambda t: np.array([0.3 * max(0.0, t - 3 / 30), 0.0, 0.0]),
+                   n=12)
+    angular, linear = knot_policy.tracked_accelerations(*track)
+    assert angular == pytest.approx(36.0, rel=1e-9) and linear == pytest.approx(9.0, rel=1e-9)
+    assert knot_policy.next_interval(*track, **ARGS) == ARGS["dt_min"]  # sqrt(6 * 0.005 / 36) = 0.029 s
 
 
 def test_bad_input_names_value():
