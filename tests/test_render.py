@@ -4,6 +4,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import scipy.stats
 import torch
 
 from tsslam_ref import config
@@ -160,6 +161,14 @@ def test_perturbed_samples_stay_sorted_within_midpoints_and_are_seeded():
     assert torch.all(z[:, 1:] >= z[:, :-1] - 1e-6)
     assert torch.all(z[:, 1:-1] >= mids[:, :-1] - 1e-6) and torch.all(z[:, 1:-1] <= mids[:, 1:] + 1e-6)
     assert torch.equal(z, sample_along_rays(depth, cfg, torch.Generator().manual_seed(4)))
+    # each sample uniform over its cell, between the midpoints to its neighbours (the ends at their own
+    # value), and another seed draws other depths: fixed samples pass every check above
+    lower = torch.cat([fixed[:, :1], mids], dim=-1)
+    upper = torch.cat([mids, fixed[:, -1:]], dim=-1)
+    width = upper - lower
+    fractions = ((z - lower) / width)[width > 1e-6].double().numpy()
+    assert fractions.size > 1000 and scipy.stats.kstest(fractions, "uniform").pvalue > 1e-3
+    assert not torch.allclose(z, sample_along_rays(depth, cfg, torch.Generator().manual_seed(5)))
 
 
 def _bell(s):

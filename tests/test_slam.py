@@ -27,6 +27,7 @@ from tsslam_ref.bundle import KeyframeDatabase
 from tsslam_ref.field import SceneField
 from tsslam_ref.geometry import make_pose, so3_exp
 from tsslam_ref.losses import RenderLossSettings
+from tsslam_ref.mapping import estimate_bound
 from tsslam_ref.timings import Timings
 from tsslam_ref.tracking import TrackingResult
 from tsslam_ref.trajectory import BSplineTrajectory
@@ -1067,6 +1068,22 @@ def test_a_run_refuses_repeated_timestamps():
     sequence = type("Frames", (), {"timestamps": np.array([0.0, 0.1, 0.1, 0.2]), "__len__": lambda self: 4})()
     with pytest.raises(ValueError, match="strictly increasing"):
         slam.prepare_run(sequence, small_config("tsslam"), torch.device("cpu"), None)
+
+
+def test_the_maps_box_leaves_out_depth_beyond_the_depth_limit():
+    """The box from frame 0 keeps only depth below min(data.depth_trunc, render.far), the depth the
+    losses use: teddy's frame 0 sees a far wall up to about 10 m, so with the limit left out the box
+    grew about 60 % in x (the hash grid's finest cell with it).  Oracle: estimate_bound (tested on
+    planes by hand in test_mapping) with and without the limit, the two differing by metres."""
+    sequence = data.load_sequence(data.default_sequence_path(), frame_stop=1)
+    cfg = small_config("tsslam")
+    cfg.data.depth_trunc, cfg.render.far = 5.0, 6.0
+    box = slam.initial_state(sequence, cfg, torch.device("cpu")).field.bound.double().numpy()
+    pose = sequence[0].pose_c2w[None]
+    expected = estimate_bound([sequence[0]], pose, cfg.field.bound_margin, max_depth=5.0)
+    unlimited = estimate_bound([sequence[0]], pose, cfg.field.bound_margin)
+    np.testing.assert_allclose(box, expected, rtol=1e-6)
+    assert np.ptp(unlimited, axis=1).max() - np.ptp(expected, axis=1).max() > 1.0
 
 
 def test_a_map_bound_of_zero_extent_is_refused_by_the_loop_too():

@@ -149,6 +149,30 @@ def test_pose_increment_turns_the_base_rotation_in_the_world_frame():
     assert np.abs(base_rotation @ Rotation.from_rotvec(delta).as_matrix() - expected).max() > 0.05
 
 
+def test_spline_control_point_increments_turn_the_base_rotation_in_the_world_frame():
+    """SplinePoses: R_k = Exp(delta_k) R_k^0 (the docstring; local BA and TS-SLAM's global BA move the
+    control points by it), as PoseIncrement does for one pose; a point that is not free keeps R_k^0
+    whatever its increment holds.  Oracle: scipy's Rotation.from_rotvec(delta) @ R_k^0; the
+    body-frame R_k^0 Exp(delta) differs by about 0.1 here."""
+    bases = Rotation.from_rotvec([[0.4, -1.1, 0.7], [0.2, 0.3, -0.9], [-0.6, 0.1, 0.5], [1.0, 0.4, 0.2],
+                                  [0.3, -0.5, 0.8], [0.0, 0.9, -0.4]]).as_matrix()
+    translations = torch.arange(18, dtype=torch.float64).reshape(6, 3) * 0.1
+    trajectory = BSplineTrajectory(torch.as_tensor(bases), translations, 0.25, 0.0)
+    model = SplinePoses(trajectory, [2, 3], np.array([0.5, 0.6]), torch.eye(4, dtype=torch.float64).repeat(2, 1, 1),
+                        1e-2, 1e-2)
+    deltas = np.array([[0.05, 0.2, -0.1], [-0.15, 0.1, 0.12]])
+    with torch.no_grad():
+        model.rotation_delta[2:4] = torch.as_tensor(deltas)
+        model.rotation_delta[4] = torch.tensor([0.3, 0.3, 0.3])  # not free: no effect
+    rotations, moved = (value.detach().numpy() for value in model.control_points())
+    for k, delta in zip((2, 3), deltas):
+        expected = Rotation.from_rotvec(delta).as_matrix() @ bases[k]
+        np.testing.assert_allclose(rotations[k], expected, atol=1e-12)
+        assert np.abs(bases[k] @ Rotation.from_rotvec(delta).as_matrix() - expected).max() > 0.05
+    np.testing.assert_allclose(rotations[[0, 1, 4, 5]], bases[[0, 1, 4, 5]], atol=0)
+    np.testing.assert_allclose(moved, translations.numpy(), atol=0)
+
+
 def test_frozen_restores_each_parameter_flag_it_found():
     """By hand: a module with one trainable and one already-frozen parameter; inside ``frozen``
     neither needs a gradient, afterwards each is back as it was (the frozen one stays frozen)."""
