@@ -881,6 +881,8 @@ def test_three_frames_with_a_ground_truth_pose_get_an_ate():
     estimate = np.array([moved @ pose if np.isfinite(pose).all() else np.eye(4) for pose in gt])
     metrics = run_outputs.trajectory_metrics(SimpleNamespace(gt_poses=gt), times, estimate)
     assert metrics["n_matched"] == 3 and metrics["ate_rmse_m"] < 1e-9
+    gt[2] = np.nan  # two frames left: too few to align, so no ATE / RPE (not a failed alignment)
+    assert run_outputs.trajectory_metrics(SimpleNamespace(gt_poses=gt), times, estimate) == {}
 
 
 def test_number_options_accept_both_closed_ends_of_their_range():
@@ -1208,7 +1210,7 @@ def test_a_view_past_the_maps_box_is_warned_about_once_and_recorded(capsys):
     log: the largest share, its frame, the frames over the warning share)."""
     from types import SimpleNamespace
 
-    from tsslam_ref.run_outputs import OUTSIDE_BOX_WARNING, advance, outside_box_summary
+    from tsslam_ref.run_outputs import advance, outside_box_summary
 
     state = SimpleNamespace(log=[], field=SimpleNamespace(bound=torch.tensor([[-0.6, 3.0], [-1.0, 1.0], [0.0, 2.5]])),
                             cfg=config_module.load("tum-cpu"), done=1)
@@ -1223,7 +1225,10 @@ def test_a_view_past_the_maps_box_is_warned_about_once_and_recorded(capsys):
     assert "[-0.60, 3.00], [-1.00, 1.00], [0.00, 2.50] m, set from frame 0's view" in warnings[0]
     assert "--set 'field.bound=" in warnings[0]
     assert outside_box_summary(state.log) == {"outside_box": {"max_share": 1.0, "frame": 4, "frames_over_warning": 3,
-                                                              "warning_share": OUTSIDE_BOX_WARNING}}
+                                                              "warning_share": 0.25}}  # README: over 25 %
+    straddling = [{"frame": 1, "tracking_loss": 1.0, "outside_box": 0.22},
+                  {"frame": 2, "tracking_loss": 1.0, "outside_box": 0.27}]
+    assert outside_box_summary(straddling)["outside_box"]["frames_over_warning"] == 1
     assert outside_box_summary([{"frame": 1, "tracking_loss": 1.0}]) == {}  # a log from before the record
 
 

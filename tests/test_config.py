@@ -240,33 +240,45 @@ DOCUMENTED_PRESET_VALUES = {
             "loss.rgb_weight": 1.0, "loss.sdf_weight": 5000.0, "loss.smooth_weight": 1e-8, "loss.smooth_pts": 64,
             "loss.smooth_vox": 0.04, "loss.smooth_margin": 0.0, "loss.rgb_missing": 1.0, "tracking.lr_rot": 1e-2,
             "tracking.lr_trans": 1e-2, "tracking.best": False, "mapping.first_iters": 1000, "mapping.iters": 20,
-            "field.voxel_sdf": 0.02, "mesh.voxel_final": 0.03, "spline.dt": 0.25},
+            "field.voxel_sdf": 0.02, "mesh.voxel_final": 0.03, "spline.dt": 0.25, "tracking.iters": 10,
+            "loss.fs_weight": 10.0},
     "scannet": {"data.crop_edge": 10, "data.depth_scale": 1000.0, "render.far": 8.0, "render.n_samples": 96,
                 "render.n_range_d": 21, "render.range_d": 0.25, "render.truncation": 0.1, "loss.smooth_weight": 1e-3,
                 "loss.smooth_pts": 64, "loss.rgb_missing": 0.0, "mapping.first_iters": 500, "mapping.optim_cur": False,
                 "mapping.min_pixels_cur": 20, "field.voxel_sdf": 0.04, "field.log2_hashmap_size": 16,
                 "mesh.voxel_final": 0.03, "spline.dt": 0.3,
+                "tracking.iters": 10, "mapping.iters": 10, "loss.fs_weight": 10.0,
                 "tracking.lr_rot": 2e-3, "mapping.lr_rot": 2e-3},  # docs/deviations.md: Co-SLAM's quaternion
     "synthetic": {"field.voxel_sdf": 0.01, "render.far": 4.0, "mapping.lr_embed": 0.001, "loss.smooth_weight": 1e-5,
-                  "mapping.first_iters": 200, "mesh.voxel_final": 0.02, "spline.dt": 0.3},
+                  "mapping.first_iters": 200, "mesh.voxel_final": 0.02, "spline.dt": 0.3, "mapping.iters": 10,
+                  "render.truncation": 0.1, "loss.smooth_pts": 32},
     "replica": {"data.depth_scale": 6553.5, "field.voxel_sdf": 0.02, "render.far": 5.0, "loss.smooth_weight": 1e-6,
-                "mesh.voxel_final": 0.02, "spline.dt": 0.3},
+                "mesh.voxel_final": 0.02, "spline.dt": 0.3, "render.truncation": 0.1, "mapping.iters": 10,
+                "mapping.first_iters": 200, "tracking.best": True},
     # docs/deviations.md ("CPU presets", "TUM crop") and docs/system.md (tracking lr, mesh voxel, rays)
     "tum-cpu": {"data.resize_width": 160, "data.crop_edge": 0, "field.voxel_sdf": 0.04, "tracking.lr_rot": 3e-3,
                 "tracking.lr_trans": 3e-3, "tracking.n_rays": 512, "tracking.iters": 20, "mapping.n_rays": 1024,
-                "mesh.voxel_final": 0.04, "render.truncation": 0.05, "loss.sdf_weight": 5000.0, "spline.dt": 0.25},
+                "mesh.voxel_final": 0.04, "render.truncation": 0.05, "loss.sdf_weight": 5000.0, "spline.dt": 0.25,
+                "tracking.best": True, "mapping.iters": 20, "loss.smooth_pts": 32, "mapping.first_iters": 200},
     "synthetic-cpu": {"data.resize_width": 160, "field.voxel_sdf": 0.04, "tracking.lr_rot": 3e-3,
-                      "tracking.lr_trans": 3e-3, "tracking.n_rays": 512, "tracking.iters": 20, "mapping.n_rays": 1024},
+                      "tracking.lr_trans": 3e-3, "tracking.n_rays": 512, "tracking.iters": 20, "mapping.n_rays": 1024,
+                      "mapping.iters": 20, "mapping.lr_embed": 0.01, "mapping.first_iters": 200},
     "tiny": {"tracking.lr_rot": 1e-3, "tracking.lr_trans": 1e-3},
 }
 
 
+# the paper's Sec. IV-A (lambda_1 = lambda_2 = 0.1, bounds 5 and 5) and docs/deviations.md (K = 32 times),
+# the same in every preset
+PAPER_DYNAMICS = {"dynamics.lambda_acc": 0.1, "dynamics.lambda_ang": 0.1, "dynamics.a_max": 5.0,
+                  "dynamics.omegadot_max": 5.0, "dynamics.n_samples": 32, "dynamics.barrier_limit": 0.95}
+
+
 @pytest.mark.parametrize("name", sorted(DOCUMENTED_PRESET_VALUES))
 def test_presets_hold_the_numbers_their_sources_state(name):
-    """Oracle: the numbers as written in Co-SLAM's YAML files and in docs/*.md (table above), not
-    presets.py: a preset that drifts from its documented source fails here."""
+    """Oracle: the numbers as written in Co-SLAM's YAML files, the paper and docs/*.md (tables
+    above), not presets.py: a preset that drifts from its documented source fails here."""
     cfg = config.load(name)
-    for key, expected in DOCUMENTED_PRESET_VALUES[name].items():
+    for key, expected in {**PAPER_DYNAMICS, **DOCUMENTED_PRESET_VALUES[name]}.items():
         section, field_name = key.split(".")
         assert getattr(getattr(cfg, section), field_name) == expected, (name, key)
 

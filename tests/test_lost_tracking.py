@@ -3,11 +3,12 @@ camera jumps; its loss may even fall, on surface the map has not learned) and a 
 depth (a frame whose depth lies beyond the map's range was reported as diverged motion)."""
 
 import numpy as np
+import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
 from tsslam_ref import config
-from tsslam_ref.run_outputs import LOST_SPEED, motion_summary
+from tsslam_ref.run_outputs import motion_summary
 from tsslam_ref.tracking import depth_problem
 
 
@@ -31,10 +32,23 @@ def test_the_peak_speeds_match_scipy_and_only_a_jump_is_warned_about(capsys):
     assert capsys.readouterr().err == ""  # hand-held speeds: no word
     positions[25:] += [0.3, 0.0, 0.0]  # 30 cm in one frame: about 9 m/s
     jumped = motion_summary(times, poses_from(positions, rotations))["motion"]
-    assert jumped["peak_speed_m_s"] > LOST_SPEED and jumped["peak_speed_after_frame"] == 24
+    assert jumped["peak_speed_m_s"] > 5.0 and jumped["peak_speed_after_frame"] == 24
     warning = capsys.readouterr().err
     assert warning.startswith("warning: the estimated camera moves") and "from frame 24 to 25" in warning
     assert motion_summary(times[:1], poses_from(positions[:1], rotations[:1])) == {}
+
+
+def test_the_lost_camera_warning_starts_at_the_documented_5_m_per_s(capsys):
+    """docs/system.md: a warning when the estimate moves faster than 5 m/s between two frames.
+    By hand: frames 0.1 s apart, one step of 0.45 m (4.5 m/s, no word) or 0.55 m (5.5 m/s, warned)."""
+    times = 1.3e9 + 0.1 * np.arange(6)
+    still = Rotation.identity(6)
+    for step, warned in ((0.45, False), (0.55, True)):
+        positions = np.zeros((6, 3))
+        positions[3:, 1] = step
+        summary = motion_summary(times, poses_from(positions, still))["motion"]
+        assert summary["peak_speed_m_s"] == pytest.approx(step / 0.1) and summary["peak_speed_after_frame"] == 2
+        assert ("more than 5 m/s" in capsys.readouterr().err) == warned, step
 
 
 def test_a_failed_frames_depth_beyond_the_maps_range_or_missing_is_named():

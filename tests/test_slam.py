@@ -101,6 +101,11 @@ def test_adaptive_knots_run_end_to_end_with_uneven_intervals(synthetic_sequence,
     monkeypatch.setattr(slam, "tsslam_finish", lambda *args: time.sleep(0.5))
     again = slam.finish_run(sequence, result.state, torch.device("cpu"), torch.float32, time.perf_counter(), 0)
     assert 0 < again.frames_per_second <= len(sequence) / 0.5
+    # a resumed run counts only the frames it ran (here the last 4) over its own time: 4 frames in
+    # 0.5 s and a little, not the whole sequence's count
+    resumed = slam.finish_run(sequence, result.state, torch.device("cpu"), torch.float32, time.perf_counter(),
+                              len(sequence) - 4)
+    assert resumed.frames_processed == 4 and 4 / 1.5 < resumed.frames_per_second <= 4 / 0.5
 
 
 @pytest.mark.parametrize("knots", ["uniform", "adaptive"])
@@ -270,6 +275,23 @@ def test_across_dropped_frames_tsslam_predicts_the_motion_of_every_spacing_and_t
         prediction = slam.motion_prediction(state, 3)
         assert torch.allclose(prediction[:3, 3], torch.tensor([expected_x, 0.0, 0.0], dtype=torch.float64),
                               atol=1e-12), method
+
+
+def test_metrics_camera_is_the_calibration_after_crop_and_resize(synthetic_sequence, tmp_path):
+    """metrics.json's camera block holds the intrinsics the run used (README: after crop and resize),
+    not the folder's own.  Oracle by hand from intrinsics.json: a 4-pixel crop moves the principal
+    point by 4 (64x48 -> 56x40); halving to 28 px halves fx, fy and maps c to (c + 0.5) / 2 - 0.5."""
+    out = tmp_path / "cropped"
+    assert run.main(["--data", str(synthetic_sequence), "--config", "tiny", "--out", str(out), "--quiet", "--no-mesh",
+                     "--frames", "0:3", "--set", "data.crop_edge=4", "--set", "data.resize_width=28",
+                     "--set", "tracking.ignore_edge=2", "--set", "mapping.first_iters=3"]) == 0
+    native = json.loads((synthetic_sequence / "intrinsics.json").read_text())
+    camera = json.loads((out / "metrics.json").read_text())["camera"]
+    assert (camera["width"], camera["height"]) == (28, 20) and camera["depth_scale"] == native["depth_scale"]
+    for focal in ("fx", "fy"):
+        assert camera[focal] == pytest.approx(native[focal] / 2, rel=1e-12)
+    for centre in ("cx", "cy"):
+        assert camera[centre] == pytest.approx((native[centre] - 4 + 0.5) / 2 - 0.5, rel=1e-12)
 
 
 def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequence, tmp_path, capsys):
