@@ -575,6 +575,8 @@ def test_folder_layout_refuses_two_images_of_one_frame(tmp_path):
 
 @pytest.mark.parametrize("stems, seconds", [
     (["000000", "000001", "000003"], [0.0, 1 / 15, 3 / 15]),  # frame numbers at fps 15, the gap kept
+    (["0", "9", "18"], [0.0, 9 / 15, 18 / 15]),  # a step under 10: still frame numbers (docs/data.md)
+    (["0", "10", "20"], [0.0, 0.01, 0.02]),  # a step of 10: milliseconds, as docs/data.md warns
     (["1520530328189680000", "1520530328223013000"], [1520530328.18968, 1520530328.223013]),  # nanoseconds
     (["1520530328189680", "1520530328223013"], [1520530328.18968, 1520530328.223013]),  # microseconds
     (["1520530328189", "1520530328223"], [1520530328.189, 1520530328.223]),  # milliseconds

@@ -31,6 +31,17 @@ def test_export_times_are_start_plus_i_over_rate_and_stay_inside_the_domain(rate
     assert max(abs(Fraction(float(t)) - x) for t, x in zip(times, exact)) <= ulp  # no drift along the file
 
 
+@pytest.mark.parametrize("rate", [10.0, 30.0, 50.0])
+def test_an_export_from_time_zero_keeps_a_last_frame_on_its_grid(rate):
+    """Synthetic sequences start at t = 0: with the last frame on the sample grid (k / rate), the
+    export's last row is that frame's time (export_continuous passes the float after it as the end).
+    By construction: the frame is grid time k, so the export holds rows 0 to k."""
+    for k in range(1, 120):
+        last_frame = k / rate  # the grid's own float64 time i / rate for i = k
+        times = export_times(0.0, float(np.nextafter(last_frame, np.inf)), rate)
+        assert len(times) == k + 1 and times[-1] == last_frame, (k, rate)
+
+
 @pytest.mark.parametrize("rate", [40, 80, 120, 200])
 def test_export_of_a_spline_at_timestamp_size_writes_every_sample(tmp_path, rate):
     """np.arange accumulated its step and put the last of these times past the domain's end."""

@@ -67,7 +67,8 @@ def test_only_our_stray_temporaries_are_removed(tmp_path):
     run.mkdir()
     ours = [".trajectory.txt.ab12cd_3.tmp", ".checkpoint.pt.zzzzzzzz.tmp"]
     theirs = [".notes.txt.ab12cd34.tmp", "user.tmp", ".trajectory.txt.tmp", "trajectory.txt",
-              "tmp_backup1.tmp", "tmpdata2024.tmp", "tmpk2j4h5g6.ply.tmp"]  # a user's names, whatever their shape
+              "tmp_backup1.tmp", "tmpdata2024.tmp", "tmpk2j4h5g6.ply.tmp",
+              "metrics.json.backup01.tmp"]  # a user's names, whatever their shape (ours start with a dot)
     for name in ours + theirs:
         (run / name).write_text(name)
     (run / ".metrics.json.q1w2e3r4.tmp").symlink_to(outside)

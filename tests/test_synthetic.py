@@ -399,3 +399,38 @@ def test_synthesize_through_a_link_and_up_writes_where_the_system_finds_the_fold
     assert (tmp_path / "real" / "run" / "room" / "rgb.txt").is_file()
     assert [path.name for path in (tmp_path / "real" / "run").iterdir()] == ["room"]
 
+
+
+def test_the_builtin_path_is_the_documented_ellipse_one_turn_per_12_s():
+    """synthetic.builtin_trajectory's docstring: an ellipse of 0.4 x 0.3 m at about 1.3 m height, one
+    turn per 12 s.  By hand: x = 0.4 at t = 0 and 12 s, y = 0.3 a quarter turn in (3 s), x = -0.4
+    half a turn in (6 s); the height stays within 1.3 +- 0.1 m."""
+    positions = synthetic.builtin_trajectory(np.array([0.0, 3.0, 6.0, 12.0]))[:, :3, 3]
+    np.testing.assert_allclose(positions[0], [0.4, 0.0, 1.3], atol=1e-12)
+    np.testing.assert_allclose(positions[1], [0.0, 0.3, 1.3], atol=1e-12)
+    np.testing.assert_allclose(positions[2], [-0.4, 0.0, 1.3], atol=1e-12)
+    np.testing.assert_allclose(positions[3], positions[0], atol=1e-12)
+    heights = synthetic.builtin_trajectory(np.linspace(0.0, 12.0, 97))[:, 2, 3]
+    assert np.all(np.abs(heights - 1.3) <= 0.1 + 1e-12)
+
+
+def test_a_camera_too_close_to_a_surface_is_refused_naming_the_frame(tmp_path, monkeypatch):
+    """synthesize refuses a path that puts the camera nearer than MIN_CLEARANCE (0.15 m) to a
+    surface: the rendering would sit inside the near plane.  By hand: the last frame 0.12 m from the
+    +x wall at x = 2.0 m; 0.2 m from it passes."""
+    builtin = synthetic.builtin_trajectory
+
+    def near_the_wall(distance):
+        def path(times):
+            poses = builtin(times)
+            poses[-1, :3, 3] = [2.0 - distance, 0.0, 1.3]
+            return poses
+        return path
+
+    monkeypatch.setattr(synthetic, "builtin_trajectory", near_the_wall(0.12))
+    with pytest.raises(ValueError, match=r"frame 3 puts the camera 0\.12 m from a surface \(need >= 0\.15 m"):
+        synthetic.synthesize(tmp_path / "near", n_frames=4, width=16, height=12, mesh_voxel=0.2)
+    assert not (tmp_path / "near").exists()
+    monkeypatch.setattr(synthetic, "builtin_trajectory", near_the_wall(0.2))
+    synthetic.synthesize(tmp_path / "clear", n_frames=4, width=16, height=12, mesh_voxel=0.2)
+    assert len((tmp_path / "clear" / "rgb.txt").read_text().split("\n")) > 4
