@@ -322,8 +322,9 @@ def test_fast_encoding_gradcheck_on_tiny_grid():
     assert torch.autograd.gradcheck(grid._encode_fast, (x,))
 
 
-def _level0_feature_on_every_path(grid: HashGridEncoding, point) -> dict:
-    """Level 0, feature 0 of one point on each encoding path, with table row r holding the value r."""
+def _level0_feature_on_every_path(grid: HashGridEncoding, point, column: int = 0) -> dict:
+    """Level 0, feature 0 (or the output ``column``) of one point on each encoding path, with table
+    row r holding the value r."""
     with torch.no_grad():
         grid.table[:] = torch.arange(grid.table.shape[0], dtype=grid.table.dtype).unsqueeze(1)
     values = {}
@@ -331,8 +332,23 @@ def _level0_feature_on_every_path(grid: HashGridEncoding, point) -> dict:
         if path == "compiled" and not hash_kernel.available():
             continue  # covered by the compiled-kernel tests, which say why they skip
         _use_path(grid, path)
-        values[path] = float(grid(torch.tensor([point], dtype=torch.float64))[0, 0].detach())
+        values[path] = float(grid(torch.tensor([point], dtype=torch.float64))[0, column].detach())
     return values
+
+
+def test_hashed_index_is_tcnns_spatial_hash_worked_by_hand():
+    """A hashed level (R = 8, 512 vertices, 64 rows): tcnn's hash (i * 1) xor (j * 2654435761) xor
+    (k * 805459861) mod 64 for the vertex (3, 5, 2) is 28 (the primes written here, not read from
+    field.py), so the level's row is its offset 64 + 28.  A point exactly on that vertex takes the
+    row's value alone (weight 1); output column 2 is level 1's first feature.  With the y and z
+    primes swapped the row would be 64 + 8."""
+    grid = HashGridEncoding(8, n_levels=2, base_resolution=4, log2_hashmap_size=6).double()
+    assert grid.level_dense == [True, False] and grid.level_sizes[1] == 64 and grid.level_scales[1] == 7.0
+    local = (3 * 1 ^ 5 * 2654435761 ^ 2 * 805459861) % 64
+    assert local == 28
+    point = tuple((vertex - 0.5) / 7.0 for vertex in (3, 5, 2))  # position = point * scale + 0.5
+    for path, value in _level0_feature_on_every_path(grid, point, column=2).items():
+        assert value == pytest.approx(64 + local, abs=1e-6), path
 
 
 def test_dense_index_one_past_the_level_wraps_to_its_first_row():

@@ -446,6 +446,24 @@ def test_knot_times_use_the_exact_floor_of_their_float64_value():
         assert torch.allclose(value[:n - 3], start, atol=1e-12)  # C1 quantities: the choice is invisible
 
 
+def test_the_exact_floor_holds_where_the_float64_quotient_rounds_across_a_whole_number():
+    """Random t0 and dt, times at a knot t0 + k dt as float64 computes it and at its neighbours: the
+    segment is floor of the exact rational (t - t0) / dt (docs/spline.md, "Exactness rule"), also
+    where the float64 quotient lands a few ulps on the other side of a whole number (with t0 = dt =
+    0.1 it never does).  Oracle: Fraction arithmetic on the same float64 numbers."""
+    rng = np.random.default_rng(11)
+    n_ctrl, rounded_across = 40, 0
+    for _ in range(1500):
+        t0, dt, k = rng.uniform(-5.0, 5.0), rng.uniform(0.05, 1.0), int(rng.integers(1, 30))
+        knot = t0 + k * dt
+        times = np.array([np.nextafter(knot, -np.inf), knot, np.nextafter(knot, np.inf)])
+        exact = [math.floor((Fraction(t) - Fraction(t0)) / Fraction(dt)) for t in times]
+        rounded_across += sum(math.floor((t - t0) / dt) != e for t, e in zip(times, exact))
+        first = spline.active_control_indices(times, n_ctrl, dt, t0, "basalt")[:, 0]
+        assert first.tolist() == exact, (t0, dt, k)
+    assert rounded_across > 0  # the cases the rule is there for occurred
+
+
 def test_large_absolute_timestamps_handled_in_float64():
     dt, stamp = 0.03, 1305031102.175304  # TUM stamp: float32 spacing 128 s
     R, P = random_spline(17, n_ctrl=8, scale=0.05)
