@@ -313,6 +313,18 @@ def test_depth_noise_sigma_and_dropouts_on_a_depth_step():
     for columns, z, sigma in ((slice(0, 99), 1.0, 0.001884), (slice(101, 200), 3.0, 0.014044)):
         kept = noisy[:, columns][noisy[:, columns] > 0]
         assert np.std(kept - z) == pytest.approx(sigma, rel=0.04)
+    # the thresholds either side: a step of 3 % of z is no edge, one of 7 % is (limit 5 %); surfaces
+    # seen at |cos| 0.19 are dropped whole, at 0.21 only the 0.5 % (limit 0.2)
+    for far, edge_share in ((1.03, (0.0, 0.02)), (1.07, (0.72, 0.88))):
+        step = torch.ones(200, 200, dtype=torch.float64)
+        step[:, 100:] = far
+        dropped = synthetic._depth_noise(step, torch.ones_like(step), torch.Generator().manual_seed(1)).numpy() == 0
+        assert edge_share[0] <= dropped[edge].mean() <= edge_share[1], far
+    grazing = torch.full((200, 200), 0.21, dtype=torch.float64)
+    grazing[:, :100] = 0.19
+    dropped = synthetic._depth_noise(torch.ones(200, 200, dtype=torch.float64), grazing,
+                                     torch.Generator().manual_seed(2)).numpy() == 0
+    assert dropped[:, :100].all() and dropped[:, 100:].mean() < 0.0065
 
 
 def test_cylinder_sdf_at_points_worked_out_by_hand():
