@@ -346,11 +346,12 @@ def test_the_recorded_code_digest_follows_the_source_not_its_place_or_caches(tmp
     caches and data beside the code leave it alone; a one-line edit of any source file changes it."""
     package = Path(tsslam_ref.__file__).parent
     copy = tmp_path / "elsewhere" / "tsslam_ref"
-    shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__", "assets"))  # data, not code
     original = device.source_version(package)
     assert original.startswith(f"{tsslam_ref.__version__}, source ") and device.source_version(copy) == original
     (copy / "__pycache__").mkdir()
     (copy / "__pycache__" / "spline.cpython-311.pyc").write_bytes(os.urandom(64))
+    (copy / "assets").mkdir()
     (copy / "assets" / "notes.txt").write_text("a user's file")
     assert device.source_version(Path(str(copy))) == original  # a new Path object: not the cached answer
     for edited in ("spline.py", "datasets/tum_format.py", "csrc/hash_grid.cpp"):
