@@ -6,7 +6,7 @@
 #   (default ${TSSLAM_DATA:-$HOME/datasets/tsslam_ref}/neural_rgbd_data)
 # Result: DEST/<scene>/images/, depth_filtered/, poses.txt  -> load_sequence(DEST/<scene>) ('neural_rgbd').
 # URL: the one used by Co-SLAM's script (verify before use).  The archive is tested and unpacked into a
-# scratch folder first: a failed or cut download exits non-zero and the next run resumes it.
+# scratch folder first: a cut download exits non-zero and the next run resumes it; a damaged one restarts.
 set -euo pipefail
 source "$(dirname "$0")/fetch.sh"
 case "${1:-}" in

@@ -6,7 +6,7 @@
 # Result: DEST/<scene>/results/frame%06d.jpg, depth%06d.png, traj.txt -> load_sequence(DEST/room0) ('replica').
 # URL: the one used by NICE-SLAM's and Co-SLAM's download_replica.sh (verify before use).  The archive is
 # tested and unpacked into a scratch folder first: a failed or cut download exits non-zero and the next
-# run resumes it (data_scripts/fetch.sh).
+# run resumes it (data_scripts/fetch.sh); an archive that fails its test is fetched whole the next time.
 set -euo pipefail
 source "$(dirname "$0")/fetch.sh"
 case "${1:-}" in

@@ -6,7 +6,7 @@
 # the layout `tsslam_ref.data.load_sequence` reads; the camera (fr1/fr2/fr3) comes from the folder name.
 # URLs: the TUM download server (verify before use; the older host vision.in.tum.de is tried second).
 # A sequence is unpacked into a scratch folder and moved into place only when the archive is whole, so
-# a failed or cut download exits non-zero and the next run resumes that sequence.
+# a cut download exits non-zero and the next run resumes it; a damaged archive is fetched whole again.
 set -euo pipefail
 source "$(dirname "$0")/fetch.sh"
 case "${1:-}" in

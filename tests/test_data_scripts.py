@@ -104,10 +104,15 @@ def _real_curl_from_files(tmp_path, folder, ranges=True):
     bin_dir.mkdir()
     log = tmp_path / "downloaded.log"
     refuse = "" if ranges else 'for arg in "$@"; do [ "$arg" = "-C" ] && exit 33; done\n'
-    (bin_dir / "curl").write_text(
-        f'#!/bin/sh\n{refuse}for arg in "$@"; do url="$arg"; done\nfile="{folder}/$(basename "$url")"\n'
+    (bin_dir / "curl").write_text(  # the URL is the last argument, the file after -o; log the bytes added
+        f'#!/bin/sh\n{refuse}previous=""\n'
+        'for arg in "$@"; do url="$arg"; [ "$previous" = "-o" ] && out="$arg"; previous="$arg"; done\n'
+        f'file="{folder}/$(basename "$url")"\n'
         'n=$#; i=1\nfor arg in "$@"; do [ "$i" -lt "$n" ] && set -- "$@" "$arg"; i=$((i + 1)); done\nshift "$n"\n'
-        f'exec "{real}" -sS -w "%{{size_download}}\\n" "$@" "file://$file" >> "{log}"\n')
+        'before=0; [ -f "$out" ] && before=$(wc -c < "$out")\n'
+        f'status=0; "{real}" -sS "$@" "file://$file" || status=$?\n'
+        'after=0; [ -f "$out" ] && after=$(wc -c < "$out")\n'
+        f'echo $((after - before)) >> "{log}"\nexit "$status"\n')
     (bin_dir / "curl").chmod(0o755)
     return {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}, log
 
@@ -136,6 +141,35 @@ def test_a_cut_download_resumes_from_its_part_file_and_one_that_cannot_starts_ov
     assert "could not resume" in result.stderr and "wrote" in result.stdout, result
     assert (other / "Replica" / "room0" / "traj.txt").read_text() == "0"
     assert log.read_text().split() == [str(size)]  # the whole archive, once
+
+
+def _http_error_curl(tmp_path, code):
+    """A ``curl`` on PATH that answers every request with HTTP ``code``, as curl -f does: the code on
+    stdout (the scripts ask for it with -w), exit 22, the -o file untouched."""
+    bin_dir = tmp_path / f"bin_{code}"
+    bin_dir.mkdir(parents=True)
+    (bin_dir / "curl").write_text(f"#!/bin/sh\necho {code}\nexit 22\n")
+    (bin_dir / "curl").chmod(0o755)
+    return {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+
+
+def test_an_http_error_keeps_the_part_and_a_whole_part_is_used_as_it_is(tmp_path):
+    """A server error (404, 5xx) must not throw away the bytes a cut run left: the next run resumes
+    them.  A range past the end (416: the part is whole, a run killed before its rename) goes on to
+    the archive test instead of fetching gigabytes again."""
+    dest = tmp_path / "datasets" / "Replica"
+    dest.parent.mkdir()
+    part = Path(f"{dest}.zip.part")
+    part.write_bytes(b"the first bytes of the archive")
+    for script, folder in (("download_replica.sh", dest), ("download_tum.sh", tmp_path / "TUM")):
+        result = subprocess.run(["bash", str(SCRIPTS / script), str(folder)], env=_http_error_curl(tmp_path / script, 404),
+                                capture_output=True, text=True)
+        assert result.returncode != 0 and "wrote" not in result.stdout, result
+    assert part.read_bytes() == b"the first bytes of the archive"
+    part.write_bytes(_zip(tmp_path / "whole.zip", {"Replica/room0/traj.txt": "0"}).read_bytes())
+    (tmp_path / "whole").mkdir()
+    assert "wrote" in _run("download_replica.sh", dest, _http_error_curl(tmp_path / "whole", 416)).stdout
+    assert (dest / "room0" / "traj.txt").read_text() == "0" and not part.exists()
 
 
 def test_tum_sequences_unpack_whole_and_a_failed_host_is_an_error(tmp_path):
