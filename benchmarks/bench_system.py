@@ -266,8 +266,11 @@ def comparison_lines(results: Dict, stored: Dict, environment: Dict, peak_rss_mi
     lines.append(f"peak RSS: {_mib(peak_rss_mib)} now, "
                  + (f"{stored_rss:.0f} MiB stored" if stored_rss is not None else "not in the stored file"))
     lines.extend(environment_lines(stored["settings"].get("environment") or {}, environment))
-    stored_code = stored["settings"].get("tsslam_ref", "not recorded (an earlier version)")
-    if stored_code != source_version():  # a speed-up is a code change: "identical" rows show it kept every bit
+    stored_code = stored["settings"].get("tsslam_ref")
+    if stored_code is None:  # a speed-up is a code change: "identical" rows show it kept every bit
+        lines.append(f"code: the stored file does not record which code wrote it (an earlier version); "
+                     f"now tsslam_ref {source_version()}")
+    elif stored_code != source_version():
         lines.append(f"code: stored by tsslam_ref {stored_code}, now {source_version()}")
     if "data_fingerprint" not in stored["settings"]:
         lines.append("the stored file does not record the data's fingerprint (image size, time stamps, first "
@@ -373,7 +376,8 @@ def main() -> None:
                 "frames": len(sequence), "frame_range": args.frames, "threads": args.threads,
                 "data_fingerprint": data_fingerprint(sequence),
                 "overrides": args.overrides, "seeds": args.seeds, "ablation_seeds": ablation_seeds,
-                "variants": variants, "environment": environment, "tsslam_ref": source_version(), "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
+                "variants": variants, "environment": environment, "tsslam_ref": source_version(),
+                "control": f"spline of dt = {base.spline.dt} s fitted to the baseline's poses"}
     stored = None
     if args.against:
         try:

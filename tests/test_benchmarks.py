@@ -80,7 +80,8 @@ def test_comparison_table_rows_rss_and_environment():
     assert any(line.startswith("environment differs") for line in bench.comparison_lines(results, stored, other, 1.0))
     # which code wrote the stored file: named when it is not this code, nothing when it is
     now = f"now {bench.source_version()}"
-    assert f"code: stored by tsslam_ref not recorded (an earlier version), {now}" in lines
+    assert ("code: the stored file does not record which code wrote it (an earlier version); now tsslam_ref "
+            f"{bench.source_version()}") in lines
     stored["settings"]["tsslam_ref"] = "0.1.0, source 0123456789ab"
     assert f"code: stored by tsslam_ref 0.1.0, source 0123456789ab, {now}" in bench.comparison_lines(
         results, stored, environment, 1.0)

@@ -340,30 +340,35 @@ def test_a_state_loaded_on_the_cpu_is_refused_by_a_run_on_another_device_naming_
         slam.prepare_run(live["sequence"], state.cfg, torch.device("meta"), state)
 
 
-def test_the_recorded_code_digest_follows_the_source_not_its_place_or_caches(tmp_path):
+def test_the_recorded_code_digest_follows_the_source_not_its_place_line_ends_or_caches(tmp_path):
     """metrics.json and a checkpoint record ``device.source_version()``; a resume compares it, so an
-    edited package is named.  Oracle: a copy of the package elsewhere has the same digest; compiled
-    caches and data beside the code leave it alone; a one-line edit of any source file changes it."""
+    edited package is named.  Oracle: a copy of the package elsewhere has the same digest, with CRLF
+    line ends too (a Windows checkout); compiled caches and data beside the code leave it alone; a
+    one-line edit of any source file, or a new module, changes it."""
+    digest = device.source_version.__wrapped__  # not the cached answer of an earlier call
     package = Path(tsslam_ref.__file__).parent
-    copy = tmp_path / "elsewhere" / "tsslam_ref"
-    shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__", "assets"))  # data, not code
-    original = device.source_version(package)
-    assert original.startswith(f"{tsslam_ref.__version__}, source ") and device.source_version(copy) == original
-    (copy / "__pycache__").mkdir()
-    (copy / "__pycache__" / "spline.cpython-311.pyc").write_bytes(os.urandom(64))
-    (copy / "assets").mkdir()
-    (copy / "assets" / "notes.txt").write_text("a user's file")
-    assert device.source_version(Path(str(copy))) == original  # a new Path object: not the cached answer
-    for edited in ("spline.py", "datasets/tum_format.py", "csrc/hash_grid.cpp"):
+    moved = tmp_path / "elsewhere" / "tsslam_ref"
+    shutil.copytree(package, moved, ignore=shutil.ignore_patterns("__pycache__", "assets"))  # data, not code
+    original = digest(package)
+    assert original.startswith(f"{tsslam_ref.__version__}, source ") and digest(moved) == original
+    (moved / "__pycache__").mkdir()
+    (moved / "__pycache__" / "spline.cpython-311.pyc").write_bytes(os.urandom(64))
+    (moved / "assets").mkdir()
+    (moved / "assets" / "notes.txt").write_text("a user's file")
+    spline_source = moved / "spline.py"
+    spline_source.write_bytes(spline_source.read_bytes().replace(b"\n", b"\r\n"))
+    assert digest(moved) == original
+    for edited in ("spline.py", "datasets/tum_format.py", "csrc/hash_grid.cpp", "new_module.py"):
         changed = tmp_path / edited.replace("/", "_") / "tsslam_ref"
-        shutil.copytree(copy, changed)
+        shutil.copytree(moved, changed)
         with open(changed / edited, "a") as source:
             source.write("\n")
-        assert device.source_version(changed) != original, edited
+        assert digest(changed) != original, edited
+    assert digest(tmp_path / "no_such_folder").endswith("source unknown")  # nothing to read (a zip import)
 
 
-def test_a_checkpoint_of_an_earlier_version_without_the_code_digest_says_it_was_not_recorded():
+def test_a_checkpoint_of_an_earlier_version_without_the_code_digest_says_it_does_not_record_it():
     now = {"tsslam_ref": "0.1.0, source 0123456789ab", "torch": "2.13.0+cpu"}
     assert checkpoint.environment_changes({"torch": "2.13.0+cpu"}, now) == [
-        "tsslam_ref was not recorded (an earlier version) when the run started, now '0.1.0, source 0123456789ab'"]
+        "the checkpoint, of an earlier version, does not record tsslam_ref (now '0.1.0, source 0123456789ab')"]
     assert checkpoint.environment_changes(dict(now), now) == []

@@ -866,6 +866,27 @@ def test_resume_in_another_environment_warns_and_metrics_record_both(runs, tmp_p
     assert metrics["environment"]["torch"] == "0.0-other" and metrics["environment_at_start"] == started_in
 
 
+def test_resuming_an_earlier_versions_checkpoint_says_the_frames_may_differ_not_that_they_will(monkeypatch, capsys):
+    """A checkpoint of an earlier version records no code digest: that the code differs is not known,
+    so the warning says the frames may not match; a recorded difference says they will not."""
+    from tsslam_ref import device as device_module
+
+    now = {"tsslam_ref": "0.1.0, source 0123456789ab", "torch": "2.13.0+cpu", "threads": 2}
+    monkeypatch.setattr(device_module, "run_environment", lambda *args: now)
+    plan = SimpleNamespace(device=torch.device("cpu"), state=SimpleNamespace(field=None, done=7), finished=False)
+    earlier = {"torch": "2.13.0+cpu", "threads": 2}
+    assert run._resume_environment(earlier, plan) is earlier
+    warning = capsys.readouterr().err
+    assert ("the checkpoint, of an earlier version, does not record tsslam_ref (now '0.1.0, source 0123456789ab')"
+            in warning)
+    assert "the frames from 7 on may not match an uninterrupted run" in warning
+    run._resume_environment(dict(earlier, threads=1), plan)
+    assert "threads was 1 when the run started, now 2" in (warning := capsys.readouterr().err)
+    assert "the frames from 7 on will not match" in warning
+    run._resume_environment(dict(now), plan)
+    assert capsys.readouterr().err == ""
+
+
 def test_three_frames_with_a_ground_truth_pose_get_an_ate():
     """docs and the closing line say ATE / RPE need 3 frames with a ground-truth pose: with exactly
     3 (frames 0, 2, 4 of 5) metrics.json gets them. Oracle: the estimate is the ground truth moved

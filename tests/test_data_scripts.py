@@ -122,7 +122,8 @@ def test_a_cut_download_resumes_from_its_part_file_and_one_that_cannot_starts_ov
     curl's count of downloaded bytes and the unpacked scene."""
     served = tmp_path / "served"
     served.mkdir()
-    whole = _zip(served / "Replica.zip", {"Replica/room0/traj.txt": "0", "Replica/room0/results/depth000000.png": "y" * 4000})
+    whole = _zip(served / "Replica.zip", {"Replica/room0/traj.txt": "0",
+                                          "Replica/room0/results/depth000000.png": "y" * 4000})
     size = whole.stat().st_size
     dest = tmp_path / "datasets" / "Replica"
     dest.parent.mkdir()
@@ -162,8 +163,8 @@ def test_an_http_error_keeps_the_part_and_a_whole_part_is_used_as_it_is(tmp_path
     part = Path(f"{dest}.zip.part")
     part.write_bytes(b"the first bytes of the archive")
     for script, folder in (("download_replica.sh", dest), ("download_tum.sh", tmp_path / "TUM")):
-        result = subprocess.run(["bash", str(SCRIPTS / script), str(folder)], env=_http_error_curl(tmp_path / script, 404),
-                                capture_output=True, text=True)
+        result = subprocess.run(["bash", str(SCRIPTS / script), str(folder)],
+                                env=_http_error_curl(tmp_path / script, 404), capture_output=True, text=True)
         assert result.returncode != 0 and "wrote" not in result.stdout, result
     assert part.read_bytes() == b"the first bytes of the archive"
     part.write_bytes(_zip(tmp_path / "whole.zip", {"Replica/room0/traj.txt": "0"}).read_bytes())

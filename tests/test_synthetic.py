@@ -412,7 +412,6 @@ def test_synthesize_through_a_link_and_up_writes_where_the_system_finds_the_fold
     assert [path.name for path in (tmp_path / "real" / "run").iterdir()] == ["room"]
 
 
-
 def test_the_builtin_path_is_the_documented_ellipse_one_turn_per_12_s():
     """synthetic.builtin_trajectory's docstring: an ellipse of 0.4 x 0.3 m at about 1.3 m height, one
     turn per 12 s.  By hand: x = 0.4 at t = 0 and 12 s, y = 0.3 a quarter turn in (3 s), x = -0.4

@@ -271,8 +271,9 @@ def environment_changes(saved: Optional[Dict[str, Any]], now: Dict[str, Any]) ->
     without one.  An entry the checkpoint lacks was not recorded by the version that wrote it."""
     if not isinstance(saved, dict):
         return []
-    return [f"{key} was {repr(saved[key]) if key in saved else 'not recorded (an earlier version)'} when the run "
-            f"started, now {now.get(key)!r}" for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
+    return [f"{key} was {saved[key]!r} when the run started, now {now.get(key)!r}" if key in saved else
+            f"the checkpoint, of an earlier version, does not record {key} (now {now[key]!r})"
+            for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
 
 
 def _check_crc(path: Path) -> None:

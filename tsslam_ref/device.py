@@ -82,15 +82,20 @@ def map_kernels(field, device: torch.device) -> dict:
 
 @functools.lru_cache(maxsize=None)
 def source_version(package: Path = Path(__file__).parent) -> str:
-    """Which tsslam_ref ran: ``"0.1.0, source 1a2b3c4d5e6f"``, the version and the first 12 hex digits
+    """Which tsslam_ref runs: ``"0.1.0, source 1a2b3c4d5e6f"``, the version and the first 12 hex digits
     of a SHA-256 over the package's code (each ``.py``, ``.cpp`` and ``.h`` file's path inside
-    ``package`` and bytes, in sorted order).  Equal digests mean the same code wherever it is
-    installed; any edit changes it, which a version number that stays put does not show."""
-    digest = hashlib.sha256()
+    ``package`` and bytes, line ends as LF, so a Windows checkout's CRLF counts as the same code), in
+    sorted order; ``"0.1.0, source unknown"`` where no file can be read (a zip import).  Equal
+    digests mean the same code wherever it is installed; any edit changes it, which a version number
+    that stays put does not show.  Cached: ``run`` asks once at its start, so an edit during a run is
+    not recorded as the code that ran."""
+    digest, count = hashlib.sha256(), 0
     for path in sorted(package.rglob("*")):
-        if path.suffix in (".py", ".cpp", ".h") and "__pycache__" not in path.parts and path.is_file():
-            digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
-    return f"{__version__}, source {digest.hexdigest()[:12]}"
+        if path.suffix in (".py", ".cpp", ".h") and path.is_file():
+            code = path.read_bytes().replace(b"\r\n", b"\n")
+            digest.update(path.relative_to(package).as_posix().encode() + b"\0" + code + b"\0")
+            count += 1
+    return f"{__version__}, source {digest.hexdigest()[:12] if count else 'unknown'}"
 
 
 def run_environment(device: torch.device, field) -> dict:

@@ -11,9 +11,9 @@ Outputs in ``--out`` (default ``runs/<sequence>-<method>``):
 * ``metrics.json`` - ate_rmse_m, rpe_trans_rmse_m, rpe_rot_rmse_deg, n_matched (when ground truth is
   known), frames, frames_per_second (of the frames this process ran; null when a resume had none left),
   the runtime table, the reconstruction metrics when a ground-truth mesh is next to the data
-  (``gt_mesh.ply``, written by the synthetic generator),
-  ``environment`` (:func:`tsslam_ref.device.run_environment`: the code's version and source digest,
-  and what besides the seed fixes the numbers) and the peak memory (``peak_rss_mib``; ``peak_gpu_allocated_mib`` on CUDA);
+  (``gt_mesh.ply``, written by the synthetic generator), ``environment``
+  (:func:`tsslam_ref.device.run_environment`: the code's version and source digest, and what besides
+  the seed fixes the numbers) and the peak memory (``peak_rss_mib``; ``peak_gpu_allocated_mib`` on CUDA);
 * ``mesh.ply`` - the final map's mesh (marching cubes at ``mesh.voxel_final``);
 * ``config.json`` - the resolved config; ``trajectory.png`` and ``errors.png`` - plots;
 * ``checkpoint.pt`` - the whole state every ``--checkpoint-every`` frames (``--resume`` continues);
@@ -255,6 +255,7 @@ def prepare(args: argparse.Namespace) -> Plan:
     if args.resume and args.overwrite:
         raise BadInput("--resume and --overwrite exclude each other: --resume continues the run in --out, "
                        "--overwrite starts it again")
+    device_module.source_version()  # the code as the run starts (cached): what metrics.json and checkpoints record
     cfg = resolve_config(args)
     if args.export_rate is not None and cfg.method != "tsslam":
         raise BadInput(f"--export-rate needs --method tsslam (a continuous trajectory); the method is {cfg.method}")
@@ -333,10 +334,11 @@ def _resume_environment(saved: Optional[dict], plan: Plan) -> dict:
     now = device_module.run_environment(plan.device, plan.state.field)
     changes = checkpoint_module.environment_changes(saved, now)
     if changes:
+        will = "will not" if any(saved[key] != now.get(key) for key in saved) else "may not"  # else: unrecorded
         print(f"warning: resuming in another environment than the run started in ({'; '.join(changes)}); " + (
-              "the export will not match one the run itself had written bit for bit" if plan.finished else
-              f"the frames from {plan.state.done} on will not match an uninterrupted run bit for bit, and metrics.json "
-              f"records both (environment_at_start)"), file=sys.stderr)
+              f"the export {will} match one the run itself had written bit for bit" if plan.finished else
+              f"the frames from {plan.state.done} on {will} match an uninterrupted run bit for bit, and "
+              f"metrics.json records both (environment_at_start)"), file=sys.stderr)
     return saved if isinstance(saved, dict) else now
 
 
