@@ -159,3 +159,20 @@ def test_se3_v_and_omega_are_time_derivatives_at_a_short_knot_spacing():
     omega = so3_log(minus.rotation.transpose(-1, -2) @ plus.rotation) / (2 * h)
     assert float((sample.velocity_world - v).abs().max()) <= 1e-7 * float(v.abs().max())
     assert float((sample.omega_body - omega).abs().max()) <= 1e-7 * float(omega.abs().max())
+
+
+def test_se3_evaluate_is_differentiable_with_respect_to_time():
+    """Times given as a float64 tensor that requires grad get a gradient, as in the split spline
+    (time offsets are estimated this way).  Oracle: central differences (h = 1e-5 Δt) of the
+    translation and of the velocity, to 1e-7."""
+    R, P, t, dt, t0 = _short_spacing_spline(seed=7)
+    times = torch.tensor(t, dtype=torch.float64, requires_grad=True)
+    sample = se3_spline.evaluate(R, P, times, dt, t0, derivatives=1)
+    h = 1e-5 * dt
+    plus = se3_spline.evaluate(R, P, t + h, dt, t0, derivatives=1)
+    minus = se3_spline.evaluate(R, P, t - h, dt, t0, derivatives=1)
+    for got, up, down in ((sample.translation, plus.translation, minus.translation),
+                          (sample.velocity_world, plus.velocity_world, minus.velocity_world)):
+        fd = ((up - down) / (2 * h))[:, 2]
+        grad, = torch.autograd.grad(got[:, 2].sum(), times, retain_graph=True)
+        assert float((grad - fd).abs().max()) <= 1e-7 * float(fd.abs().max())

@@ -80,7 +80,8 @@ def evaluate(control_rotations: torch.Tensor, control_translations: torch.Tensor
         control_rotations: (N, 3, 3); control_translations: (N, 3) (T_k = [R_k, t_k], camera-to-world):
             tensors of one dtype, unbatched (checked as :func:`tsslam_ref.spline.evaluate` checks them).
         times: any shape, seconds (float64), flattened to (M,): a scalar gives M = 1, a (2, 3) array
-            M = 6 (unlike ``spline.evaluate``, which keeps the shape); dt, t0, convention: as the split spline.
+            M = 6 (unlike ``spline.evaluate``, which keeps the shape); a float64 tensor may require grad
+            (every field is differentiable in time); dt, t0, convention: as the split spline.
         derivatives: 0 pose; 1 adds v, ω_body; 2 adds a, ω̇_body (ValueError otherwise).
 
     Returns:
@@ -95,7 +96,7 @@ def evaluate(control_rotations: torch.Tensor, control_translations: torch.Tensor
     twists = knot_twists(control_rotations, control_translations)  # (N−1, 6)
     xi = twists[first[:, None] + torch.arange(3, device=device)]  # (M, 3, 6)
     first_R, first_p = control_rotations[first], control_translations[first]
-    u = u.detach().to(device=device, dtype=control_translations.dtype)
+    u = u.to(device=device, dtype=control_translations.dtype)
 
     def pose(u_):
         return _pose_at(u_, first_R, first_p, xi)
