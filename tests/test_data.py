@@ -325,12 +325,13 @@ def test_listed_file_absent_names_list_and_line(tum_folder):
     ("{stamp} {name} depth/other.png", "got 3 field(s)"),  # another column would be ignored
     ("{stamp} rgb/my frame.png", "a file name cannot hold spaces here"),  # once 'rgb/my' not found
     ("{stamp}", "got 1 field(s)"),
+    ("{comma_stamp} {name}", "looks written with decimal commas"),  # read as 3 fields otherwise
 ])
 def test_a_list_line_without_exactly_two_fields_is_refused_naming_the_line(tum_folder, entry, words):
     folder = tum_folder[0]
     lines = (folder / "rgb.txt").read_text().splitlines()
     stamp, name = lines[4].split()  # line 5
-    lines[4] = entry.format(stamp=stamp, name=name)
+    lines[4] = entry.format(stamp=stamp, name=name, comma_stamp=stamp.replace(".", ","))
     (folder / "rgb.txt").write_text("\n".join(lines) + "\n")
     with pytest.raises(ValueError, match=r"rgb\.txt:5: expected 'timestamp filename'") as error:
         data.load_sequence(folder)
@@ -347,7 +348,19 @@ def test_malformed_line_names_file_and_line(tum_folder):
     gt = (folder / "groundtruth.txt").read_text().splitlines()
     gt[3] = "1.0 2.0 3.0"
     (folder / "groundtruth.txt").write_text("\n".join(gt))
-    with pytest.raises(ValueError, match=r"groundtruth\.txt:4: expected 8 numbers"):
+    with pytest.raises(ValueError, match=r"groundtruth\.txt:4: expected 8 numbers") as error:
+        data.read_tum_trajectory(folder / "groundtruth.txt")
+    assert "decimal commas" not in str(error.value)
+
+
+def test_a_trajectory_written_with_decimal_commas_is_named_as_such(tum_folder):
+    """A locale that writes '1,5' gives 16 comma-split fields; the error says why, not only the count."""
+    folder = tum_folder[0]
+    gt = (folder / "groundtruth.txt").read_text().splitlines()
+    gt[3] = gt[3].replace(".", ",")
+    (folder / "groundtruth.txt").write_text("\n".join(gt))
+    with pytest.raises(ValueError, match=r"groundtruth\.txt:4: expected 8 numbers .*got 16 fields; the line looks "
+                                         r"written with decimal commas"):
         data.read_tum_trajectory(folder / "groundtruth.txt")
 
 

@@ -13,6 +13,7 @@ association rule of ``associate.py``).  Side layer.  Taught in notebooks/00_data
 | T_wc | ``poses`` | (N, 4, 4) float64 | m |
 """
 
+import re
 from pathlib import Path
 from typing import List, Tuple
 
@@ -31,7 +32,7 @@ another order or a broken writer."""
 
 
 def _data_lines(path: Path, commas: bool = True):
-    """Yield (line_number, fields) for the non-comment, non-blank lines of a text file.
+    """Yield (line_number, fields, text) for the non-comment, non-blank lines of a text file.
 
     Fields are separated by white space, and by commas too when ``commas`` (numeric rows)."""
     path = Path(path)
@@ -48,7 +49,17 @@ def _data_lines(path: Path, commas: bool = True):
                 raise ValueError(f"{path}:{number}: not text (a NUL byte); expected a text file of whitespace-separated values")
             stripped = line.strip()
             if stripped and not stripped.startswith("#"):
-                yield number, (stripped.replace(",", " ") if commas else stripped).split()
+                yield number, (stripped.replace(",", " ") if commas else stripped).split(), stripped
+
+
+def _decimal_comma_hint(text: str, columns: Tuple[int, ...]) -> str:
+    """A hint for a line written with decimal commas ('1,5'), which are read as separators, or ''.
+
+    That is a line of ``columns`` whitespace-separated fields whose first (the timestamp) is digits, a comma, digits."""
+    fields = text.split()
+    if len(fields) in columns and re.fullmatch(r"[+-]?\d+,\d+", fields[0]):
+        return "; the line looks written with decimal commas ('1,5'): write decimal points ('1.5')"
+    return ""
 
 
 def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
@@ -63,13 +74,14 @@ def read_file_list(path) -> Tuple[np.ndarray, List[str], List[int]]:
             make two frames of one instant).
     """
     stamps, names, numbers = [], [], []
-    for number, fields in _data_lines(path, commas=False):
+    for number, fields, text in _data_lines(path, commas=False):
         if "," in fields[0]:  # a comma-separated line; otherwise a comma belongs to the file name
             fields = " ".join(fields).replace(",", " ").split()
         if len(fields) != 2:  # a third field is either another column or a file name with a space: neither is read
+            hint = _decimal_comma_hint(text, (2,)) or (" (a file name cannot hold spaces here, and no other column "
+                                                       "is read)" if len(fields) > 2 else "")
             raise ValueError(f"{path}:{number}: expected 'timestamp filename', got {len(fields)} field(s) "
-                             f"'{' '.join(fields)}'" + (" (a file name cannot hold spaces here, and no other column "
-                                                        "is read)" if len(fields) > 2 else ""))
+                             f"'{' '.join(fields)}'{hint}")
         try:
             stamp = float(fields[0])
         except ValueError:
@@ -140,12 +152,12 @@ def read_tum_trajectory(path, unique_stamps: bool = False) -> Tuple[np.ndarray, 
             truth such as TUM fr2/desk repeats a few stamps), or a file with no poses.
     """
     stamps, rows, numbers = [], [], []
-    for number, fields in _data_lines(path):
+    for number, fields, text in _data_lines(path):
         if len(fields) == 14:  # our continuous export: the pose, then velocities (vx vy vz wx wy wz), not read here
             fields = fields[:8]
         if len(fields) != 8:
             raise ValueError(f"{path}:{number}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw' (or the 14 of a "
-                             f"continuous export), got {len(fields)} fields")
+                             f"continuous export), got {len(fields)} fields{_decimal_comma_hint(text, (8, 14))}")
         try:
             values = [float(f) for f in fields]
         except ValueError:
