@@ -363,6 +363,33 @@ def test_keyframe_database_slots_are_insertion_positions_and_rays_are_relabelled
     assert torch.equal(picked.depth, torch.cat([stored[2].depth, stored[0].depth]))
 
 
+def test_keyframe_database_holds_every_keyframes_rays_as_their_join_while_it_grows():
+    """Keyframes of 1-40 rays added one by one (the pool grows several times): after each add, all
+    rays equal the join of every batch given, batch k relabelled k (built here with ``torch.cat``),
+    each slot's rays are its batch, a batch changed by its caller afterwards changes nothing stored,
+    and a view handed out earlier still holds what it held.  No keyframe: ValueError."""
+    with pytest.raises(ValueError):
+        KeyframeDatabase().rays()
+    database, given, earlier = KeyframeDatabase(), [], []
+    generator = torch.Generator().manual_seed(3)
+    for slot, count in enumerate((1, 2, 7, 40, 3, 16, 33, 5)):
+        rays = keyframe_rays(1, count, 0)[0].rays()
+        rays = RayBatch(rays.directions_cam, torch.rand(count, 3, generator=generator), rays.depth, rays.frame_ids)
+        given.append(RayBatch(*(values.clone() for values in (rays.directions_cam, rays.rgb, rays.depth,
+                                                                  rays.frame_ids))))
+        assert database.add(slot, 0.1 * slot, rays) == slot
+        rays.depth.fill_(-1.0)  # the caller's batch, changed after add
+        everything = database.rays()
+        for name in ("directions_cam", "rgb", "depth"):
+            assert torch.equal(getattr(everything, name), torch.cat([getattr(batch, name) for batch in given]))
+        assert everything.frame_ids.tolist() == [k for k, batch in enumerate(given) for _ in range(len(batch))]
+        for k, batch in enumerate(given):
+            stored = database.slot_rays(k)
+            assert torch.equal(stored.rgb, batch.rgb) and set(stored.frame_ids.tolist()) == {k}
+        earlier.append((everything, torch.cat([batch.depth for batch in given])))
+    assert all(torch.equal(view.depth, expected) for view, expected in earlier)
+
+
 def test_global_ba_frees_every_keyframe_but_the_first_and_gives_the_current_frame_its_share(monkeypatch):
     """(Global BA, kept in this file.)  Oracle: Co-SLAM's rules worked by hand for n_rays = 100,
     min_pixels_cur = 10: keyframe 0 fixed, the others free, the current frame (slot K) free iff

@@ -24,6 +24,7 @@ trajectory, dynamics; never the optimisers (tracking, local_ba, global_ba) or th
 """
 
 import contextlib
+import dataclasses
 from dataclasses import dataclass
 from dataclasses import field as _field
 from typing import Callable, Dict, Iterator, List, Optional, Protocol, Sequence, Tuple
@@ -227,29 +228,65 @@ class KeyframeDatabase:
     """Camera-frame rays of every keyframe (Co-SLAM keeps ``n_pixels`` = 5 % of each one's pixels).
 
     Keyframes get *slots* 0, 1, 2, ... in insertion order; :attr:`frame_indices` and
-    :attr:`timestamps` map slots back to frames.
+    :attr:`timestamps` map slots back to frames.  The rays are kept joined in one pool, slot k's
+    rows labelled k, whose capacity doubles when it is full (memory not yet written takes none):
+    global BA draws from every keyframe's rays at each call, and joining them anew for each call
+    took 0.4-1.2 s at 600 keyframes of 640x480.  The pool's rows and their order are the join's.
     """
 
     def __init__(self) -> None:
-        self._rays: List[RayBatch] = []
+        self._pool: Optional[RayBatch] = None  # capacity rows; the first self._offsets[-1] are keyframes' rays
+        self._offsets: List[int] = [0]  # slot k's rows: self._offsets[k] .. self._offsets[k + 1]
         self.frame_indices: List[int] = []
         self.timestamps: List[float] = []
 
     def __len__(self) -> int:
-        return len(self._rays)
+        return len(self.frame_indices)
 
     def add(self, frame_index: int, timestamp: float, rays: RayBatch) -> int:
-        """Store a keyframe's rays; returns its slot."""
+        """Store a keyframe's rays (their ``frame_ids`` become the slot); returns its slot."""
         check_float64_seconds("timestamp", timestamp)
-        self._rays.append(rays)
+        slot = len(self)
+        start, end = self._offsets[-1], self._offsets[-1] + len(rays)
+        capacity = 0 if self._pool is None else len(self._pool)
+        if end > capacity:
+            self._pool = _grown(self._pool, start, rays, max(end, 2 * capacity))
+        for name, values in zip(_RAY_FIELDS, _ray_values(with_slot(rays, slot))):
+            getattr(self._pool, name)[start:end] = values
+        self._offsets.append(end)
         self.frame_indices.append(int(frame_index))
         self.timestamps.append(float(timestamp))
-        return len(self._rays) - 1
+        return slot
+
+    def slot_rays(self, slot: int) -> RayBatch:
+        """The rays of keyframe ``slot`` (a view of the pool; ``frame_ids`` = slot)."""
+        return self._pool.subset(slice(self._offsets[slot], self._offsets[slot + 1]))
 
     def rays(self, slots: Optional[Sequence[int]] = None) -> RayBatch:
-        """Rays of ``slots`` (default all) with ``frame_ids`` = position in ``slots``."""
-        slots = range(len(self._rays)) if slots is None else slots
-        return slotted([self._rays[slot] for slot in slots])
+        """Rays of ``slots`` (default all) with ``frame_ids`` = position in ``slots``: all of them is
+        a view of the pool, a subset a new batch.  ValueError when there is no keyframe."""
+        if slots is None and len(self) > 0:
+            return self._pool.subset(slice(0, self._offsets[-1]))
+        slots = range(len(self)) if slots is None else slots
+        return slotted([self.slot_rays(slot) for slot in slots])
+
+
+_RAY_FIELDS = [f.name for f in dataclasses.fields(RayBatch)]
+
+
+def _ray_values(rays: RayBatch) -> List[torch.Tensor]:
+    return [getattr(rays, name) for name in _RAY_FIELDS]
+
+
+def _grown(pool: Optional[RayBatch], used: int, like: RayBatch, capacity: int) -> RayBatch:
+    """A pool of ``capacity`` rows holding the first ``used`` rows of ``pool`` (None: empty), with
+    the dtypes and device of ``like``; the rest unwritten (``torch.empty``)."""
+    grown = [torch.empty((capacity, *values.shape[1:]), dtype=values.dtype, device=values.device)
+             for values in _ray_values(like)]
+    if pool is not None:
+        for target, values in zip(grown, _ray_values(pool)):
+            target[:used] = values[:used]
+    return RayBatch(*grown)
 
 
 @dataclass

@@ -117,7 +117,7 @@ def _plain_view(state) -> Dict[str, Any]:
         "config": json.dumps(config_module.to_dict(state.cfg)),
         "field": state.field.state_dict(),
         "map_optimizer": state.map_optimizer.state_dict(),
-        "keyframes": {"rays": [_rays_to_plain(r) for r in keyframes._rays],
+        "keyframes": {"rays": [_rays_to_plain(keyframes.slot_rays(slot)) for slot in range(len(keyframes))],
                       "frame_indices": [int(i) for i in keyframes.frame_indices],
                       "timestamps": [float(t) for t in keyframes.timestamps]},
         "timestamps": torch.from_numpy(np.asarray(state.timestamps, dtype=np.float64).copy()),
