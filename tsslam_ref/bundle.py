@@ -229,9 +229,10 @@ class KeyframeDatabase:
 
     Keyframes get *slots* 0, 1, 2, ... in insertion order; :attr:`frame_indices` and
     :attr:`timestamps` map slots back to frames.  The rays are kept joined in one pool, slot k's
-    rows labelled k, whose capacity doubles when it is full (memory not yet written takes none):
-    global BA draws from every keyframe's rays at each call, and joining them anew for each call
-    took 0.4-1.2 s at 600 keyframes of 640x480.  The pool's rows and their order are the join's.
+    rows labelled k, whose capacity doubles when it is full (on the CPU, rows not yet written take
+    no memory; a GPU reserves them).  Global BA draws from every keyframe's rays at each call, and
+    joining them anew for each call took 0.4-1.2 s at 600 keyframes of 640x480.  The pool's rows
+    and their order are the join's.
     """
 
     def __init__(self) -> None:
