@@ -101,6 +101,24 @@ def test_a_saved_state_reads_back_identically(state, tmp_path):
     assert torch.equal(checkpoint.load(path).generator.get_state(), state.generator.get_state())
 
 
+def test_a_checkpoint_stores_each_keyframes_rays_and_nothing_beside_them(state, tmp_path):
+    """The loop keeps keyframe rays in one pool with spare capacity; torch.save writes a tensor's
+    whole storage, so each keyframe's rays must reach the file as tensors of their own: every
+    stored keyframe tensor's storage holds exactly its own bytes (no unwritten capacity, no other
+    keyframe's rays).  Two more keyframes are added to a copy of the state, so the pool has grown."""
+    state = copy.deepcopy(state)
+    for extra in range(2):
+        state.keyframes.add(0, 0.5 + extra, state.keyframes.slot_rays(0))
+    path = tmp_path / "checkpoint.pt"
+    checkpoint.save(state, path)
+    stored = torch.load(path, weights_only=True)["keyframes"]["rays"]
+    assert len(stored) == len(state.keyframes) >= 3
+    for slot, rays in enumerate(stored):
+        assert torch.equal(rays["depth"], state.keyframes.slot_rays(slot).depth)
+        for name, values in rays.items():
+            assert values.untyped_storage().nbytes() == values.numel() * values.element_size(), (slot, name)
+
+
 
 @pytest.mark.parametrize("inside", [KeyboardInterrupt, OSError])
 def test_torch_saves_runtime_error_is_told_apart_a_ctrl_c_from_a_failed_write(state, tmp_path, monkeypatch, inside):

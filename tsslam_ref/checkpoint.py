@@ -50,6 +50,14 @@ def _rays_from_plain(values: Dict[str, torch.Tensor]):
     return RayBatch(values["directions_cam"], values["rgb"], values["depth"], values["frame_ids"])
 
 
+def _keyframe_rays(keyframes) -> List[Dict[str, torch.Tensor]]:
+    """Each keyframe's rays as tensors of their own.  They are views of the keyframe pool, and
+    torch.save writes a view's whole storage: the other keyframes' rays and the pool's unwritten
+    capacity would go into every checkpoint."""
+    return [{name: values.clone() for name, values in _rays_to_plain(keyframes.slot_rays(slot)).items()}
+            for slot in range(len(keyframes))]
+
+
 def _snapshot(value):
     """``value`` with every tensor in its nested dicts / lists replaced by a detached copy."""
     if isinstance(value, torch.Tensor):
@@ -117,7 +125,7 @@ def _plain_view(state) -> Dict[str, Any]:
         "config": json.dumps(config_module.to_dict(state.cfg)),
         "field": state.field.state_dict(),
         "map_optimizer": state.map_optimizer.state_dict(),
-        "keyframes": {"rays": [_rays_to_plain(keyframes.slot_rays(slot)) for slot in range(len(keyframes))],
+        "keyframes": {"rays": _keyframe_rays(keyframes),
                       "frame_indices": [int(i) for i in keyframes.frame_indices],
                       "timestamps": [float(t) for t in keyframes.timestamps]},
         "timestamps": torch.from_numpy(np.asarray(state.timestamps, dtype=np.float64).copy()),
@@ -203,7 +211,7 @@ _WRITER_FAILURE = re.compile(r"inline_container|PytorchStreamWriter|iostream err
 def save(state, path, environment: Optional[Dict[str, Any]] = None) -> Path:
     """Write the loop state to ``path`` atomically (a new file, the user's normal mode), with the
     ``environment`` the run started in (``device.run_environment``), which ``--resume`` compares."""
-    plain = _plain_view(state)  # written at once, so no copy of the tensors
+    plain = _plain_view(state)  # written at once, so no copy of the tensors (the keyframe rays excepted)
     if environment is not None:
         plain["environment"] = environment
     with atomic_path(path) as temporary:
