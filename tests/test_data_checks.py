@@ -223,6 +223,32 @@ def test_colour_of_another_aspect_ratio_than_the_depth_is_refused(tmp_path, colo
     sequence[0]  # the other frame still reads
 
 
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_colour_with_an_exif_orientation_tag_is_read_as_stored(tmp_path, suffix):
+    """A phone's tag 6 ("turn 90 degrees to display") is not applied: the 8x6 colour keeps its stored
+    rows and columns, as its 8x6 depth does (turned, it would be 6x8 and the aspect check would refuse
+    it).  Oracle: the stored pixels, bit for bit for the PNG; the JPEG's left half red, right half blue."""
+    folder = _folder_layout(tmp_path / "capture", ["1.0", "2.0"])  # 8x6 depth
+    stored = np.zeros((6, 8, 3), np.uint8)
+    stored[:, :4, 0] = 255
+    stored[:, 4:, 2] = 255
+    image = Image.fromarray(stored)
+    tags = image.getexif()
+    tags[0x0112] = 6  # EXIF Orientation
+    (folder / "rgb/2.0.png").unlink()
+    image.save(folder / f"rgb/2.0{suffix}", exif=tags.tobytes(), **({"quality": 100} if suffix == ".jpg" else {}))
+    with Image.open(folder / f"rgb/2.0{suffix}") as written:
+        assert written.getexif().get(0x0112) == 6
+    sequence = data.load_sequence(folder)
+    assert sequence.check_files() == 4
+    rgb = sequence[1].rgb
+    assert rgb.shape == (6, 8, 3)
+    if suffix == ".png":
+        np.testing.assert_array_equal(rgb, stored.astype(np.float32) / 255.0)
+    assert (rgb[:, :3, 0] > 0.9).all() and (rgb[:, :3, 2] < 0.1).all()
+    assert (rgb[:, 5:, 2] > 0.9).all() and (rgb[:, 5:, 0] < 0.1).all()
+
 def test_replica_reads_the_intrinsics_of_its_calibration_file(tmp_path):
     """A Replica folder with intrinsics.json (fx 12, cx 7.5, cy 5.5 for its 16x12 renders, as written
     by make_replica) uses those values, not the 1200x680 release's built-in ones."""
