@@ -729,7 +729,9 @@ def test_a_camera_standing_still_or_turning_in_place_gets_its_ate(tmp_path, caps
             capsys.readouterr().err)
         metrics = json.loads((out / "metrics.json").read_text())
         assert np.isfinite(metrics["ate_rmse_m"]) and metrics["ate_rmse_m"] < 0.5, metrics
-        assert ("spline" in metrics) == (method == "tsslam")
+        assert ("spline" in metrics) == ("spline_offsets" in metrics) == (method == "tsslam")
+        assert ("spline from the tracked poses: RMS" in capsys.readouterr().out) == (method == "tsslam")
+    assert metrics["spline_offsets"]["frames"] == 7  # every tracked frame (1-7) once, the last interval's too
     stamps = np.loadtxt(out / "trajectory.txt")[:, 0]  # the TS-SLAM run's frames: its intervals cover them
     bounds = np.array(metrics["spline"]["interval_boundaries_s"])
     assert metrics["spline"]["knots"] == "uniform" and metrics["spline"]["intervals"] == len(bounds) - 1

@@ -220,7 +220,7 @@ def test_a_spline_that_leaves_tracking_stops_the_run_with_a_message():
     poses[:, 0, 3] = torch.as_tensor(times)  # 1 m/s along x
     trajectory = BSplineTrajectory.empty(float(times[0]), 0.2, poses)
     trajectory = local_ba.curve_approximation(trajectory, times[:6], poses[:6], cfg.local_ba)
-    state = SimpleNamespace(cfg=cfg, frame_poses=poses)
+    state = SimpleNamespace(cfg=cfg, frame_poses=poses, log=[])
     slam.check_spline_follows_tracking(state, trajectory, times[:6], np.arange(6))  # follows: no error
     displaced = trajectory.with_controls(trajectory.control_rotations, trajectory.control_translations + 0.5)
     with pytest.raises(slam.TrackingFailure, match="local BA is switched off"):
@@ -983,6 +983,38 @@ def test_the_spline_check_measures_the_largest_distance_of_one_frame():
     with pytest.raises(slam.TrackingFailure, match="nan m away"):
         slam.check_spline_follows_tracking(state, trajectory, state.timestamps, frames)
 
+
+
+def test_the_spline_check_logs_each_frames_offset_from_the_spline():
+    """check_spline_follows_tracking writes each checked frame's distance and angle to the spline into its
+    log entry.  Oracle: stored poses made from the spline's by hand, frame 3 moved 3 cm along (0, 0.6,
+    0.8) and turned 2 deg about z, frame 4 turned 1 deg about (1, 1, 0)/sqrt(2) (each in its own camera
+    frame, on a turning curve); frames 1, 2 and 5 on the curve.  Frames 1-5 are checked: frame 0 has no
+    entry (never tracked) and frame 6, outside the checked frames, stays as it is.
+    run_outputs.spline_offset_summary: RMS over the five logged frames and the frames of the largest."""
+    straight = spline_with(6)  # turning as it goes: 0.2 rad about (1, 2, 2)/3 per control point
+    rotvecs = 0.2 * torch.arange(6, dtype=torch.float64)[:, None] * torch.tensor([1.0, 2.0, 2.0], dtype=torch.float64) / 3
+    trajectory = BSplineTrajectory.from_rotvecs(rotvecs, straight.control_translations, 0.25, -0.5)
+    state = hand_built_state("tsslam", n_frames=7)
+    state.frame_poses[:6] = trajectory.poses(state.timestamps[:6])
+    state.frame_poses[3, :3, 3] += 0.03 * torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64)
+    turn = {3: [0.0, 0.0, np.radians(2.0)], 4: [np.radians(1.0) / 2 ** 0.5, np.radians(1.0) / 2 ** 0.5, 0.0]}
+    for i, rotvec in turn.items():
+        state.frame_poses[i, :3, :3] = state.frame_poses[i, :3, :3] @ so3_exp(torch.tensor([rotvec], dtype=torch.float64))[0]
+    state.log = [{"frame": i, "tracking_loss": 1.0} for i in range(1, 7)]
+    slam.check_spline_follows_tracking(state, trajectory, state.timestamps[1:6], np.arange(1, 6))
+    logged = {entry["frame"]: (entry.get("spline_offset_m"), entry.get("spline_offset_deg")) for entry in state.log}
+    expected = {1: (0.0, 0.0), 2: (0.0, 0.0), 3: (0.03, 2.0), 4: (0.0, 1.0), 5: (0.0, 0.0)}
+    for i, (distance, angle) in expected.items():
+        assert logged[i][0] == pytest.approx(distance, abs=1e-12) and logged[i][1] == pytest.approx(angle, abs=1e-9)
+    assert logged[6] == (None, None)
+    summary = run_outputs.spline_offset_summary(state.log)["spline_offsets"]
+    assert summary["frames"] == 5
+    assert summary["position_rms_m"] == pytest.approx(0.03 / 5 ** 0.5, rel=1e-9)
+    assert summary["rotation_rms_deg"] == pytest.approx((5.0 / 5) ** 0.5, rel=1e-9)
+    assert summary["position_max_frame"] == 3 and summary["rotation_max_frame"] == 3
+    assert summary["rotation_max_deg"] == pytest.approx(2.0, rel=1e-9)
+    assert run_outputs.spline_offset_summary([{"frame": 1, "tracking_loss": 1.0}]) == {}
 
 def test_tracking_keeps_the_newest_two_outputs_and_judges_divergence_on_the_first_five_frames(monkeypatch):
     """track with track_frame replaced by a stub returning pose T_i (x = 10 i m) and a chosen loss:

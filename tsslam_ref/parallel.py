@@ -75,7 +75,8 @@ def mapping_view(state: "slam.SLAMState", frame_index: int) -> "slam.SLAMState":
     frames up to ``frame_index`` (as the sequential loop would hold them), everything else shared.
 
     Shared objects are only touched by the mapping thread (map, optimizer, keyframes, spline,
-    keyframe bookkeeping) or are append-only (timings, log); the spline and its interval count
+    keyframe bookkeeping) or are append-only (timings; the log, whose entries the mapping thread only
+    completes with the spline offsets of the frames it commits); the spline and its interval count
     are replaced, never changed in place, so the view's own copies go back in :func:`commit`."""
     rays = {j: batch for j, batch in state.window_rays.items() if j <= frame_index}
     return dataclasses.replace(state, frame_poses=state.frame_poses.clone(), window_rays=rays)

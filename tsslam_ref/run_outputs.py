@@ -249,6 +249,24 @@ def outside_box_summary(log) -> dict:
                             "warning_share": OUTSIDE_BOX_WARNING}}
 
 
+
+def spline_offset_summary(log) -> dict:
+    """metrics.json's ``spline_offsets``: how far TS-SLAM's spline lies from the frames' own poses
+    (tracking's, moved by the map update where it ran) when their interval is committed, RMS and largest
+    distance (m) and angle (deg) over the frames, and the frames of the largest.  Both tracking's
+    noise and motion faster than the knots show here (docs/system.md, "When the motion breaks the
+    dynamics prior")."""
+    rows = [(entry["spline_offset_m"], entry["spline_offset_deg"], entry["frame"]) for entry in log
+            if "spline_offset_m" in entry]
+    if not rows:
+        return {}
+    distances, angles, frames = (np.asarray(column) for column in zip(*rows))
+    return {"spline_offsets": {
+        "frames": len(rows), "position_rms_m": float(np.sqrt(np.mean(distances ** 2))),
+        "position_max_m": float(distances.max()), "position_max_frame": int(frames[distances.argmax()]),
+        "rotation_rms_deg": float(np.sqrt(np.mean(angles ** 2))), "rotation_max_deg": float(angles.max()),
+        "rotation_max_frame": int(frames[angles.argmax()])}}
+
 def write_partial_trajectory(state, out: Path) -> None:
     """The trajectory estimated so far as ``out/trajectory.txt`` (TUM format), atomically."""
     from .export import estimated_trajectory
@@ -408,6 +426,7 @@ def write_outputs(plan, result) -> None:
     if cfg.method == "tsslam" and cfg.local_ba.use_spline:
         metrics["spline"] = spline_summary(result.state.trajectory, cfg.spline.knots)
     metrics.update(outside_box_summary(result.state.log))
+    metrics.update(spline_offset_summary(result.state.log))
     metrics.update(motion_summary(result.timestamps, result.poses))
     metrics["runtime"] = result.state.timings.table()
     metrics["environment"] = run_environment(plan.device, result.state.field)
@@ -425,6 +444,10 @@ def write_outputs(plan, result) -> None:
         checkpoint_path.unlink()
     summary = ", ".join(f"{key} {metrics[key]:.4f}" for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg") if key in metrics)
     parts = [f"done: {_frames_done(len(sequence), result)}", summary or _why_no_metrics(sequence)]
+    if "spline_offsets" in metrics:
+        offsets = metrics["spline_offsets"]
+        parts.append(f"spline from the tracked poses: RMS {100 * offsets['position_rms_m']:.2f} cm, "
+                     f"{offsets['rotation_rms_deg']:.2f} deg")
     if "peak_rss_mib" in metrics:
         parts.append(f"peak RSS {metrics['peak_rss_mib']:.0f} MiB")
     print("; ".join(parts + [f"outputs in {out}"]))

@@ -32,6 +32,7 @@ Layer 4 (system): orchestrates; holds only the loop state.  Taught in notebooks/
 """
 
 import contextlib
+import itertools
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Tuple
@@ -473,20 +474,19 @@ def check_finite(trajectory: BSplineTrajectory, stage: str, frame: FrameTensors)
 
 def check_spline_follows_tracking(state: SLAMState, trajectory: BSplineTrajectory, times: np.ndarray,
                                   frames: np.ndarray) -> None:
-    """Raise :class:`TrackingFailure` when the spline is more than ``local_ba.max_deviation`` m from
-    the stored poses of ``frames`` ((F,) indices, times (F,) s) where it covers them.
-
-    Without local BA (the 'w/o LBA' ablation) a new control point is only an extrapolation and the
-    spline drifts away; the paper reports that the system then fails, and this says so."""
-    if len(frames) == 0:
-        return
+    """Log how far the spline lies from the stored poses of ``frames`` ((F,) indices, times (F,) s) where
+    it covers them (``spline_offset_m``, ``spline_offset_deg``); :class:`TrackingFailure` beyond
+    ``local_ba.max_deviation`` m.  Without local BA (the 'w/o LBA' ablation) a new control point is only
+    an extrapolation and the spline drifts away; the paper reports that the system then fails."""
     inside = trajectory.covers(times)
-    if not inside.any():
+    if len(frames) == 0 or not inside.any():
         return
-    spline_positions = trajectory.poses(times[inside])[:, :3, 3]
-    stored_positions = state.frame_poses[frames[inside], :3, 3]
-    deviation = float(torch.linalg.vector_norm(spline_positions - stored_positions, dim=-1).max())
-    limit = state.cfg.local_ba.max_deviation
+    distances, angles = trajectory.offsets(times[inside], state.frame_poses[frames[inside]])
+    offsets, first = dict(zip(frames[inside].tolist(), zip(distances.tolist(), angles.tolist()))), frames[inside].min()
+    for entry in itertools.takewhile(lambda entry: entry["frame"] >= first, reversed(state.log)):  # frames in order
+        if entry["frame"] in offsets:
+            entry["spline_offset_m"], entry["spline_offset_deg"] = offsets[entry["frame"]]
+    deviation, limit = float(distances.max()), state.cfg.local_ba.max_deviation
     if not np.isfinite(deviation) or deviation > limit:
         raise TrackingFailure(
             f"the spline trajectory is {deviation:.3f} m away from the tracked poses at t = {times[inside][0]:.3f} s "
