@@ -413,6 +413,8 @@ def test_parallel_tracking_and_mapping_tracks_like_the_sequential_loop(synthetic
     assert runtime["tracking"]["calls"] == len(sequence) - 1 and runtime["global_ba"]["calls"] >= 2
     if method == "tsslam":
         assert result.state.trajectory.covers(sequence.timestamps).all()
+    offsets = [entry["frame"] for entry in result.state.log if "spline_offset_m" in entry]  # the mapping thread's
+    assert offsets == (list(range(1, len(sequence))) if method == "tsslam" else [])
     assert result.state.cfg.parallel and not cfg.parallel
 
 
