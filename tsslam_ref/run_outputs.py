@@ -249,13 +249,12 @@ def outside_box_summary(log) -> dict:
                             "warning_share": OUTSIDE_BOX_WARNING}}
 
 
-
 def spline_offset_summary(log) -> dict:
     """metrics.json's ``spline_offsets``: how far TS-SLAM's spline lies from the frames' own poses
     (tracking's, moved by the map update where it ran) when their interval is committed, RMS and largest
     distance (m) and angle (deg) over the frames, and the frames of the largest.  Both tracking's
-    noise and motion faster than the knots show here (docs/system.md, "When the motion breaks the
-    dynamics prior")."""
+    noise and motion faster than the knots show here (docs/system.md, "What the spline smoothed
+    away")."""
     rows = [(entry["spline_offset_m"], entry["spline_offset_deg"], entry["frame"]) for entry in log
             if "spline_offset_m" in entry]
     if not rows:
@@ -266,6 +265,7 @@ def spline_offset_summary(log) -> dict:
         "position_max_m": float(distances.max()), "position_max_frame": int(frames[distances.argmax()]),
         "rotation_rms_deg": float(np.sqrt(np.mean(angles ** 2))), "rotation_max_deg": float(angles.max()),
         "rotation_max_frame": int(frames[angles.argmax()])}}
+
 
 def write_partial_trajectory(state, out: Path) -> None:
     """The trajectory estimated so far as ``out/trajectory.txt`` (TUM format), atomically."""
