@@ -376,3 +376,17 @@ def test_a_system_without_a_resident_memory_figure_still_gets_its_table(monkeypa
     module.main()
     assert "peak RSS of this process (all runs above): not measured" in capsys.readouterr().out
     assert json.loads((tmp_path / "rows.json").read_text())["peak_rss_mib"] is None
+
+
+def test_a_tsslam_row_carries_the_spline_offsets_of_its_run():
+    """run_once on 8 bundled frames (tiny preset): a TS-SLAM row holds its run's spline offsets (RMS cm
+    and deg, as metrics.json), which the loop logged for each of the 7 tracked frames; a Co-SLAM row,
+    with no spline, holds none."""
+    from tsslam_ref import config, data
+
+    bench = _bench_system()
+    sequence = data.load_sequence(data.default_sequence_path(), frame_stop=8)
+    rows = {method: bench.run_once(sequence, config.apply_overrides(config.tiny(), [f"method={method}", "seed=0"]))
+            for method in ("coslam", "tsslam")}
+    assert "spline_offset_cm" not in rows["coslam"] and "spline_offset_deg" not in rows["coslam"]
+    assert 0.0 < rows["tsslam"]["spline_offset_cm"] < 5.0 and 0.0 < rows["tsslam"]["spline_offset_deg"] < 5.0
