@@ -56,7 +56,7 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
-from tsslam_ref import config, data, parallel, run_outputs, slam, spline_fit
+from tsslam_ref import config, data, parallel, run_summaries, slam, spline_fit
 from tsslam_ref.cli_args import OneLineParser, number_in
 from tsslam_ref.device import compute_environment, map_kernels, peak_memory, source_version, tune_cpu_allocator
 from tsslam_ref.run import atomic_write_text, trajectory_metrics
@@ -106,7 +106,7 @@ def run_once(sequence, cfg: config.Config) -> Dict[str, float]:
         row["intervals"] = int(result.state.intervals_done)
         # the frames' time span over the intervals mapped (docs/system.md's "intervals (mean)"), not the knots' span
         row["mean_interval_s"] = float(result.timestamps[-1] - result.timestamps[0]) / result.state.intervals_done
-        offsets = run_outputs.spline_offset_summary(result.state.log).get("spline_offsets")
+        offsets = run_summaries.spline_offset_summary(result.state.log).get("spline_offsets")
         if offsets:  # what the spline smoothed away (docs/system.md): RMS over the frames, as metrics.json
             row["spline_offset_cm"], row["spline_offset_deg"] = 100 * offsets["position_rms_m"], offsets["rotation_rms_deg"]
     if "tracking" in runtime:

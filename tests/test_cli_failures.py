@@ -10,6 +10,7 @@ and its refusals.
 """
 
 import argparse
+import csv
 import hashlib
 import json
 import os
@@ -454,7 +455,8 @@ def test_overwrite_replaces_only_our_files_never_through_a_link(runs):
     assert 50 < metrics["peak_rss_mib"] < 64 * 1024  # importing torch alone takes more than 50 MiB
     assert run.load_checkpoint(planted / "checkpoint.pt").done == 10  # a new checkpoint, not the planted bytes
     mode = files.normal_mode()
-    for name in ("trajectory.txt", "config.json", "metrics.json", "trajectory.png", "errors.png", "checkpoint.pt"):
+    for name in ("trajectory.txt", "frames.csv", "config.json", "metrics.json", "trajectory.png", "errors.png",
+                 "checkpoint.pt"):
         assert os.stat(planted / name).st_mode & 0o777 == mode, name
 
 
@@ -731,6 +733,13 @@ def test_a_camera_standing_still_or_turning_in_place_gets_its_ate(tmp_path, caps
         assert np.isfinite(metrics["ate_rmse_m"]) and metrics["ate_rmse_m"] < 0.5, metrics
         assert ("spline" in metrics) == ("spline_offsets" in metrics) == (method == "tsslam")
         assert ("spline from the tracked poses: RMS" in capsys.readouterr().out) == (method == "tsslam")
+        with open(out / "frames.csv", newline="") as table:  # one row per frame; tracking's values from frame 1
+            rows = list(csv.DictReader(table))
+        assert [int(row["frame"]) for row in rows] == list(range(8))
+        assert [row["tracking_loss"] != "" for row in rows] == [False] + [True] * 7
+        offsets = np.array([float(row["spline_offset_deg"]) for row in rows[1:] if row["spline_offset_deg"]])
+        assert len(offsets) == (7 if method == "tsslam" else 0)
+    assert np.sqrt(np.mean(offsets ** 2)) == pytest.approx(metrics["spline_offsets"]["rotation_rms_deg"], rel=1e-6)
     assert metrics["spline_offsets"]["frames"] == 7  # every tracked frame (1-7) once, the last interval's too
     stamps = np.loadtxt(out / "trajectory.txt")[:, 0]  # the TS-SLAM run's frames: its intervals cover them
     bounds = np.array(metrics["spline"]["interval_boundaries_s"])
@@ -1233,7 +1242,8 @@ def test_a_view_past_the_maps_box_is_warned_about_once_and_recorded(capsys):
     log: the largest share, its frame, the frames over the warning share)."""
     from types import SimpleNamespace
 
-    from tsslam_ref.run_outputs import advance, outside_box_summary
+    from tsslam_ref.run_outputs import advance
+    from tsslam_ref.run_summaries import outside_box_summary
 
     state = SimpleNamespace(log=[], field=SimpleNamespace(bound=torch.tensor([[-0.6, 3.0], [-1.0, 1.0], [0.0, 2.5]])),
                             cfg=config_module.load("tum-cpu"), done=1)

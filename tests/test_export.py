@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from tsslam_ref import data
 from tsslam_ref.export import coslam_output_poses, export_continuous, export_times, spline_output_poses
 from tsslam_ref.geometry import make_pose
-from tsslam_ref.run_outputs import write_partial_trajectory
+from tsslam_ref.run_outputs import write_partial_outputs
 from tsslam_ref.trajectory import BSplineTrajectory
 
 STAMP = 1520530328.18968  # a TUM RGB-D timestamp (s): float64 resolves about 2.4e-7 s here
@@ -207,7 +207,7 @@ def test_exported_columns_follow_a_moving_spline(tmp_path):
 
 
 def test_the_trajectory_written_during_a_run_has_each_processed_frame_with_its_own_stamp(tmp_path):
-    """run_outputs.write_partial_trajectory after 3 of 5 frames (a Co-SLAM state): 3 lines in the
+    """run_outputs.write_partial_outputs after 3 of 5 frames (a Co-SLAM state): 3 lines in the
     TUM format "t tx ty tz qx qy qz qw", each frame's own time stamp and camera-to-world pose.
     Oracle: the poses built here and scipy's (x, y, z, w) quaternions, read back with np.loadtxt."""
     rotations = Rotation.from_rotvec([[0.1 * i, -0.2, 0.05 * i] for i in range(5)])
@@ -215,8 +215,8 @@ def test_the_trajectory_written_during_a_run_has_each_processed_frame_with_its_o
     poses[:, :3, :3] = rotations.as_matrix()
     poses[:, :3, 3] = [[i, 2.0 * i, -0.5 * i] for i in range(5)]
     state = SimpleNamespace(cfg=SimpleNamespace(method="coslam"), frame_poses=torch.from_numpy(poses), done=3,
-                            relative_to_keyframe={}, keyframe_of_frame={}, timestamps=STAMP + 0.1 * np.arange(5))
-    write_partial_trajectory(state, tmp_path)
+                            relative_to_keyframe={}, keyframe_of_frame={}, timestamps=STAMP + 0.1 * np.arange(5), log=[])
+    write_partial_outputs(state, tmp_path)
     rows = np.loadtxt(tmp_path / "trajectory.txt", ndmin=2)
     assert rows.shape == (3, 8)
     assert np.allclose(rows[:, 0], STAMP + 0.1 * np.arange(3), rtol=0, atol=1e-6)
@@ -238,7 +238,7 @@ def test_a_run_warns_before_it_starts_when_the_export_would_hold_one_row(capsys,
 def test_the_spline_summary_lists_the_intervals_of_uneven_knots():
     """Knots pushed at chosen times (the oracle): 7 control points, paper convention -> 4 intervals
     from the start time, each as long as the gap pushed."""
-    from tsslam_ref.run_outputs import spline_summary
+    from tsslam_ref.run_summaries import spline_summary
 
     trajectory = BSplineTrajectory.empty(STAMP, 0.3, torch.zeros(1, dtype=torch.float64))
     gaps = [0.3, 0.3, 0.3, 0.1, 0.2, 0.4]  # t_1 - t_0, ...: the intervals of the domain are the last four

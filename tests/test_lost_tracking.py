@@ -8,7 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from tsslam_ref import config
-from tsslam_ref.run_outputs import motion_summary
+from tsslam_ref.run_summaries import motion_summary
 from tsslam_ref.tracking import depth_problem
 
 

@@ -22,7 +22,7 @@ import torch
 
 import tsslam_ref
 from tsslam_ref import config, data, device, eval as evaluation, global_ba, hash_kernel, local_ba, parallel, run
-from tsslam_ref import run_outputs, slam, synthetic
+from tsslam_ref import run_outputs, run_summaries, slam, synthetic
 from tsslam_ref.bundle import KeyframeDatabase
 from tsslam_ref.field import SceneField
 from tsslam_ref.geometry import make_pose, so3_exp
@@ -315,7 +315,7 @@ def test_run_cli_writes_outputs_refuses_to_clobber_and_resumes(synthetic_sequenc
     assert paths["hash_grid"] == paths["oneblob"] == expected_path
     saved = config.load(str(out / "config.json"))
     assert saved.method == "tsslam" and saved.spline.dt == 0.2 and saved.data.frame_stop == 12
-    for name in ("mesh.ply", "trajectory.png", "errors.png", "checkpoint.pt", "trajectory_50hz.txt"):
+    for name in ("frames.csv", "mesh.ply", "trajectory.png", "errors.png", "checkpoint.pt", "trajectory_50hz.txt"):
         assert (out / name).exists(), name
     exported = np.loadtxt(out / "trajectory_50hz.txt")
     assert exported.shape[1] == 14 and np.allclose(np.diff(exported[:, 0]), 0.02)
@@ -993,7 +993,7 @@ def test_the_spline_check_logs_each_frames_offset_from_the_spline():
     0.8) and turned 2 deg about z, frame 4 turned 1 deg about (1, 1, 0)/sqrt(2) (each in its own camera
     frame, on a turning curve); frames 1, 2 and 5 on the curve.  Frames 1-5 are checked: frame 0 has no
     entry (never tracked) and frame 6, outside the checked frames, stays as it is.
-    run_outputs.spline_offset_summary: RMS over the five logged frames and the frames of the largest."""
+    run_summaries.spline_offset_summary: RMS over the five logged frames and the frames of the largest."""
     straight = spline_with(6)  # turning as it goes: 0.2 rad about (1, 2, 2)/3 per control point
     rotvecs = 0.2 * torch.arange(6, dtype=torch.float64)[:, None] * torch.tensor([1.0, 2.0, 2.0], dtype=torch.float64) / 3
     trajectory = BSplineTrajectory.from_rotvecs(rotvecs, straight.control_translations, 0.25, -0.5)
@@ -1010,13 +1010,13 @@ def test_the_spline_check_logs_each_frames_offset_from_the_spline():
     for i, (distance, angle) in expected.items():
         assert logged[i][0] == pytest.approx(distance, abs=1e-12) and logged[i][1] == pytest.approx(angle, abs=1e-9)
     assert logged[6] == (None, None)
-    summary = run_outputs.spline_offset_summary(state.log)["spline_offsets"]
+    summary = run_summaries.spline_offset_summary(state.log)["spline_offsets"]
     assert summary["frames"] == 5
     assert summary["position_rms_m"] == pytest.approx(0.03 / 5 ** 0.5, rel=1e-9)
     assert summary["rotation_rms_deg"] == pytest.approx((5.0 / 5) ** 0.5, rel=1e-9)
     assert summary["position_max_frame"] == 3 and summary["rotation_max_frame"] == 3
     assert summary["rotation_max_deg"] == pytest.approx(2.0, rel=1e-9)
-    assert run_outputs.spline_offset_summary([{"frame": 1, "tracking_loss": 1.0}]) == {}
+    assert run_summaries.spline_offset_summary([{"frame": 1, "tracking_loss": 1.0}]) == {}
 
 def test_tracking_keeps_the_newest_two_outputs_and_judges_divergence_on_the_first_five_frames(monkeypatch):
     """track with track_frame replaced by a stub returning pose T_i (x = 10 i m) and a chosen loss:

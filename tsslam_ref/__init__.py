@@ -25,7 +25,8 @@ and no import cycle; :data:`LAYERS` is the table, tests/test_layers.py checks ev
 * 2.5 shared optimisation: ``bundle`` (pose models, keyframe rays, the joint loop)
 * 3 optimisers: ``tracking``, ``local_ba``, ``global_ba``
 * 4 system: ``slam`` (the loop), ``parallel`` (tracking and mapping in two threads), ``run``
-  (command line) with ``run_outputs`` (what a run writes), and their support ``device``, ``timings``, ``export``,
+  (command line) with ``run_outputs`` (what a run writes) and ``run_summaries`` (its metrics' summaries and
+  per-frame table), and their support ``device``, ``timings``, ``export``,
   ``knot_schedule`` (adaptive knots in the loop), ``checkpoint`` (the run's state on disk)
 
 Importing the package imports nothing heavy; import the module you need.
@@ -86,6 +87,7 @@ LAYERS = {
     "parallel": 4,
     "run": 4,
     "run_outputs": 4,
+    "run_summaries": 4,
     "device": 4,
     "timings": 4,
     "export": 4,

@@ -55,7 +55,7 @@ from .run_outputs import reconstruction_metrics, save_plots, trajectory_metrics 
 from .run_outputs import OUTPUT_NAMES, is_output_name, remove_previous_outputs  # noqa: F401  (re-exported)
 from .run_outputs import advance, check_output_folder, data_error_advice, data_notes, export_file_name
 from .run_outputs import restart_advice, write_outputs
-from .run_outputs import FolderInUse, close_progress, output_folder_lock, write_partial_trajectory
+from .run_outputs import FolderInUse, close_progress, output_folder_lock, write_partial_outputs
 from .export import MAX_EXPORT_RATE, export_times
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_TRACKING_FAILURE, EXIT_INTERRUPTED = 0, 2, 3, 130
@@ -376,8 +376,8 @@ def _progress_bar(plan: Plan):
 
 def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
     """The loop's per-frame callback: it records the frames done in ``reached``, moves the bar, and
-    every ``--checkpoint-every`` frames and after the last one writes the trajectory so far and the
-    checkpoint (a finished run's then holds every frame: ``--export-rate`` re-fits only the last interval)."""
+    every ``--checkpoint-every`` frames and after the last one writes the trajectory and frames.csv so far
+    and the checkpoint (a finished run's then holds every frame: ``--export-rate`` re-fits only the last interval)."""
     every, out = plan.args.checkpoint_every, plan.out
 
     def on_frame(current) -> None:
@@ -389,7 +389,7 @@ def _frame_callback(plan: Plan, progress, reached: Dict[str, int]):
                 plan.environment = device_module.run_environment(plan.device, current.field)
             save_checkpoint(current, out / "checkpoint.pt", plan.environment)
             reached["checkpoint"] = current.done
-            write_partial_trajectory(current, out)
+            write_partial_outputs(current, out)
 
     return on_frame
 

@@ -1,10 +1,11 @@
 """What a finished (or running) command-line run writes: trajectory, metrics, mesh, plots.
 
-Layer 4 (system support).  :func:`write_outputs` writes ``trajectory.txt``, ``metrics.json`` (ATE /
-RPE against the ground truth, the runtime table, the peak memory, and the reconstruction metrics
-after Co-SLAM-style culling when a ground-truth mesh is known), ``mesh.ply``, the continuous export
-and the plots of a finished run; :func:`write_partial_trajectory` writes the trajectory so far
-while the run goes.  Every file is written atomically (``files.py``).  Which names are a run's
+Layer 4 (system support).  :func:`write_outputs` writes ``trajectory.txt``, ``frames.csv`` (one row
+per frame, ``run_summaries.py``), ``metrics.json`` (ATE / RPE against the ground truth, the runtime
+table, the peak memory, and the reconstruction metrics after Co-SLAM-style culling when a
+ground-truth mesh is known), ``mesh.ply``, the continuous export and the plots of a finished run;
+:func:`write_partial_outputs` writes the trajectory and ``frames.csv`` so far while the run goes.
+Every file is written atomically (``files.py``).  Which names are a run's
 (:func:`is_output_name`), the checks on an output folder before a run (:func:`check_output_folder`)
 and the removal of an earlier run's files (``--overwrite``) live here too.  ``run.py`` prepares the
 run and calls these.
@@ -30,11 +31,12 @@ import numpy as np
 from . import data as data_module
 from . import trajectory_metrics as trajectory_metrics_module
 from .device import peak_memory, run_environment
-from .geometry import rotation_angle_deg
 from .files import atomic_path, atomic_write_text, is_temporary_of
+from .run_summaries import (OUTSIDE_BOX_WARNING, frames_table, motion_summary, outside_box_summary,
+                            spline_offset_summary, spline_summary)
 
-OUTPUT_NAMES = ("trajectory.txt", "metrics.json", "mesh.ply", "config.json", "trajectory.png", "errors.png",
-                "checkpoint.pt")
+OUTPUT_NAMES = ("trajectory.txt", "frames.csv", "metrics.json", "mesh.ply", "config.json", "trajectory.png",
+                "errors.png", "checkpoint.pt")
 """Files a run writes into its folder (plus ``trajectory_<rate>hz.txt``); ``--overwrite`` removes only these."""
 _EXPORT_NAME = re.compile(r"trajectory_[0-9.e+-]+hz\.txt")
 
@@ -189,11 +191,6 @@ def data_notes(sequence) -> List[str]:
     return notes + ([sequence.camera_note] if sequence.camera_note else [])
 
 
-OUTSIDE_BOX_WARNING = 0.25
-"""A tracked frame whose measured surface lies outside the map's box by more than this share gets
-the run's one warning (``mapping.share_outside_bound``)."""
-
-
 def close_progress(progress) -> None:
     """Close the progress bar (None: there is none)."""
     if progress is not None:
@@ -237,42 +234,14 @@ def restart_advice(out: Path) -> str:
     return "--resume (from its checkpoint) or --overwrite" if (out / "checkpoint.pt").is_file() else "--overwrite"
 
 
-def outside_box_summary(log) -> dict:
-    """metrics.json's ``outside_box``: the largest share of a tracked frame's measured surface
-    outside the map's box, that frame, and how many frames were over :data:`OUTSIDE_BOX_WARNING`."""
-    shares = [(entry["outside_box"], entry["frame"]) for entry in log if "outside_box" in entry]
-    if not shares:
-        return {}
-    largest, frame = max(shares)
-    over = sum(share > OUTSIDE_BOX_WARNING for share, _ in shares)
-    return {"outside_box": {"max_share": largest, "frame": frame, "frames_over_warning": over,
-                            "warning_share": OUTSIDE_BOX_WARNING}}
-
-
-def spline_offset_summary(log) -> dict:
-    """metrics.json's ``spline_offsets``: how far TS-SLAM's spline lies from the frames' own poses
-    (tracking's, moved by the map update where it ran) when their interval is committed, RMS and largest
-    distance (m) and angle (deg) over the frames, and the frames of the largest.  Both tracking's
-    noise and motion faster than the knots show here (docs/system.md, "What the spline smoothed
-    away")."""
-    rows = [(entry["spline_offset_m"], entry["spline_offset_deg"], entry["frame"]) for entry in log
-            if "spline_offset_m" in entry]
-    if not rows:
-        return {}
-    distances, angles, frames = (np.asarray(column) for column in zip(*rows))
-    return {"spline_offsets": {
-        "frames": len(rows), "position_rms_m": float(np.sqrt(np.mean(distances ** 2))),
-        "position_max_m": float(distances.max()), "position_max_frame": int(frames[distances.argmax()]),
-        "rotation_rms_deg": float(np.sqrt(np.mean(angles ** 2))), "rotation_max_deg": float(angles.max()),
-        "rotation_max_frame": int(frames[angles.argmax()])}}
-
-
-def write_partial_trajectory(state, out: Path) -> None:
-    """The trajectory estimated so far as ``out/trajectory.txt`` (TUM format), atomically."""
+def write_partial_outputs(state, out: Path) -> None:
+    """The trajectory estimated so far as ``out/trajectory.txt`` (TUM format) and the per-frame log
+    so far as ``out/frames.csv``, each atomically."""
     from .export import estimated_trajectory
 
     poses = estimated_trajectory(state).detach().cpu().double().numpy()
     data_module.write_tum_trajectory(out / "trajectory.txt", state.timestamps[: len(poses)], poses, overwrite=True)
+    atomic_write_text(out / "frames.csv", frames_table(state.log, state.timestamps[: len(poses)]))
 
 
 def export_file_name(rate_hz: float) -> str:
@@ -417,6 +386,7 @@ def write_outputs(plan, result) -> None:
     from .export import export_continuous
 
     data_module.write_tum_trajectory(out / "trajectory.txt", result.timestamps, result.poses, overwrite=True)
+    atomic_write_text(out / "frames.csv", frames_table(result.state.log, result.timestamps))
     camera = sequence.intrinsics  # as the run used it: after crop and resize
     metrics = {"method": cfg.method, "sequence": sequence.name, "frames": int(len(sequence)),
                "frames_per_second": result.frames_per_second,
@@ -451,50 +421,6 @@ def write_outputs(plan, result) -> None:
     if "peak_rss_mib" in metrics:
         parts.append(f"peak RSS {metrics['peak_rss_mib']:.0f} MiB")
     print("; ".join(parts + [f"outputs in {out}"]))
-
-
-LOST_SPEED = 5.0
-"""m/s: an estimated camera centre faster than this between two frames gets a warning.  Twice the
-fastest hand-held motion of the real trajectories we know (TUM-VI room1: 2.5 m/s between 30 Hz
-samples; TUM RGB-D desk and teddy: 0.5-0.6); a camera that tracking lost jumps faster (a 300 deg/s pan
-about a fixed centre, lost: 7.5-8.3 m/s), while the tracking loss may not rise at all."""
-
-
-def motion_summary(timestamps: np.ndarray, poses: np.ndarray) -> dict:
-    """``{"motion": ...}``: the estimate's peak speed (m/s) and angular speed (deg/s) between
-    consecutive frames, and their frames; a warning on stderr when the speed passes :data:`LOST_SPEED`.
-
-    Args: timestamps (N,) float64 s, increasing; poses (N, 4, 4) camera-to-world."""
-    if len(timestamps) < 2:
-        return {}
-    spacing = np.diff(timestamps)
-    speed = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) / spacing
-    relative = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])  # R_i^T R_{i+1}
-    angular_speed = rotation_angle_deg(relative) / spacing
-    fastest, turning = int(np.argmax(speed)), int(np.argmax(angular_speed))
-    if speed[fastest] > LOST_SPEED:
-        print(f"warning: the estimated camera moves {speed[fastest]:.1f} m/s from frame {fastest} to {fastest + 1} "
-              f"(more than {LOST_SPEED:g} m/s, twice the fastest hand-held motion we know): tracking was most likely "
-              f"lost there (the divergence stop watches the loss, which a lost camera need not raise); check "
-              f"trajectory.png", file=sys.stderr)
-    return {"motion": {"peak_speed_m_s": float(speed[fastest]), "peak_speed_after_frame": fastest,
-                       "peak_angular_speed_deg_s": float(angular_speed[turning]),
-                       "peak_angular_speed_after_frame": turning}}
-
-
-def spline_summary(trajectory, knots: str) -> dict:
-    """Where a TS-SLAM run's knots went: the knot rule, the domain's interval count, their lengths
-    (min / mean / max, s) and the interval boundaries (float64 s, as the frames' stamps; the last
-    one is the domain's end, past the last frame)."""
-    start, end = trajectory.domain()
-    boundaries = [start]
-    while boundaries[-1] < end:
-        boundaries.append(trajectory.interval(len(boundaries) - 1)[1])
-    boundaries = np.asarray(boundaries, dtype=np.float64)
-    lengths = np.diff(boundaries)
-    return {"knots": knots, "intervals": int(len(lengths)), "interval_min_s": float(lengths.min()),
-            "interval_mean_s": float(lengths.mean()), "interval_max_s": float(lengths.max()),
-            "interval_boundaries_s": boundaries.tolist()}
 
 
 def _jsonable(value):
