@@ -986,7 +986,6 @@ def test_the_spline_check_measures_the_largest_distance_of_one_frame():
         slam.check_spline_follows_tracking(state, trajectory, state.timestamps, frames)
 
 
-
 def test_the_spline_check_logs_each_frames_offset_from_the_spline():
     """check_spline_follows_tracking writes each checked frame's distance and angle to the spline into its
     log entry.  Oracle: stored poses made from the spline's by hand, frame 3 moved 3 cm along (0, 0.6,
@@ -1017,6 +1016,7 @@ def test_the_spline_check_logs_each_frames_offset_from_the_spline():
     assert summary["position_max_frame"] == 3 and summary["rotation_max_frame"] == 3
     assert summary["rotation_max_deg"] == pytest.approx(2.0, rel=1e-9)
     assert run_summaries.spline_offset_summary([{"frame": 1, "tracking_loss": 1.0}]) == {}
+
 
 def test_tracking_keeps_the_newest_two_outputs_and_judges_divergence_on_the_first_five_frames(monkeypatch):
     """track with track_frame replaced by a stub returning pose T_i (x = 10 i m) and a chosen loss:
