@@ -47,7 +47,7 @@ from tsslam_ref import config, data, slam, spline
 from tsslam_ref.device import resolve_device, tune_cpu_allocator
 from tsslam_ref.field import SceneField
 from tsslam_ref.files import atomic_write_text
-from tsslam_ref.geometry import rotation_angle_deg, so3_exp
+from tsslam_ref.geometry import pose_offsets, so3_exp
 from tsslam_ref.mapping import make_map_optimizer
 from tsslam_ref.run import parse_frames, trajectory_metrics
 from tsslam_ref.cli_args import OneLineParser, number_in
@@ -72,10 +72,10 @@ def run_method(sequence, cfg: config.Config, device: torch.device) -> Dict[str, 
 
 def agreement(cpu_poses: np.ndarray, device_poses: np.ndarray) -> Dict[str, float]:
     """Largest and RMS position distance (cm) and largest rotation angle (deg) between two (N, 4, 4) runs."""
-    distance = np.linalg.norm(cpu_poses[:, :3, 3] - device_poses[:, :3, 3], axis=-1) * 100
-    relative = np.swapaxes(cpu_poses[:, :3, :3], -1, -2) @ device_poses[:, :3, :3]
+    distance, angle = pose_offsets(cpu_poses, device_poses)
+    distance = distance * 100
     return {"max_position_cm": float(distance.max()), "rms_position_cm": float(np.sqrt(np.mean(distance**2))),
-            "max_rotation_deg": float(rotation_angle_deg(relative).max())}
+            "max_rotation_deg": float(angle.max())}
 
 
 def relative_difference(cpu: torch.Tensor, other: torch.Tensor) -> float:

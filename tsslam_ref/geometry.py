@@ -260,3 +260,11 @@ def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
     sin_angle = 0.5 * np.linalg.norm(skew_part, axis=-1)
     cos_angle = 0.5 * (np.trace(rotations, axis1=-2, axis2=-1) - 1.0)
     return np.degrees(np.arctan2(sin_angle, cos_angle))
+
+
+def pose_offsets(poses_a: np.ndarray, poses_b: np.ndarray):
+    """How far two pose sequences are apart, pose by pose: (N,) distances between the camera centres
+    (m) and (N,) angles |Log(R_a^T R_b)| (deg) of (N, 4, 4) camera-to-world poses, float64."""
+    poses_a, poses_b = np.asarray(poses_a, np.float64), np.asarray(poses_b, np.float64)
+    distances = np.linalg.norm(poses_a[:, :3, 3] - poses_b[:, :3, 3], axis=-1)
+    return distances, rotation_angle_deg(np.swapaxes(poses_a[:, :3, :3], -1, -2) @ poses_b[:, :3, :3])

@@ -20,9 +20,8 @@ from .geometry import rotation_angle_deg
 FRAME_COLUMNS = ("frame", "timestamp_s", "tracking_loss", "tracking_iterations", "tracking_seconds",
                  "outside_box_share", "spline_offset_m", "spline_offset_deg")
 """The columns of ``frames.csv``, one row per frame (empty where a value does not apply)."""
-_LOG_KEYS = {"tracking_loss": "tracking_loss", "tracking_iterations": "tracking_iterations",
-             "tracking_seconds": "tracking_seconds", "outside_box_share": "outside_box",
-             "spline_offset_m": "spline_offset_m", "spline_offset_deg": "spline_offset_deg"}
+_LOG_KEYS = ("tracking_loss", "tracking_iterations", "tracking_seconds", "outside_box", "spline_offset_m",
+             "spline_offset_deg")  # FRAME_COLUMNS[2:] as the log names them
 
 
 def frames_table(log, timestamps: np.ndarray) -> str:
@@ -36,7 +35,7 @@ def frames_table(log, timestamps: np.ndarray) -> str:
     for frame in range(min(len(timestamps), last + 1)):
         entry = entries.get(frame, {})
         values = [str(frame), f"{timestamps[frame]:.6f}"]
-        values += [_cell(entry.get(key)) for key in _LOG_KEYS.values()]
+        values += [_cell(entry.get(key)) for key in _LOG_KEYS]
         lines.append(",".join(values))
     return "\n".join(lines) + "\n"
 

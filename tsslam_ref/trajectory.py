@@ -39,7 +39,7 @@ import torch
 
 from . import knots as knots_module
 from . import spline as spline_module
-from .geometry import make_pose, rotation_angle_deg, so3_exp, so3_log
+from .geometry import make_pose, pose_offsets, so3_exp, so3_log
 from .times import check_float64_seconds, float64_seconds
 
 _ROTATION_JUMP_WARN = 0.5 * np.pi
@@ -224,11 +224,8 @@ class BSplineTrajectory:
     def offsets(self, times, poses: torch.Tensor) -> Tuple[np.ndarray, np.ndarray]:
         """How far ``poses`` (F, 4, 4) lie from the curve at ``times`` (F,) s: (F,) distances (m)
         between the camera centres and (F,) angles (deg) of R(t)^T R, float64."""
-        curve = self.poses(times).detach().to("cpu", torch.float64).numpy()
-        given = poses.detach().to("cpu", torch.float64).numpy()
-        distances = np.linalg.norm(curve[:, :3, 3] - given[:, :3, 3], axis=-1)
-        angles = rotation_angle_deg(np.swapaxes(curve[:, :3, :3], -1, -2) @ given[:, :3, :3])
-        return distances, angles
+        return pose_offsets(self.poses(times).detach().to("cpu", torch.float64).numpy(),
+                            poses.detach().to("cpu", torch.float64).numpy())
 
     # --- growing and shrinking (in place)
     def push_back(self, rotation: torch.Tensor, translation: torch.Tensor, knot_time: Optional[float] = None) -> None:
