@@ -101,7 +101,7 @@ def test_a_time_on_an_interior_knot_starts_the_next_segment():
 
 def test_basis_matrix_of_equal_spacing_is_the_paper_matrix():
     local = torch.tensor([[-2.0, -1.0, 0.0, 1.0, 2.0, 3.0]], dtype=F64)
-    C = torch.tensor(spline._C, dtype=F64) / 6.0
+    C = torch.tensor(spline.CUMULATIVE_BASIS, dtype=F64) / 6.0
     assert torch.allclose(knots.cumulative_basis_matrix(local)[0], C, atol=1e-15, rtol=0)
 
 

@@ -69,7 +69,8 @@ def _weighted_cumulative_translation(parsed: dict, times: np.ndarray,
     offset = 2 if parsed["convention"] == "paper" else 0
     u = (times - parsed["t0"]) / parsed["dt"] - offset - first
     monomials = np.stack([np.ones_like(u), u, u * u, u * u * u], -1)  # (M, 4)
-    weights = monomials @ (np.asarray(spline._C) / 6.0 if matrix is None else matrix)  # (M, 4): Cᵀ instead of C
+    basis = np.asarray(spline.CUMULATIVE_BASIS) / 6.0 if matrix is None else matrix  # the hint: Cᵀ instead of C
+    weights = monomials @ basis  # (M, 4)
     points = parsed["translations"]
     deltas = points[first[:, None] + np.arange(1, 4)] - points[first[:, None] + np.arange(0, 3)]  # (M, 3, 3)
     return points[first] + (weights[:, 1:, None] * deltas).sum(1)
@@ -312,9 +313,9 @@ def _world_twist_pose(parsed: dict, times: np.ndarray) -> Dict[str, np.ndarray]:
     relative_R = rotations[1:] @ rotations[:-1].transpose(-1, -2)
     relative_p = points[1:] - (relative_R @ points[:-1].unsqueeze(-1)).squeeze(-1)
     twists = se3_spline.se3_log(relative_R, relative_p)  # (N-1, 6)
-    first, u, _ = spline._locate(times, len(points), parsed["dt"], parsed["t0"], parsed["convention"])
+    first, u, _ = spline.locate_segments(times, len(points), parsed["dt"], parsed["t0"], parsed["convention"])
     xi = twists[first[:, None] + torch.arange(3)]
-    R, p = se3_spline._pose_at(u.to(points.dtype), rotations[first], points[first], xi)
+    R, p = se3_spline.pose_at_segment(u.to(points.dtype), rotations[first], points[first], xi)
     return {"R": R.numpy(), "p": p.numpy()}
 
 

@@ -184,14 +184,14 @@ def cumulative_weights(knots: torch.Tensor, segment: torch.Tensor, u: torch.Tens
 def locate(times: TimesLike, knots: np.ndarray):
     """(segment (M,) int64, u (M,) float64, times.shape) on a checked knot vector; ValueError off the domain."""
     t_min, t_max = valid_time_range(knots)
-    times64 = spline._times_float64(times)
+    times64 = spline.times_float64(times)
     shape = times64.shape
     flat = times64.reshape(-1)
     knots_t = torch.as_tensor(knots, dtype=torch.float64, device=flat.device)
     with torch.no_grad():
         plain = flat.detach()
-        low = t_min - spline._end_tolerance(t_min, knots[0])
-        high = t_max + spline._end_tolerance(t_max, knots[0])
+        low = t_min - spline.end_tolerance(t_min, knots[0])
+        high = t_max + spline.end_tolerance(t_max, knots[0])
         bad = ~((plain >= low) & (plain <= high))  # NaN is bad too
         if bool(bad.any()):
             first_bad = float(plain[bad.nonzero()[0, 0]])

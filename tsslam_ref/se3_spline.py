@@ -3,7 +3,7 @@
 Not what TS-SLAM uses (the paper's Eq. (5)-(6) are split SO(3) x R³, :mod:`tsslam_ref.spline`); here
 so that users of joint SE(3) libraries can check their code with the conformance kit
 (``"representation": "se3"``).  Same basis C, same index conventions and the same time rule as
-:mod:`tsslam_ref.spline` (its ``_locate``).  Formulas (tangent ξ = (ρ, φ), translation first, as
+:mod:`tsslam_ref.spline` (its ``locate_segments``).  Formulas (tangent ξ = (ρ, φ), translation first, as
 PyPose):
 
     T(t) = T_k Π_{j=1..3} Exp(B_j(u) ξ_j),   ξ_j = Log(T_{k+j−1}⁻¹ T_{k+j}) ∈ se(3),
@@ -61,7 +61,7 @@ def knot_twists(control_rotations: torch.Tensor, control_translations: torch.Ten
     return se3_log(relative_R, relative_p)
 
 
-def _pose_at(u: torch.Tensor, first_R: torch.Tensor, first_p: torch.Tensor, xi: torch.Tensor):
+def pose_at_segment(u: torch.Tensor, first_R: torch.Tensor, first_p: torch.Tensor, xi: torch.Tensor):
     """T(u) = T_k Π Exp(B_j(u) ξ_j): u (M,), first pose (M, 3, 3), (M, 3), ξ (M, 3, 6) -> R, p."""
     B = spline.basis(u, 0)[:, 1:]  # (M, 3)
     R, p = first_R, first_p
@@ -90,7 +90,7 @@ def evaluate(control_rotations: torch.Tensor, control_translations: torch.Tensor
     n_ctrl = spline.check_control_points(control_rotations, control_translations, batched=False)
     if derivatives not in (0, 1, 2):
         raise ValueError(f"derivatives must be 0, 1 or 2, got {derivatives!r}")
-    first, u, _ = spline._locate(times, n_ctrl, dt, t0, convention)
+    first, u, _ = spline.locate_segments(times, n_ctrl, dt, t0, convention)
     device = control_translations.device
     first = first.to(device)
     twists = knot_twists(control_rotations, control_translations)  # (N−1, 6)
@@ -99,7 +99,7 @@ def evaluate(control_rotations: torch.Tensor, control_translations: torch.Tensor
     u = u.to(device=device, dtype=control_translations.dtype)
 
     def pose(u_):
-        return _pose_at(u_, first_R, first_p, xi)
+        return pose_at_segment(u_, first_R, first_p, xi)
 
     R, p = pose(u)
     if derivatives == 0:

@@ -69,8 +69,8 @@ import torch
 from tsslam_ref.geometry import so3_exp, so3_log
 from tsslam_ref.times import check_float64_seconds  # noqa: F401  (re-exported: knots, conformance)
 
-# Cumulative cubic basis matrix C of §III-B (rows: B_0..B_3, columns: powers 1, u, u², u³).
-_C = (
+# 6 C: the cumulative cubic basis matrix C of §III-B times 6 (rows B_0..B_3, columns powers 1, u, u², u³).
+CUMULATIVE_BASIS = (
     (6.0, 0.0, 0.0, 0.0),
     (5.0, 3.0, -3.0, 1.0),
     (1.0, 3.0, 3.0, -2.0),
@@ -128,7 +128,7 @@ def basis(u: torch.Tensor, order: int = 0) -> torch.Tensor:
         tensor([6., 5., 1., 0.], dtype=torch.float64)
     """
     monomials = basis_monomials(u, order)  # (..., 4)
-    C = torch.tensor(_C, dtype=monomials.dtype, device=monomials.device) / 6.0
+    C = torch.tensor(CUMULATIVE_BASIS, dtype=monomials.dtype, device=monomials.device) / 6.0
     return monomials @ C.T  # (..., 4)
 
 
@@ -199,7 +199,7 @@ def check_resolvable(interval: float, time: float) -> None:
                          f"subtract a reference time from the stamps first")
 
 
-def _times_float64(times: TimesLike) -> torch.Tensor:
+def times_float64(times: TimesLike) -> torch.Tensor:
     """Times as a float64 tensor (keeps autograd and device of a tensor input); TypeError for
     floating times narrower than float64 (:func:`check_float64_seconds`)."""
     check_float64_seconds("times", times)
@@ -208,7 +208,7 @@ def _times_float64(times: TimesLike) -> torch.Tensor:
     return torch.as_tensor(np.asarray(times).astype(np.float64))
 
 
-def _end_tolerance(t_end: float, t0: float) -> float:
+def end_tolerance(t_end: float, t0: float) -> float:
     """Seconds of float64 rounding allowed at a domain end t_end = t0 + kΔt (END_ULPS ulps of the
     larger of |t_end| and |t0|)."""
     return END_ULPS * np.finfo(np.float64).eps * max(abs(t_end), abs(t0))
@@ -219,14 +219,14 @@ def time_in_domain(times: TimesLike, n_ctrl: int, dt: float, t0: float, conventi
     input, a tensor for a tensor).
 
     The ends are the float64 values of :func:`valid_time_range`, widened by their own float64
-    rounding (:func:`_end_tolerance`); the same rule for absolute stamps and relative times
+    rounding (:func:`end_tolerance`); the same rule for absolute stamps and relative times
     (1.2e-6 s at ends near a 1.3e9 s stamp, 5e-17 s at ends near 0.06 s).  NaN is outside.
     """
     check_float64_seconds("times", times)  # a float32 time compares as a time up to a minute away
     t_min, t_max = valid_time_range(n_ctrl, dt, t0, convention)
     if not isinstance(times, torch.Tensor):
         times = np.asarray(times, dtype=np.float64)
-    return (times >= t_min - _end_tolerance(t_min, t0)) & (times <= t_max + _end_tolerance(t_max, t0))
+    return (times >= t_min - end_tolerance(t_min, t0)) & (times <= t_max + end_tolerance(t_max, t0))
 
 
 def _exact_floor_quotient(flat: torch.Tensor, dt: float, t0: float) -> torch.Tensor:
@@ -250,7 +250,7 @@ def _exact_floor_quotient(flat: torch.Tensor, dt: float, t0: float) -> torch.Ten
     return k.to(torch.int64)
 
 
-def _locate(times: TimesLike, n_ctrl: int, dt: float, t0: float, convention: str):
+def locate_segments(times: TimesLike, n_ctrl: int, dt: float, t0: float, convention: str):
     """Segment lookup: (first control index (M,) int64, u (M,) float64, times.shape).
 
     The segment is the floor of the exact (t − t0)/Δt minus the offset (module docstring),
@@ -260,7 +260,7 @@ def _locate(times: TimesLike, n_ctrl: int, dt: float, t0: float, convention: str
     """
     t_min, t_max = valid_time_range(n_ctrl, dt, t0, convention)
     offset = _FIRST_SEGMENT_OFFSET[convention]
-    times64 = _times_float64(times)
+    times64 = times_float64(times)
     shape = times64.shape
     flat = times64.reshape(-1)  # (M,)
     s = (flat - float(t0)) / float(dt) - offset  # (M,) float64, 0 at t_min
@@ -293,7 +293,7 @@ def active_control_indices(
     Raises:
         ValueError: a time outside the closed domain (see :func:`valid_time_range`).
     """
-    first, _, shape = _locate(times, n_ctrl, dt, t0, convention)
+    first, _, shape = locate_segments(times, n_ctrl, dt, t0, convention)
     window = first[:, None] + torch.arange(4, device=first.device)  # (M, 4)
     return window.reshape(*shape, 4)
 
@@ -503,7 +503,7 @@ def evaluate(
             malformed shapes, N < 4, unknown convention.
     """
     n_ctrl = check_control_points(control_rotations, control_translations)
-    first, u, shape = _locate(times, n_ctrl, dt, t0, convention)
+    first, u, shape = locate_segments(times, n_ctrl, dt, t0, convention)
     sample = evaluate_segments(control_rotations, control_translations, first, u, dt, derivatives)
     return reshape_sample(sample, control_translations.shape[:-2], shape)
 

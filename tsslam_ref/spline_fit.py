@@ -18,8 +18,8 @@ import torch
 
 from tsslam_ref import knots as knots_module
 from tsslam_ref.geometry import so3_exp, so3_log
-from tsslam_ref.spline import (CumulativeWeights, _locate, evaluate_weights, first_segment_offset, time_in_domain,
-                               uniform_weights)
+from tsslam_ref.spline import (CumulativeWeights, evaluate_weights, first_segment_offset, locate_segments,
+                               time_in_domain, uniform_weights)
 from tsslam_ref.times import check_float64_seconds, float64_seconds
 from tsslam_ref.trajectory import BSplineTrajectory
 
@@ -132,7 +132,7 @@ def _segment_weights(times: np.ndarray, n_ctrl: int, dt: float, t0: float, conve
     ``device``), fixed during the fit: uniform (dt, t0, convention) or from the knot vector;
     ValueError off the domain."""
     if knots is None:
-        first, u, _ = _locate(times, n_ctrl, dt, t0, convention)
+        first, u, _ = locate_segments(times, n_ctrl, dt, t0, convention)
         return first, uniform_weights(u.to(device=device, dtype=torch.float64), dt, 0)
     knots = knots_module.check_knots(knots, n_ctrl)
     first, u, _ = knots_module.locate(times, knots)

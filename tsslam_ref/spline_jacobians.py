@@ -170,7 +170,7 @@ def jacobians(control_rotations: torch.Tensor, control_translations: torch.Tenso
         each (M, 4, 3, 3) in the control points' dtype.
     """
     n_ctrl = spline.check_control_points(control_rotations, control_translations, batched=False)
-    first, u, _ = spline._locate(times, n_ctrl, dt, t0, convention)
+    first, u, _ = spline.locate_segments(times, n_ctrl, dt, t0, convention)
     dtype, device = control_translations.dtype, control_translations.device
     u = u.detach().to(device=device, dtype=dtype)
     first = first.to(device)
