@@ -390,3 +390,25 @@ def test_a_checkpoint_of_an_earlier_version_without_the_code_digest_says_it_does
     assert checkpoint.environment_changes({"torch": "2.13.0+cpu"}, now) == [
         "the checkpoint, of an earlier version, does not record tsslam_ref (now '0.1.0, source 0123456789ab')"]
     assert checkpoint.environment_changes(dict(now), now) == []
+
+
+@pytest.mark.parametrize("method", ["tsslam", "coslam"])
+def test_a_config_saved_before_a_default_changed_counts_at_the_value_it_ran_with(method):
+    """spline.last_interval became "last_frame" after versions that saved no such key and ran the
+    paper's "planned": resuming such a TS-SLAM run under today's default is refused, naming the key
+    and the value it ran with, and accepted with that value; a Co-SLAM run never reads the key."""
+    saved = config.to_dict(config.load("tum-cpu"))
+    saved["method"] = method
+    assert saved["spline"].pop("last_interval") == "last_frame"  # today's default, which the file lacks
+    today = config.load("tum-cpu")
+    today.method = method
+    as_then = config.apply_overrides(copy.deepcopy(today), ["spline.last_interval=planned"])
+    differences = checkpoint.config_differences(saved, today)
+    if method == "tsslam":
+        assert differences == ['spline.last_interval was "planned" by default (the checkpoint, of an earlier version, '
+                               'lacks it), this command gives "last_frame"']
+        assert checkpoint.config_differences(saved, as_then) == []
+    else:
+        assert differences == []
+    saved["spline"]["last_interval"] = "last_frame"  # a file that has the key counts at its own value
+    assert checkpoint.config_differences(saved, today) == []

@@ -77,8 +77,10 @@ def test_adaptive_knots_run_end_to_end_with_uneven_intervals(synthetic_sequence,
     """spline.knots=adaptive: the run completes, its knots are uneven and within [dt_min, dt_max]
     after the first interval (which is dt long), the outputs are the spline's poses and they
     follow the ground truth as the uniform run does."""
+    # the last interval as the policy planned it too (by default it ends just after the last frame)
     cfg = config.apply_overrides(small_config("tsslam"), ["spline.knots=adaptive", "spline.dt_min=0.1",
-                                                      "spline.dt_max=0.3", "spline.position_tolerance=0.0005"])
+                                                      "spline.dt_max=0.3", "spline.position_tolerance=0.0005",
+                                                      "spline.last_interval=planned"])
     sequence = data.load_sequence(synthetic_sequence)
     result = slam.run_slam(sequence, cfg, device=torch.device("cpu"))
     trajectory = result.state.trajectory

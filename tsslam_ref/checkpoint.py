@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from . import config as config_module
-from .config_io import RETIRED_KEYS
+from .config_io import EARLIER_VALUES, RETIRED_KEYS
 from .data import default_sequence_path
 from .files import atomic_path
 
@@ -251,18 +251,22 @@ def config_differences(saved: Dict[str, Any], cfg: config_module.Config,
     """'key: saved -> now' for every config value that differs from the saved config (``saved_in``
     names where it was saved, for the message); not ``device``, whose resolved value
     :func:`environment_changes` compares (a warning), nor keys that earlier versions saved and nothing
-    read (``config_io.RETIRED_KEYS``).  A key that earlier versions did not save counts at its default."""
+    read (``config_io.RETIRED_KEYS``).  A key that earlier versions did not save counts at its default,
+    or at the value they ran with where the default has changed since (``config_io.EARLIER_VALUES``)."""
     old, new = _flatten(saved), _flatten(config_module.to_dict(cfg))
     old = {key: value for key, value in old.items() if key not in RETIRED_KEYS}
     # a key a later version added is absent from an earlier version's file: it has the value loading that
-    # file gives it (the preset's the file names, as config.load sets a file's values on that preset)
+    # file gives it (the preset's the file names, as config.load sets a file's values on that preset), or
+    # the value that version ran with where the default has changed since
     preset = config_module.PRESETS.get(saved.get("name"), config_module.Config)
-    defaults = _flatten(config_module.to_dict(preset()))
+    defaults = {**_flatten(config_module.to_dict(preset())), **EARLIER_VALUES}
     changes = []
     for key in sorted(set(old) | set(new)):
         before, after = old.get(key, defaults.get(key, "<absent>")), new.get(key, "<absent>")
         if key == "device":  # "auto" and "cpu" may name one device: the one used is compared as environment
             continue
+        if key in EARLIER_VALUES and key not in old and config_module.overrides_without_effect(cfg.method, [key], cfg):
+            continue  # what an earlier version ran with does not matter where the run does not read the key
         if key == "data.path" and isinstance(before, str) and isinstance(after, str):
             same = _data_folder(before) == _data_folder(after)
         else:

@@ -252,12 +252,12 @@ class SplineConfig(_Settings):
     """'uniform': every interval dt long (the paper).  'adaptive' (ours, beyond the paper): the first
     interval is dt long, each later one's length is chosen by the knot policy from the motion
     tracked over the last two intervals, h = sqrt(6 eps / a) within [dt_min, dt_max] (knot_policy.py)."""
-    last_interval: str = ranged("planned", "in", ('planned', 'last_frame'))
+    last_interval: str = ranged("last_frame", "in", ('planned', 'last_frame'))
     """Where the run's last interval, which no frame closes, ends when it is mapped at the end of
-    the run: 'planned' (its knot as scheduled, ``dt`` after its start with uniform knots; the
-    paper's loop, and what every published table here uses) or 'last_frame' (ours): a quarter
-    frame spacing after the last frame, so the last frames are fitted near the end of their
-    interval; measured in docs/system.md, "The run's last interval"."""
+    the run: 'last_frame' (ours, the default): a quarter frame spacing after the last frame, so the
+    last frames are fitted near the end of their interval, or 'planned' (its knot as scheduled,
+    ``dt`` after its start with uniform knots: the paper's loop); measured in docs/system.md, "The
+    run's last interval"."""
     dt_min: float = ranged(0.1, "(]", (0, 10))
     """Shortest adaptive interval (s): at the 30 Hz of RGB-D cameras 0.1 s holds about three frames,
     the fewest whose tracked poses still constrain the interval's new control point."""

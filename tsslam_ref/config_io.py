@@ -63,6 +63,11 @@ RETIRED_KEYS = ("mesh.voxel_eval",)
 """Keys that earlier versions wrote into config.json but nothing read (Co-SLAM's voxel of the meshes
 it writes during a run; this package writes none): skipped when a file is read, refused in ``--set``."""
 
+EARLIER_VALUES = {"spline.last_interval": "planned"}
+"""Keys whose default changed after earlier versions had saved configs without them, with the value
+those versions ran with: a saved config that lacks the key counts at that value when ``--resume``
+compares it with the command (``checkpoint.config_differences``), not at today's default."""
+
 
 def _suggestion(target: Any, name: str, section: str = "") -> str:
     """' (did you mean 'section.key'?)' for a misspelt key of the config dataclass ``target``, else ''."""

@@ -7,8 +7,8 @@ that interval's control point is added: the end of interval n + 1 is set on the 
 (:meth:`trajectory.BSplineTrajectory.plan_interval_end`) from the motion tracked over intervals
 n - 1 and n (:mod:`tsslam_ref.knot_policy`).  So the next mapping step is triggered, and its
 control point placed, by the motion; the first interval is ``spline.dt`` long.  With the default
-``"uniform"`` nothing here runs.  With ``spline.last_interval = "last_frame"`` (either knot type)
-:func:`end_last_interval` ends the run's last interval just after its last frame.
+``"uniform"`` nothing here runs.  With ``spline.last_interval = "last_frame"`` (the default, either
+knot type) :func:`end_last_interval` ends the run's last interval just after its last frame.
 
 Layer 4 (system support): reads the loop's state (``slam.SLAMState``) and its config; imports
 ``knot_policy``.  User doc: docs/system.md, "Adaptive knots".
@@ -49,7 +49,7 @@ def end_last_interval(state, last: int) -> None:
     """``spline.last_interval = "last_frame"``: before the run's last, incomplete interval is mapped
     (``slam.tsslam_finish``), end it a quarter frame spacing after the last frame ``last``
     (:func:`knot_policy.last_interval_end`); the knots after it stay assumed at its planned length.
-    With ``"planned"`` (the default), without the spline, or when the last frame is not inside
+    With ``"planned"`` (the paper's loop), without the spline, or when the last frame is not inside
     the interval, nothing changes.  Why: docs/system.md, "The run's last interval"."""
     if state.cfg.spline.last_interval != "last_frame" or not state.cfg.local_ba.use_spline or last < 1:
         return
