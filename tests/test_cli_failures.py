@@ -745,7 +745,8 @@ def test_a_camera_standing_still_or_turning_in_place_gets_its_ate(tmp_path, caps
     bounds = np.array(metrics["spline"]["interval_boundaries_s"])
     assert metrics["spline"]["knots"] == "uniform" and metrics["spline"]["intervals"] == len(bounds) - 1
     assert abs(bounds[0] - stamps[0]) < 1e-6 and bounds[-2] <= stamps[-1] < bounds[-1]
-    np.testing.assert_allclose(np.diff(bounds), config_module.tiny().spline.dt, rtol=1e-9)
+    np.testing.assert_allclose(np.diff(bounds[:-1]), config_module.tiny().spline.dt, rtol=1e-9)
+    assert bounds[-1] == pytest.approx(stamps[-1] + 0.25 * 0.1, abs=2e-6)  # a quarter spacing past the last
 
 
 def test_a_map_without_a_surface_still_ends_with_metrics(runs, tmp_path, monkeypatch, capsys):
