@@ -15,7 +15,7 @@ import sys
 
 import numpy as np
 
-from .geometry import rotation_angle_deg
+from .geometry import pose_offsets
 
 FRAME_COLUMNS = ("frame", "timestamp_s", "tracking_loss", "tracking_iterations", "tracking_seconds",
                  "outside_box_share", "spline_offset_m", "spline_offset_deg")
@@ -97,9 +97,8 @@ def motion_summary(timestamps: np.ndarray, poses: np.ndarray) -> dict:
     if len(timestamps) < 2:
         return {}
     spacing = np.diff(timestamps)
-    speed = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) / spacing
-    relative = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])  # R_i^T R_{i+1}
-    angular_speed = rotation_angle_deg(relative) / spacing
+    distances, angles = pose_offsets(poses[:-1], poses[1:])  # from frame i to i + 1: |Log(R_i^T R_{i+1})|
+    speed, angular_speed = distances / spacing, angles / spacing
     fastest, turning = int(np.argmax(speed)), int(np.argmax(angular_speed))
     if speed[fastest] > LOST_SPEED:
         print(f"warning: the estimated camera moves {speed[fastest]:.1f} m/s from frame {fastest} to {fastest + 1} "
